@@ -1,0 +1,22 @@
+"""Exception types raised by the css_ros engine; callers catch these, not bare Exception."""
+from __future__ import annotations
+
+
+class CssError(Exception):
+    """Base class of every error css_ros raises on purpose."""
+
+
+class ModelError(CssError):
+    """A splat model file is missing, malformed or holds invalid values."""
+
+
+class CameraError(CssError):
+    """Camera intrinsics or pose are invalid (non-finite, bad quaternion, bad size)."""
+
+
+class MapError(CssError):
+    """A semantic map cannot be built, saved or loaded (bad checkpoint, wrong model)."""
+
+
+class InputError(CssError):
+    """An input frame (image, segmentation, confidence) is malformed."""

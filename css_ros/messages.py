@@ -1,0 +1,184 @@
+"""Array <-> ROS message conversion shared by the node (rclpy) and the bag tools (rosbags).
+
+Every function is duck-typed on the message's field names, so the same code reads rclpy messages and
+rosbags-deserialised messages. Builders return plain dicts of fields; each caller constructs the
+message class of its own library from them.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+
+#: encoding -> (numpy dtype, channels)
+IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "rgba8": (np.dtype(np.uint8), 4),
+    "bgra8": (np.dtype(np.uint8), 4),
+    "mono8": (np.dtype(np.uint8), 1),
+    "8UC1": (np.dtype(np.uint8), 1),
+    "mono16": (np.dtype(np.uint16), 1),
+    "16UC1": (np.dtype(np.uint16), 1),
+    "32FC1": (np.dtype(np.float32), 1),
+}
+COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8")
+LABEL_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1")
+CONFIDENCE_ENCODINGS = ("32FC1",)
+
+#: PointCloud2 layout of ~/view_uncertainty and ~/candidate_scores (all float32).
+VIEW_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw", "u_var", "u_exp")
+POINTFIELD_FLOAT32 = 7
+VIEW_DTYPE = np.dtype([(name, "<f4") for name in VIEW_FIELDS])
+
+
+def _data_bytes(data: Any) -> np.ndarray:
+    if isinstance(data, np.ndarray):
+        return data.view(np.uint8).reshape(-1)
+    return np.frombuffer(bytes(data) if not isinstance(data, (bytes, bytearray, memoryview)) else data,
+                         dtype=np.uint8)
+
+
+def image_to_array(msg: Any, allowed: tuple[str, ...] | None = None) -> np.ndarray:
+    """Decode a sensor_msgs/Image into an array.
+
+    Returns:
+        rgb8/bgr8/rgba8/bgra8: (H, W, 3) uint8 RGB (alpha dropped, BGR swapped);
+        mono8/8UC1: (H, W) uint8; mono16/16UC1: (H, W) uint16; 32FC1: (H, W) float32.
+    Raises:
+        InputError: unknown or disallowed encoding, empty image, or a data/step size that does not
+            match height x width.
+    """
+    encoding = str(msg.encoding)
+    if encoding not in IMAGE_ENCODINGS:
+        raise InputError(f"unsupported encoding '{encoding}'")
+    if allowed is not None and encoding not in allowed:
+        raise InputError(f"encoding '{encoding}' not accepted here (expected one of {', '.join(allowed)})")
+    height, width = int(msg.height), int(msg.width)
+    if height <= 0 or width <= 0:
+        raise InputError(f"empty image ({width}x{height})")
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    row_bytes = width * channels * dtype.itemsize
+    step = int(msg.step)
+    if step < row_bytes:
+        raise InputError(f"step {step} smaller than width*channels*itemsize = {row_bytes}")
+    raw = _data_bytes(msg.data)
+    if raw.size < step * height:
+        raise InputError(f"data holds {raw.size} bytes, expected step*height = {step * height}")
+    rows = raw[: step * height].reshape(height, step)[:, :row_bytes]
+    big = bool(getattr(msg, "is_bigendian", False))
+    dt = dtype.newbyteorder(">" if big else "<") if dtype.itemsize > 1 else dtype
+    array = np.ascontiguousarray(rows).view(dt).reshape(height, width, channels).astype(dtype, copy=False)
+    if channels == 1:
+        return array[:, :, 0]
+    if encoding.startswith("bgr"):
+        array = array[:, :, 2::-1]
+    return np.ascontiguousarray(array[:, :, :3])
+
+
+def array_to_image_fields(array: np.ndarray, encoding: str) -> dict[str, Any]:
+    """Fields of a sensor_msgs/Image holding ``array`` (little endian, tightly packed).
+
+    Args:
+        array: (H, W) for single-channel encodings, (H, W, 3|4) for colour ones; converted to the
+            encoding's dtype (uint8 / uint16 / float32).
+        encoding: one of :data:`IMAGE_ENCODINGS`.
+    Returns:
+        dict(height, width, encoding, is_bigendian, step, data) with ``data`` a 1-D uint8 array.
+    """
+    if encoding not in IMAGE_ENCODINGS:
+        raise InputError(f"unsupported encoding '{encoding}'")
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    array = np.asarray(array)
+    if channels == 1 and array.ndim != 2 or channels > 1 and (array.ndim != 3 or array.shape[2] != channels):
+        raise InputError(f"array of shape {array.shape} does not fit encoding '{encoding}'")
+    array = np.ascontiguousarray(array.astype(dtype.newbyteorder("<"), copy=False))
+    height, width = array.shape[:2]
+    return {
+        "height": int(height),
+        "width": int(width),
+        "encoding": encoding,
+        "is_bigendian": False,
+        "step": int(width * channels * dtype.itemsize),
+        "data": array.view(np.uint8).reshape(-1),
+    }
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_sec_nanosec(ns: int) -> tuple[int, int]:
+    """Integer nanoseconds -> (sec, nanosec) of builtin_interfaces/Time."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return int(sec), int(nanosec)
+
+
+def pose_to_arrays(pose: Any) -> tuple[np.ndarray, np.ndarray]:
+    """geometry_msgs/Pose -> (position (3,) float64 [m], quaternion (4,) float64 in x, y, z, w order)."""
+    p, q = pose.position, pose.orientation
+    return (np.array([p.x, p.y, p.z], dtype=np.float64),
+            np.array([q.x, q.y, q.z, q.w], dtype=np.float64))
+
+
+def camera_info_to_intrinsics(msg: Any) -> tuple[np.ndarray, int, int]:
+    """sensor_msgs/CameraInfo -> (K (3, 3) float64 [px], width, height). Distortion is ignored (rectified)."""
+    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+    if k.size != 9:
+        raise InputError(f"camera_info.k has {k.size} values, expected 9")
+    return k.reshape(3, 3), int(msg.width), int(msg.height)
+
+
+def pack_view_points(positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray,
+                     u_exp: np.ndarray) -> dict[str, Any]:
+    """Fields of a PointCloud2 with one point per scored view (SPEC §8 layout).
+
+    Args:
+        positions: (M, 3) view positions [m, map frame]; quats_xyzw: (M, 4) orientations of the optical
+        frame; u_var, u_exp: (M,) image-level uncertainties.
+    Returns:
+        dict(height=1, width=M, fields=[(name, offset, datatype, count)], is_bigendian, point_step,
+        row_step, data (1-D uint8), is_dense).
+    """
+    m = len(positions)
+    points = np.zeros(m, dtype=VIEW_DTYPE)
+    positions = np.asarray(positions, dtype=np.float64).reshape(m, 3)
+    quats = np.asarray(quats_xyzw, dtype=np.float64).reshape(m, 4)
+    for i, name in enumerate(("x", "y", "z")):
+        points[name] = positions[:, i]
+    for i, name in enumerate(("qx", "qy", "qz", "qw")):
+        points[name] = quats[:, i]
+    points["u_var"] = np.asarray(u_var, dtype=np.float64).reshape(m)
+    points["u_exp"] = np.asarray(u_exp, dtype=np.float64).reshape(m)
+    return {
+        "height": 1,
+        "width": m,
+        "fields": [(name, 4 * i, POINTFIELD_FLOAT32, 1) for i, name in enumerate(VIEW_FIELDS)],
+        "is_bigendian": False,
+        "point_step": VIEW_DTYPE.itemsize,
+        "row_step": VIEW_DTYPE.itemsize * m,
+        "data": points.view(np.uint8).reshape(-1),
+        "is_dense": True,
+    }
+
+
+def unpack_view_points(msg: Any) -> np.ndarray:
+    """PointCloud2 of scored views -> structured (M,) array with :data:`VIEW_FIELDS` (float32)."""
+    offsets = {f.name: int(f.offset) for f in msg.fields}
+    missing = [n for n in VIEW_FIELDS if n not in offsets]
+    if missing:
+        raise InputError(f"point cloud lacks fields {missing}")
+    m = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    raw = _data_bytes(msg.data)
+    if raw.size < m * step:
+        raise InputError(f"point cloud data holds {raw.size} bytes, expected {m * step}")
+    rows = raw[: m * step].reshape(m, step)
+    out = np.zeros(m, dtype=VIEW_DTYPE)
+    for name in VIEW_FIELDS:
+        o = offsets[name]
+        out[name] = np.ascontiguousarray(rows[:, o:o + 4]).view("<f4").reshape(m)
+    return out

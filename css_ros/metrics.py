@@ -1,0 +1,298 @@
+"""Evaluation metrics (pure numpy): confusion matrix, IoU / mIoU / accuracy, sparsification + AUSE, Spearman rho."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+#: Default removal fractions of sparsification curves: 0.00, 0.01, ..., 0.99.
+DEFAULT_FRACTIONS: np.ndarray = np.round(np.arange(0.0, 1.0, 0.01), 2)
+
+
+# ----------------------------------------------------------------------------------------------
+# Segmentation quality
+# ----------------------------------------------------------------------------------------------
+class ConfusionMatrix:
+    """Accumulates a (C, C + 1) pixel confusion matrix: rows = ground-truth class, columns = prediction.
+
+    Column ``C`` counts pixels whose prediction is not a class id (the "no label" value, negative
+    ids or ids >= C): such pixels are always wrong. Ground-truth pixels equal to ``ignore_label``
+    or outside 0..C-1 are excluded from every metric.
+    """
+
+    def __init__(self, num_classes: int, ignore_label: int = 255) -> None:
+        if num_classes < 1:
+            raise ValueError("num_classes must be >= 1")
+        self.num_classes = int(num_classes)
+        self.ignore_label = int(ignore_label)
+        self.matrix = np.zeros((self.num_classes, self.num_classes + 1), dtype=np.int64)
+
+    def update(self, gt: np.ndarray, pred: np.ndarray) -> None:
+        """Add one image pair; ``gt`` and ``pred`` are integer arrays of the same shape."""
+        gt = np.asarray(gt).astype(np.int64, copy=False).ravel()
+        pred = np.asarray(pred).astype(np.int64, copy=False).ravel()
+        if gt.shape != pred.shape:
+            raise ValueError(f"gt and pred shapes differ: {gt.shape} vs {pred.shape}")
+        C = self.num_classes
+        valid = (gt >= 0) & (gt < C) & (gt != self.ignore_label)
+        gt = gt[valid]
+        pred = pred[valid]
+        pred = np.where((pred >= 0) & (pred < C) & (pred != self.ignore_label), pred, C)
+        self.matrix += np.bincount(gt * (C + 1) + pred, minlength=C * (C + 1)).reshape(C, C + 1)
+
+    def __iadd__(self, other: "ConfusionMatrix") -> "ConfusionMatrix":
+        self.matrix += other.matrix
+        return self
+
+    @property
+    def num_pixels(self) -> int:
+        """Number of evaluated pixels (pixels with a valid ground-truth label)."""
+        return int(self.matrix.sum())
+
+    def pixel_accuracy(self) -> float:
+        """Fraction of evaluated pixels whose prediction equals the ground truth (NaN if none)."""
+        n = self.matrix.sum()
+        return float(np.trace(self.matrix[:, : self.num_classes]) / n) if n else float("nan")
+
+    def iou(self) -> np.ndarray:
+        """(C,) float64 per-class IoU = TP / (TP + FP + FN); NaN for classes absent from GT and prediction.
+
+        FN includes ground-truth pixels predicted as "no label"; FP counts pixels predicted as the class.
+        """
+        C = self.num_classes
+        tp = np.diag(self.matrix[:, :C]).astype(np.float64)
+        gt_count = self.matrix.sum(axis=1).astype(np.float64)  # TP + FN
+        pred_count = self.matrix[:, :C].sum(axis=0).astype(np.float64)  # TP + FP
+        union = gt_count + pred_count - tp
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(union > 0, tp / np.where(union > 0, union, 1.0), np.nan)
+
+    def miou(self) -> float:
+        """Mean IoU over the classes present in the ground truth OR the prediction (union > 0).
+
+        Classes neither present nor predicted are left out (their IoU is undefined), so a scene
+        that only contains a subset of the class file is not penalised for the missing classes,
+        while a class that is predicted but absent from the ground truth counts with IoU 0.
+        """
+        iou = self.iou()
+        present = ~np.isnan(iou)
+        return float(iou[present].mean()) if present.any() else float("nan")
+
+    def summary(self, class_names: Sequence[str] | None = None) -> dict:
+        """JSON-ready dict: pixel_accuracy, miou, per_class_iou {name: IoU or None}, num_pixels."""
+        names = list(class_names) if class_names is not None else [f"class_{i}" for i in range(self.num_classes)]
+        iou = self.iou()
+        return {
+            "pixel_accuracy": _num(self.pixel_accuracy()),
+            "miou": _num(self.miou()),
+            "per_class_iou": {names[i]: _num(iou[i]) for i in range(self.num_classes)},
+            "classes_in_miou": int(np.count_nonzero(~np.isnan(iou))),
+            "num_pixels": self.num_pixels,
+        }
+
+
+def _num(x: float) -> float | None:
+    """float for JSON, None for NaN / inf."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+# ----------------------------------------------------------------------------------------------
+# Sparsification
+# ----------------------------------------------------------------------------------------------
+def sparsification_curve(
+    uncertainty: np.ndarray, error: np.ndarray, fractions: np.ndarray = DEFAULT_FRACTIONS
+) -> np.ndarray:
+    """Mean error of the samples kept after removing the most uncertain fraction f of them.
+
+    Args:
+        uncertainty: (M,) higher = less trustworthy.
+        error: (M,) per-sample error (0/1 for pixels; any real value, e.g. 1 - accuracy, for images).
+        fractions: (F,) removal fractions in [0, 1); k = round(f * M) samples are removed (at
+            most M - 1, so at least one sample is kept).
+
+    Returns:
+        (F,) float64 mean error of the kept samples.
+
+    Ties in ``uncertainty`` are resolved by their expectation over random tie-breaking: when the
+    cut falls inside a group of equal uncertainties, that group contributes its mean error per
+    removed sample. This makes the curve exact and independent of the input order.
+    """
+    u = np.asarray(uncertainty, dtype=np.float64).ravel()
+    e = np.asarray(error, dtype=np.float64).ravel()
+    if u.shape != e.shape:
+        raise ValueError(f"uncertainty and error shapes differ: {u.shape} vs {e.shape}")
+    m = u.size
+    fractions = np.asarray(fractions, dtype=np.float64)
+    if m == 0:
+        return np.full(fractions.shape, np.nan)
+    u = np.where(np.isnan(u), np.inf, u)  # NaN uncertainty = maximally uncertain
+    order = np.argsort(-u, kind="stable")
+    u_s = u[order]
+    e_s = e[order]
+    cum = np.concatenate([[0.0], np.cumsum(e_s)])  # cum[k] = error mass of the first k samples
+    # Tie groups: start index of the group containing each sorted position.
+    new_group = np.ones(m, dtype=bool)
+    new_group[1:] = u_s[1:] != u_s[:-1]
+    starts = np.flatnonzero(new_group)
+    ends = np.append(starts[1:], m)
+    k = np.clip(np.rint(fractions * m).astype(np.int64), 0, m - 1)
+    g = np.searchsorted(starts, k, side="right") - 1  # group containing position k (k < m)
+    g_start = starts[g]
+    g_end = ends[g]
+    g_mean = (cum[g_end] - cum[g_start]) / (g_end - g_start)
+    removed = cum[g_start] + (k - g_start) * g_mean
+    return (cum[m] - removed) / (m - k)
+
+
+def oracle_curve(error: np.ndarray, fractions: np.ndarray = DEFAULT_FRACTIONS) -> np.ndarray:
+    """Sparsification curve of the oracle, which removes the samples with the largest error first."""
+    e = np.asarray(error, dtype=np.float64).ravel()
+    return sparsification_curve(e, e, fractions)
+
+
+def ause(curve: np.ndarray, oracle: np.ndarray, fractions: np.ndarray = DEFAULT_FRACTIONS) -> float:
+    """Area Under the Sparsification Error: trapezoid integral of (curve - oracle) over the fractions.
+
+    0 for an ordering as good as the oracle; larger is worse. With the default fractions the
+    integral spans [0, 0.99].
+    """
+    diff = np.asarray(curve, dtype=np.float64) - np.asarray(oracle, dtype=np.float64)
+    x = np.asarray(fractions, dtype=np.float64)
+    return float(np.sum(0.5 * (diff[1:] + diff[:-1]) * np.diff(x)))
+
+
+def sparsification_report(
+    uncertainties: dict[str, np.ndarray],
+    error: np.ndarray,
+    fractions: np.ndarray = DEFAULT_FRACTIONS,
+    random_seed: int | None = 0,
+) -> dict:
+    """Curves and AUSE for several uncertainty signals, plus the oracle and (optionally) a random ordering.
+
+    Args:
+        uncertainties: name -> (M,) uncertainty (higher = less trustworthy).
+        error: (M,) per-sample error.
+        random_seed: seed of the random-ordering baseline (uniform random uncertainties); None = omit.
+
+    Returns:
+        {"fractions": [...], "num_samples": M, "curves": {name: [...], "random": [...], "oracle": [...]},
+         "ause": {name: float, "random": float, "oracle": 0.0}}
+    """
+    error = np.asarray(error, dtype=np.float64).ravel()
+    oracle = oracle_curve(error, fractions)
+    curves: dict[str, np.ndarray] = {}
+    for name, u in uncertainties.items():
+        curves[name] = sparsification_curve(u, error, fractions)
+    if random_seed is not None:
+        rng = np.random.default_rng(random_seed)
+        curves["random"] = sparsification_curve(rng.random(error.size), error, fractions)
+    curves["oracle"] = oracle
+    return {
+        "fractions": [float(f) for f in fractions],
+        "num_samples": int(error.size),
+        "curves": {k: [_num(v) for v in c] for k, c in curves.items()},
+        "ause": {k: _num(ause(c, oracle, fractions)) for k, c in curves.items()},
+    }
+
+
+@dataclass
+class PixelSampler:
+    """Uniform random subsample of a stream of per-pixel samples with bounded memory.
+
+    Every pixel pushed is kept with the same probability p = 2**-j: when more than
+    ``max_samples`` are held, every held sample is kept with probability 1/2 and p halves. The
+    result is a uniform Bernoulli sample of the whole stream (exact when the stream fits).
+
+    Attributes:
+        max_samples: cap on held samples (memory stays below ~2x this).
+        seed: seed of the sampling RNG (deterministic results).
+    """
+
+    max_samples: int = 4_000_000
+    seed: int = 0
+    keep_probability: float = 1.0
+    total_seen: int = 0
+    _columns: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    _held: int = 0
+
+    def __post_init__(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+
+    def push(self, **columns: np.ndarray) -> None:
+        """Add one batch of samples; every keyword is a 1-D array of the same length."""
+        arrays = {k: np.asarray(v).ravel() for k, v in columns.items()}
+        sizes = {a.size for a in arrays.values()}
+        if len(sizes) != 1:
+            raise ValueError("all columns must have the same length")
+        n = sizes.pop()
+        self.total_seen += n
+        if self.keep_probability < 1.0:
+            keep = self._rng.random(n) < self.keep_probability
+            arrays = {k: a[keep] for k, a in arrays.items()}
+            n = int(keep.sum())
+        if self._columns and set(arrays) != set(self._columns):
+            raise ValueError("column names must not change between pushes")
+        for k, a in arrays.items():
+            self._columns.setdefault(k, []).append(a)
+        self._held += n
+        while self._held > self.max_samples:
+            self._halve()
+
+    def _halve(self) -> None:
+        merged = {k: np.concatenate(v) for k, v in self._columns.items()}
+        held = next(iter(merged.values())).size
+        keep = self._rng.random(held) < 0.5
+        self._columns = {k: [a[keep]] for k, a in merged.items()}
+        self._held = int(keep.sum())
+        self.keep_probability *= 0.5
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The held samples, one concatenated array per column."""
+        return {k: np.concatenate(v) if v else np.zeros(0) for k, v in self._columns.items()}
+
+    @property
+    def subsampled(self) -> bool:
+        return self.keep_probability < 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Correlation
+# ----------------------------------------------------------------------------------------------
+def rankdata(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of a 1-D array, ties get their average rank (as scipy.stats.rankdata 'average')."""
+    x = np.asarray(x, dtype=np.float64).ravel()
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    new = np.ones(x.size, dtype=bool)
+    new[1:] = xs[1:] != xs[:-1]
+    starts = np.flatnonzero(new)
+    ends = np.append(starts[1:], x.size)
+    avg = 0.5 * (starts + ends - 1) + 1.0  # mean of the 1-based ranks start+1..end
+    ranks = np.empty(x.size)
+    ranks[order] = np.repeat(avg, ends - starts)
+    return ranks
+
+
+def spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman rank correlation (Pearson correlation of average ranks); NaN if undefined (n < 2 or constant)."""
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    if x.shape != y.shape:
+        raise ValueError("x and y must have the same length")
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size < 2:
+        return float("nan")
+    rx = rankdata(x) - (x.size + 1) / 2.0
+    ry = rankdata(y) - (y.size + 1) / 2.0
+    den = np.sqrt(np.sum(rx * rx) * np.sum(ry * ry))
+    return float(np.sum(rx * ry) / den) if den > 0 else float("nan")
+
+
+def psnr(a: np.ndarray, b: np.ndarray, peak: float = 255.0) -> float:
+    """Peak signal-to-noise ratio in dB of two same-shape images (inf when identical)."""
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    mse = float(np.mean(d * d))
+    return float("inf") if mse == 0 else float(10.0 * np.log10(peak * peak / mse))

@@ -1,0 +1,213 @@
+"""Stage 1 of the pipeline: project 3D Gaussians to screen-space ellipses (EWA splatting, SPEC §3).
+
+Numba kernel; float64 throughout so the result matches a float64 reference to rounding.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numba import njit, prange
+
+from .sh import eval_sh
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .gaussians import GaussianModel
+
+NEAR_PLANE = 0.01           # m; Gaussians with camera depth z <= this are culled
+COV2D_DILATION = 0.3        # px^2 added to the screen covariance diagonal
+ALPHA_MIN = 1.0 / 255.0     # smaller per-pixel alphas are skipped
+ALPHA_MAX = 0.99            # per-pixel alpha clamp
+T_MIN = 1e-4                # compositing stops before transmittance would drop below this
+FOV_CLAMP = 0.3             # J is evaluated at the view ray clamped to 1.3 x the half field of view
+
+
+@dataclass(frozen=True)
+class GaussianGeometry:
+    """Per-model quantities that do not depend on the camera, computed once per model.
+
+    Attributes:
+        means: (N, 3) float64 centres [m, map frame].
+        cov3d: (N, 6) float64 upper triangle (xx, xy, xz, yy, yz, zz) of R S S^T R^T [m^2].
+        opacities: (N,) float64 activated opacities in (0, 1).
+        sh: (N, K, 3) float32 SH coefficients (K = (degree + 1)^2).
+    """
+
+    means: np.ndarray
+    cov3d: np.ndarray
+    opacities: np.ndarray
+    sh: np.ndarray
+
+    @classmethod
+    def from_model(cls, model: "GaussianModel") -> "GaussianGeometry":
+        q = np.asarray(model.quats_wxyz, dtype=np.float64)
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        rot = np.stack([
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ], axis=1).reshape(-1, 3, 3)
+        m = rot * np.asarray(model.scales, dtype=np.float64)[:, None, :]
+        cov = m @ m.transpose(0, 2, 1)
+        cov3d = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2],
+                          cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
+        return cls(
+            means=np.ascontiguousarray(model.means, dtype=np.float64),
+            cov3d=np.ascontiguousarray(cov3d),
+            opacities=np.ascontiguousarray(model.opacities, dtype=np.float64),
+            sh=np.ascontiguousarray(model.sh, dtype=np.float32),
+        )
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+
+@dataclass(frozen=True)
+class ProjectedGaussians:
+    """Gaussians that can touch the image, sorted front to back by camera depth.
+
+    Attributes (M = number kept):
+        ids: (M,) int64 indices into the model.
+        means2d: (M, 2) float64 projected centres [px] (u right, v down; pixel centres at integers).
+        conics: (M, 3) float64 (a, b, c) of the inverse screen covariance [1/px^2].
+        opacities: (M,) float64.
+        qmax: (M,) float64 largest Mahalanobis q = d^T conic d at which alpha >= 1/255.
+        bbox: (M, 4) int32 inclusive pixel box (u_min, u_max, v_min, v_max) of that ellipse.
+        depths: (M,) float64 camera depth z [m].
+        colors: (M, 3) float32 view-dependent RGB in [0, inf) (SH + 0.5, clamped at 0).
+    """
+
+    ids: np.ndarray
+    means2d: np.ndarray
+    conics: np.ndarray
+    opacities: np.ndarray
+    qmax: np.ndarray
+    bbox: np.ndarray
+    depths: np.ndarray
+    colors: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.ids.shape[0])
+
+
+@njit(parallel=True, cache=True)
+def _project_kernel(means, cov3d, opac, rot, trans, fx, fy, cx, cy, width, height,
+                    out_xy, out_conic, out_depth, out_qmax, out_bbox, out_valid):  # pragma: no cover
+    n = means.shape[0]
+    tan_x = width / (2.0 * fx)
+    tan_y = height / (2.0 * fy)
+    lo_x = -(cx + 0.5) / fx - FOV_CLAMP * tan_x
+    hi_x = (width - 0.5 - cx) / fx + FOV_CLAMP * tan_x
+    lo_y = -(cy + 0.5) / fy - FOV_CLAMP * tan_y
+    hi_y = (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y
+    for i in prange(n):
+        out_valid[i] = False
+        o = opac[i]
+        if not (o >= ALPHA_MIN):
+            continue  # alpha <= opacity can never reach the 1/255 threshold
+        px, py, pz = means[i, 0], means[i, 1], means[i, 2]
+        x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
+        y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
+        z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
+        if not (z > NEAR_PLANE):
+            continue
+        u = fx * x / z + cx
+        v = fy * y / z + cy
+        txz = min(max(x / z, lo_x), hi_x)
+        tyz = min(max(y / z, lo_y), hi_y)
+        # J = [[fx/z, 0, -fx*txz/z], [0, fy/z, -fy*tyz/z]];  M = J @ R_cam_map  (2 x 3)
+        j00, j02 = fx / z, -fx * txz / z
+        j11, j12 = fy / z, -fy * tyz / z
+        m00 = j00 * rot[0, 0] + j02 * rot[2, 0]
+        m01 = j00 * rot[0, 1] + j02 * rot[2, 1]
+        m02 = j00 * rot[0, 2] + j02 * rot[2, 2]
+        m10 = j11 * rot[1, 0] + j12 * rot[2, 0]
+        m11 = j11 * rot[1, 1] + j12 * rot[2, 1]
+        m12 = j11 * rot[1, 2] + j12 * rot[2, 2]
+        sxx, sxy, sxz = cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]
+        syy, syz, szz = cov3d[i, 3], cov3d[i, 4], cov3d[i, 5]
+        # rows of M @ Sigma
+        a0 = m00 * sxx + m01 * sxy + m02 * sxz
+        a1 = m00 * sxy + m01 * syy + m02 * syz
+        a2 = m00 * sxz + m01 * syz + m02 * szz
+        b0 = m10 * sxx + m11 * sxy + m12 * sxz
+        b1 = m10 * sxy + m11 * syy + m12 * syz
+        b2 = m10 * sxz + m11 * syz + m12 * szz
+        ca = a0 * m00 + a1 * m01 + a2 * m02 + COV2D_DILATION
+        cb = a0 * m10 + a1 * m11 + a2 * m12
+        cc = b0 * m10 + b1 * m11 + b2 * m12 + COV2D_DILATION
+        det = ca * cc - cb * cb
+        if not (det > 0.0):
+            continue
+        mid = 0.5 * (ca + cc)
+        lam = mid + math.sqrt(max(0.0, mid * mid - det))
+        r = math.ceil(3.0 * math.sqrt(lam))
+        if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
+            continue
+        qmax = 2.0 * math.log(255.0 * o)
+        # Exact axis-aligned box of the ellipse d^T Sigma'^-1 d <= qmax (tiny margin for rounding).
+        hx = math.sqrt(qmax * ca) * (1.0 + 1e-9) + 1e-9
+        hy = math.sqrt(qmax * cc) * (1.0 + 1e-9) + 1e-9
+        umin = max(0.0, math.ceil(u - hx))
+        umax = min(width - 1.0, math.floor(u + hx))
+        vmin = max(0.0, math.ceil(v - hy))
+        vmax = min(height - 1.0, math.floor(v + hy))
+        if umin > umax or vmin > vmax:
+            continue
+        out_xy[i, 0] = u
+        out_xy[i, 1] = v
+        out_conic[i, 0] = cc / det
+        out_conic[i, 1] = -cb / det
+        out_conic[i, 2] = ca / det
+        out_depth[i] = z
+        out_qmax[i] = qmax
+        out_bbox[i, 0] = np.int32(umin)
+        out_bbox[i, 1] = np.int32(umax)
+        out_bbox[i, 2] = np.int32(vmin)
+        out_bbox[i, 3] = np.int32(vmax)
+        out_valid[i] = True
+
+
+def project(geometry: GaussianGeometry, camera: "Camera") -> ProjectedGaussians:
+    """Project, cull (near plane, 3-sigma square outside the image, alpha never >= 1/255) and
+    depth-sort the Gaussians for ``camera``; evaluate their view-dependent colours.
+    """
+    n = geometry.num_gaussians
+    out_xy = np.empty((n, 2))
+    out_conic = np.empty((n, 3))
+    out_depth = np.empty(n)
+    out_qmax = np.empty(n)
+    out_bbox = np.empty((n, 4), dtype=np.int32)
+    out_valid = np.empty(n, dtype=np.bool_)
+    world_to_cam = np.asarray(camera.world_to_cam, dtype=np.float64)
+    k = np.asarray(camera.K, dtype=np.float64)
+    _project_kernel(geometry.means, geometry.cov3d, geometry.opacities,
+                    np.ascontiguousarray(world_to_cam[:3, :3]), np.ascontiguousarray(world_to_cam[:3, 3]),
+                    float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
+                    float(camera.width), float(camera.height),
+                    out_xy, out_conic, out_depth, out_qmax, out_bbox, out_valid)
+    ids = np.flatnonzero(out_valid)
+    ids = ids[np.argsort(out_depth[ids], kind="stable")]
+    cam_pos = np.asarray(camera.position, dtype=np.float64)
+    colors = _colors(geometry, ids, cam_pos)
+    return ProjectedGaussians(
+        ids=ids, means2d=out_xy[ids], conics=out_conic[ids], opacities=geometry.opacities[ids],
+        qmax=out_qmax[ids], bbox=out_bbox[ids], depths=out_depth[ids], colors=colors,
+    )
+
+
+def _colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
+    sh = geometry.sh[ids]
+    if sh.shape[1] == 1:
+        rgb = eval_sh(sh, None)
+    else:
+        dirs = geometry.means[ids] - cam_pos
+        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+        rgb = eval_sh(sh, dirs.astype(np.float32))
+    return np.ascontiguousarray(np.maximum(rgb + 0.5, 0.0), dtype=np.float32)

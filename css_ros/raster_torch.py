@@ -1,0 +1,218 @@
+"""Plain PyTorch twin of the numba rasteriser (same maths, SPEC §3-5), for other devices and as a
+cross-check of the compiled path. Tiles are evaluated densely (tile pixels x tile list), so memory
+stays bounded by the longest tile list, never pixels x Gaussians."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from .projection import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN
+from .raster import TILE_SIZE, RenderBuffers
+from .sh import eval_sh
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .gaussians import GaussianModel
+
+
+@dataclass
+class TorchFrame:
+    """Per-view state: depth-sorted visible Gaussians (M) and their tile lists (CSR)."""
+
+    camera: "Camera"
+    ids: np.ndarray            # (M,) int64 model ids, front to back
+    means2d: torch.Tensor      # [M, 2]
+    conics: torch.Tensor       # [M, 3]
+    opacities: torch.Tensor    # [M]
+    colors: torch.Tensor       # [M, 3]
+    offsets: np.ndarray        # (T + 1,) int64
+    lists: torch.Tensor        # [P] int64 indices into the M arrays
+    tiles_x: int
+    tile_size: int
+
+
+class TorchBackend:
+    """Rasteriser backend in plain PyTorch (float64 on ``device``)."""
+
+    def __init__(self, model: "GaussianModel", device: str = "cpu", tile_size: int = TILE_SIZE) -> None:
+        self.device = torch.device(device)
+        self.dtype = torch.float64
+        self.tile_size = tile_size
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
+        self.means = t(model.means)
+        self.opacities = t(model.opacities)
+        q = t(model.quats_wxyz)
+        q = q / q.norm(dim=1, keepdim=True)
+        w, x, y, z = q.unbind(1)
+        rot = torch.stack([
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ], dim=1).reshape(-1, 3, 3)
+        m = rot * t(model.scales)[:, None, :]
+        self.cov3d = m @ m.transpose(1, 2)           # [N, 3, 3]
+        self.sh = torch.as_tensor(np.asarray(model.sh), dtype=torch.float32, device=self.device)
+
+    # ------------------------------------------------------------------ projection + binning
+    def prepare(self, camera: "Camera") -> TorchFrame:
+        dev, dt = self.device, self.dtype
+        w2c = torch.as_tensor(np.asarray(camera.world_to_cam), dtype=dt, device=dev)
+        rot, trans = w2c[:3, :3], w2c[:3, 3]
+        fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+        width, height = camera.width, camera.height
+        p = self.means @ rot.T + trans
+        x, y, z = p.unbind(1)
+        keep = (z > NEAR_PLANE) & (self.opacities >= ALPHA_MIN)
+        zs = torch.where(keep, z, torch.ones_like(z))
+        u = fx * x / zs + cx
+        v = fy * y / zs + cy
+        tan_x, tan_y = width / (2 * fx), height / (2 * fy)
+        txz = (x / zs).clamp(-(cx + 0.5) / fx - FOV_CLAMP * tan_x, (width - 0.5 - cx) / fx + FOV_CLAMP * tan_x)
+        tyz = (y / zs).clamp(-(cy + 0.5) / fy - FOV_CLAMP * tan_y, (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y)
+        zero = torch.zeros_like(zs)
+        jac = torch.stack([fx / zs, zero, -fx * txz / zs, zero, fy / zs, -fy * tyz / zs], 1).reshape(-1, 2, 3)
+        mm = jac @ rot
+        cov2d = mm @ self.cov3d @ mm.transpose(1, 2)
+        a = cov2d[:, 0, 0] + COV2D_DILATION
+        b = cov2d[:, 0, 1]
+        c = cov2d[:, 1, 1] + COV2D_DILATION
+        det = a * c - b * b
+        keep &= det > 0
+        mid = 0.5 * (a + c)
+        lam = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.0))
+        r = torch.ceil(3.0 * torch.sqrt(lam))
+        keep &= ~((u + r < -0.5) | (u - r > width - 0.5) | (v + r < -0.5) | (v - r > height - 0.5))
+        qmax = 2.0 * torch.log(255.0 * self.opacities.clamp(min=ALPHA_MIN))
+        hx = torch.sqrt(qmax * a) * (1 + 1e-9) + 1e-9
+        hy = torch.sqrt(qmax * c) * (1 + 1e-9) + 1e-9
+        umin = torch.ceil(u - hx).clamp(min=0)
+        umax = torch.floor(u + hx).clamp(max=width - 1)
+        vmin = torch.ceil(v - hy).clamp(min=0)
+        vmax = torch.floor(v + hy).clamp(max=height - 1)
+        keep &= (umin <= umax) & (vmin <= vmax)
+        idx = torch.nonzero(keep).squeeze(1)
+        idx = idx[torch.sort(z[idx], stable=True).indices]
+        conics = torch.stack([c / det, -b / det, a / det], 1)[idx]
+        # colours
+        sh = self.sh[idx]
+        if sh.shape[1] == 1:
+            rgb = eval_sh(sh, None)
+        else:
+            cam_pos = torch.as_tensor(np.asarray(camera.position), dtype=dt, device=dev)
+            dirs = self.means[idx] - cam_pos
+            dirs = (dirs / dirs.norm(dim=1, keepdim=True).clamp(min=1e-12)).float()
+            rgb = eval_sh(sh, dirs)
+        colors = torch.clamp(rgb + 0.5, min=0.0).to(dt)
+        # tile binning: (tile, depth-rank) pairs, stable-sorted by tile keeps depth order
+        ts = self.tile_size
+        tiles_x = (width + ts - 1) // ts
+        tiles_y = (height + ts - 1) // ts
+        tx0 = (umin[idx] // ts).long()
+        tx1 = (umax[idx] // ts).long()
+        ty0 = (vmin[idx] // ts).long()
+        ty1 = (vmax[idx] // ts).long()
+        nx, ny = tx1 - tx0 + 1, ty1 - ty0 + 1
+        per = nx * ny
+        rank = torch.repeat_interleave(torch.arange(len(idx), device=dev), per)
+        start = torch.cumsum(per, 0) - per
+        local = torch.arange(int(per.sum()), device=dev) - torch.repeat_interleave(start, per)
+        nxr = torch.repeat_interleave(nx, per)
+        tile_id = (torch.repeat_interleave(ty0, per) + local // nxr) * tiles_x + torch.repeat_interleave(tx0, per) + local % nxr
+        order = torch.sort(tile_id, stable=True).indices
+        lists = rank[order]
+        counts = torch.bincount(tile_id, minlength=tiles_x * tiles_y).cpu().numpy()
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        return TorchFrame(camera, idx.cpu().numpy(), torch.stack([u, v], 1)[idx], conics,
+                          self.opacities[idx], colors, offsets, lists, tiles_x, ts)
+
+    def frame_ids(self, frame: TorchFrame) -> np.ndarray:
+        return frame.ids
+
+    # ------------------------------------------------------------------ per-tile compositing
+    def _tiles(self, frame: TorchFrame):
+        """Yield (pixel rows, pixel cols, list indices, kappa [P, L], final transmittance [P])."""
+        ts, cam = frame.tile_size, frame.camera
+        for t in range(len(frame.offsets) - 1):
+            s, e = int(frame.offsets[t]), int(frame.offsets[t + 1])
+            ty, tx = divmod(t, frame.tiles_x)
+            vs = torch.arange(ty * ts, min(cam.height, ty * ts + ts), device=self.device)
+            us = torch.arange(tx * ts, min(cam.width, tx * ts + ts), device=self.device)
+            vv, uu = torch.meshgrid(vs, us, indexing="ij")
+            vv, uu = vv.reshape(-1), uu.reshape(-1)
+            if s == e:
+                yield vv, uu, None, None, torch.ones(len(vv), dtype=self.dtype, device=self.device)
+                continue
+            lst = frame.lists[s:e]
+            dx = uu[:, None].to(self.dtype) - frame.means2d[lst, 0][None, :]
+            dy = vv[:, None].to(self.dtype) - frame.means2d[lst, 1][None, :]
+            con = frame.conics[lst]
+            q = con[:, 0] * dx * dx + 2.0 * con[:, 1] * dx * dy + con[:, 2] * dy * dy
+            alpha = torch.clamp(frame.opacities[lst] * torch.exp(-0.5 * q), max=ALPHA_MAX)
+            alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+            one_minus = 1.0 - alpha
+            t_incl = torch.cumprod(one_minus, dim=1)
+            t_excl = torch.cat([torch.ones_like(t_incl[:, :1]), t_incl[:, :-1]], dim=1)
+            stop = (t_incl < T_MIN) & (alpha > 0)
+            keep = torch.cumsum(stop.to(torch.int32), dim=1) == 0
+            kappa = torch.where(keep, alpha * t_excl, torch.zeros_like(alpha))
+            final_t = torch.prod(torch.where(keep, one_minus, torch.ones_like(one_minus)), dim=1)
+            yield vv, uu, lst, kappa, final_t
+
+    def accumulate(self, frame: TorchFrame, labels: np.ndarray, weights: np.ndarray,
+                   num_classes: int) -> tuple[np.ndarray, np.ndarray]:
+        lab = torch.as_tensor(labels, device=self.device).long()
+        wts = torch.as_tensor(weights, device=self.device, dtype=self.dtype)
+        acc = torch.zeros((len(frame.ids), num_classes), dtype=self.dtype, device=self.device)
+        for vv, uu, lst, kappa, _ in self._tiles(frame):
+            if lst is None:
+                continue
+            pl = lab[vv, uu]
+            valid = (pl >= 0) & (wts[vv, uu] > 0)
+            if not bool(valid.any()):
+                continue
+            y = torch.zeros((len(vv), num_classes), dtype=self.dtype, device=self.device)
+            y[valid, pl[valid]] = wts[vv, uu][valid]
+            acc.index_add_(0, lst, kappa.T @ y)
+        return frame.ids, acc.cpu().numpy()
+
+    def render(self, frame: TorchFrame, expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
+               e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
+        cam, dev, dt = frame.camera, self.device, self.dtype
+        h, w, c = cam.height, cam.width, expect.shape[1]
+        ex = torch.as_tensor(expect, dtype=dt, device=dev)
+        va = torch.as_tensor(var, dtype=dt, device=dev)
+        tot = torch.as_tensor(totals, dtype=dt, device=dev)
+        bg = torch.as_tensor(np.asarray(bg_rgb), dtype=dt, device=dev)
+        probs = torch.empty((h, w, c), dtype=dt, device=dev)
+        out_label = torch.empty((h, w), dtype=torch.int64, device=dev)
+        out_v = torch.empty((h, w), dtype=dt, device=dev)
+        out_bg = torch.empty((h, w), dtype=dt, device=dev)
+        out_ev = torch.empty((h, w), dtype=dt, device=dev)
+        out_rgb = torch.empty((h, w, 3), dtype=dt, device=dev)
+        for vv, uu, lst, kappa, final_t in self._tiles(frame):
+            if lst is None:
+                e_pix = torch.zeros((len(vv), c), dtype=dt, device=dev)
+                v_all = torch.zeros((len(vv), c), dtype=dt, device=dev)
+                ev = torch.zeros(len(vv), dtype=dt, device=dev)
+                rgb = torch.zeros((len(vv), 3), dtype=dt, device=dev)
+            else:
+                e_pix = kappa @ ex[lst]
+                v_all = (kappa * kappa) @ va[lst]
+                ev = kappa @ tot[lst]
+                rgb = kappa @ frame.colors[lst]
+            best = torch.argmax(e_pix, dim=1)
+            out_label[vv, uu] = best
+            probs[vv, uu] = e_pix + final_t[:, None] * e_bg
+            out_v[vv, uu] = v_all.gather(1, best[:, None])[:, 0] + final_t * final_t * v_bg
+            out_bg[vv, uu] = final_t
+            out_ev[vv, uu] = ev + final_t * s_bg
+            out_rgb[vv, uu] = rgb + final_t[:, None] * bg
+        probs_np = probs.cpu().numpy()
+        labels = out_label.cpu().numpy().astype(np.int32)
+        exp_img = np.take_along_axis(probs_np, labels[:, :, None], axis=2)[:, :, 0]
+        return RenderBuffers(labels, exp_img, out_v.cpu().numpy(), out_bg.cpu().numpy(), out_ev.cpu().numpy(),
+                             out_rgb.cpu().numpy(), probs_np if want_probs else None)

@@ -1,0 +1,296 @@
+"""The CSS semantic map: Dirichlet concentrations per Gaussian, closed-form update (SPEC §4),
+probabilistic rendering (SPEC §5), image-level uncertainty (SPEC §6) and atomic persistence."""
+from __future__ import annotations
+
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from .backends import make_backend
+from .errors import InputError, MapError
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .gaussians import GaussianModel
+
+MAP_FORMAT_VERSION = 1
+VAR_FLOOR = 1e-30  # variances are floored here before the log of U_var (a perfectly certain pixel)
+
+BackendName = Literal["numba", "torch"]
+
+
+@dataclass
+class RenderedView:
+    """Everything rendered for one camera view (H, W = the camera's image size).
+
+    Attributes:
+        labels: (H, W) int32 argmax class per pixel; ``ignore_label`` where the background weight
+            kappa_b exceeds ``unknown_threshold``.
+        expectation: (H, W) float32 E_i of the argmax class (SPEC §5).
+        variance: (H, W) float32 Var_i of the argmax class (SPEC §5).
+        background: (H, W) float32 kappa_b, the weight of the background Dirichlet.
+        evidence: (H, W) float32 kappa-weighted Dirichlet total sum_n kappa_in S_n + kappa_b S_b
+            (the paper's observation-count confidence baseline; larger = more observed).
+        rgb: (H, W, 3) uint8 colour render.
+        u_var: geometric mean of the variance image (SPEC §6).
+        u_exp: one minus the mean of the expectation image (SPEC §6).
+        probabilities: (H, W, C) float32 full per-class E_i^c, only when requested.
+    """
+
+    labels: np.ndarray
+    expectation: np.ndarray
+    variance: np.ndarray
+    background: np.ndarray
+    evidence: np.ndarray
+    rgb: np.ndarray
+    u_var: float
+    u_exp: float
+    probabilities: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """Pixel counts of one update: used (labelled, weight > 0), ignored (ignore value or zero
+    confidence) and out_of_range (ids >= C or negative, treated as ignored)."""
+
+    used: int
+    ignored: int
+    out_of_range: int
+
+
+def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
+    """(U_var, U_exp) of SPEC §6 over all pixels of a view (float64 accumulation)."""
+    var = np.maximum(np.asarray(variance, dtype=np.float64), VAR_FLOOR)
+    u_var = float(np.exp(np.mean(np.log(var))))
+    u_exp = float(1.0 - np.mean(np.asarray(expectation, dtype=np.float64)))
+    return u_var, u_exp
+
+
+class SemanticMap:
+    """Dirichlet semantic state over the Gaussians of a pretrained splat model.
+
+    Concentrations are float64: a long run adds many small kappa-weighted counts (often < 1e-3) to
+    totals that reach 1e4 and more, which float32 would round away (its spacing at 1e4 is ~1e-3).
+    The (N, C) array costs 8 N C bytes (152 MB for 1M Gaussians x 19 classes).
+
+    Args:
+        model: the pretrained splat (map frame).
+        num_classes: C.
+        prior: alpha_0, initial concentration of every class of every Gaussian (> 0).
+        background: alpha_b, concentration per class of the background Dirichlet (> 0).
+        ignore_label: label value meaning "no label" in inputs and "unknown" in rendered labels.
+        unknown_threshold: rendered pixels whose background weight kappa_b exceeds this get
+            ``ignore_label`` (default 0.5: the pixel is mostly empty space). Use 1.0 to never do so.
+        backend: "numba" (compiled CPU kernels, default) or "torch" (plain PyTorch twin).
+        background_rgb: colour behind all Gaussians, RGB in [0, 1].
+    """
+
+    def __init__(self, model: "GaussianModel", num_classes: int, prior: float = 1e-3,
+                 background: float = 1e-3, ignore_label: int = 255, unknown_threshold: float = 0.5,
+                 backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        if int(num_classes) < 1:
+            raise MapError(f"num_classes must be >= 1, got {num_classes}")
+        if not (np.isfinite(prior) and prior > 0):
+            raise MapError(f"prior must be a positive finite number, got {prior}")
+        if not (np.isfinite(background) and background > 0):
+            raise MapError(f"background must be a positive finite number, got {background}")
+        self.model = model
+        self.num_classes = int(num_classes)
+        self.prior = float(prior)
+        self.background = float(background)
+        self.ignore_label = int(ignore_label)
+        self.unknown_threshold = float(unknown_threshold)
+        self.background_rgb = np.asarray(background_rgb, dtype=np.float64)
+        self.backend_name = backend
+        self._backend = make_backend(backend, model)
+        self.concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
+        self.frames_observed = 0
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget every observation: all concentrations back to the prior."""
+        self.concentrations[...] = self.prior
+        self.frames_observed = 0
+
+    def _background_moments(self) -> tuple[float, float, float]:
+        c = self.num_classes
+        s_b = c * self.background
+        e_b = 1.0 / c
+        return e_b, e_b * (1.0 - e_b) / (1.0 + s_b), s_b
+
+    # ------------------------------------------------------------------ inputs
+    def _check_size(self, camera: "Camera", image: np.ndarray, what: str) -> None:
+        if image.shape[:2] != (camera.height, camera.width):
+            raise InputError(f"{what} is {image.shape[1]}x{image.shape[0]} but the camera is "
+                             f"{camera.width}x{camera.height}")
+
+    def _prepare_labels(self, camera: "Camera", labels: np.ndarray,
+                        confidence: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, UpdateStats]:
+        labels = np.asarray(labels)
+        if labels.ndim != 2:
+            raise InputError(f"labels must be an (H, W) array, got shape {labels.shape}")
+        if not np.issubdtype(labels.dtype, np.integer):
+            raise InputError(f"labels must be integers, got {labels.dtype}")
+        self._check_size(camera, labels, "label image")
+        lab = labels.astype(np.int64)
+        ignored = lab == self.ignore_label
+        out_of_range = ~ignored & ((lab < 0) | (lab >= self.num_classes))
+        lab = np.where(ignored | out_of_range, -1, lab).astype(np.int32)
+        if confidence is None:
+            weights = np.ones(lab.shape, dtype=np.float32)
+        else:
+            weights = np.asarray(confidence, dtype=np.float32)
+            if weights.shape != lab.shape:
+                raise InputError(f"confidence shape {weights.shape} differs from labels {lab.shape}")
+            weights = np.clip(np.nan_to_num(weights, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+        used = int(np.count_nonzero((lab >= 0) & (weights > 0)))
+        n_oor = int(np.count_nonzero(out_of_range))
+        stats = UpdateStats(used=used, ignored=int(lab.size) - used - n_oor, out_of_range=n_oor)
+        return np.ascontiguousarray(lab), np.ascontiguousarray(weights), stats
+
+    # ------------------------------------------------------------------ engine
+    def _update_frame(self, frame: Any, camera: "Camera", labels: np.ndarray,
+                      confidence: np.ndarray | None) -> UpdateStats:
+        lab, weights, stats = self._prepare_labels(camera, labels, confidence)
+        ids, increments = self._backend.accumulate(frame, lab, weights, self.num_classes)
+        self.concentrations[ids] += increments
+        self.frames_observed += 1
+        return stats
+
+    def _render_frame(self, frame: Any, probabilities: bool) -> RenderedView:
+        ids = self._backend.frame_ids(frame)
+        alpha = self.concentrations[ids]
+        totals = alpha.sum(axis=1)
+        expect = alpha / totals[:, None]
+        var = expect * (1.0 - expect) / (1.0 + totals[:, None])
+        e_b, v_b, s_b = self._background_moments()
+        buf = self._backend.render(frame, expect, var, totals, e_b, v_b, s_b, self.background_rgb, probabilities)
+        labels = buf.labels
+        labels[buf.background > self.unknown_threshold] = self.ignore_label
+        u_var, u_exp = image_uncertainty(buf.expectation, buf.variance)
+        rgb = np.clip(np.rint(buf.rgb * 255.0), 0, 255).astype(np.uint8)
+        return RenderedView(
+            labels=labels,
+            expectation=buf.expectation.astype(np.float32),
+            variance=buf.variance.astype(np.float32),
+            background=buf.background.astype(np.float32),
+            evidence=buf.evidence.astype(np.float32),
+            rgb=rgb,
+            u_var=u_var,
+            u_exp=u_exp,
+            probabilities=None if buf.probabilities is None else buf.probabilities.astype(np.float32),
+        )
+
+    # ------------------------------------------------------------------ public API
+    def update(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None) -> UpdateStats:
+        """Fuse one segmentation (SPEC §4): alpha_n^c += sum_i kappa_in y_i^c at ``camera``'s pose.
+
+        Args:
+            camera: pose (T_map_cam of the optical frame) and intrinsics of the segmented image.
+            labels: (H, W) integer class ids; ``ignore_label`` and ids >= C (or < 0) add nothing.
+            confidence: optional (H, W) float weights in [0, 1] (NaN counts as 0); y_i = conf_i * onehot.
+        Raises:
+            InputError: wrong shape or dtype.
+        """
+        frame = self._backend.prepare(camera)
+        return self._update_frame(frame, camera, labels, confidence)
+
+    def observe(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None,
+                probabilities: bool = False) -> RenderedView:
+        """SPEC §7 per observed frame: rasterise once, update, then render at the same pose."""
+        frame = self._backend.prepare(camera)
+        self._update_frame(frame, camera, labels, confidence)
+        return self._render_frame(frame, probabilities)
+
+    def render(self, camera: "Camera", probabilities: bool = False) -> RenderedView:
+        """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view)."""
+        return self._render_frame(self._backend.prepare(camera), probabilities)
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the map as a versioned ``.npz`` of plain arrays, atomically.
+
+        The file is written to a temporary name in the same directory, flushed and fsync'ed, then
+        renamed over ``path``: a crash at any moment leaves either the old or the new file intact.
+        """
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(
+                    fh,
+                    format_version=np.int64(MAP_FORMAT_VERSION),
+                    concentrations=self.concentrations,
+                    prior=np.float64(self.prior),
+                    background=np.float64(self.background),
+                    num_classes=np.int64(self.num_classes),
+                    num_gaussians=np.int64(self.model.num_gaussians),
+                    model_fingerprint=np.array(self.model.fingerprint),
+                    frames_observed=np.int64(self.frames_observed),
+                )
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        try:
+            dir_fd = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError:
+            pass
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], model: "GaussianModel", **kwargs: Any) -> "SemanticMap":
+        """Load a map saved by :meth:`save` onto ``model``.
+
+        Extra keyword arguments (ignore_label, unknown_threshold, backend, ...) go to the
+        constructor; prior, background and num_classes come from the file.
+        Raises:
+            MapError: unreadable/corrupt file, unknown format version, or a map made for another
+                model (fingerprint or size mismatch), or invalid concentrations.
+        """
+        path = Path(path)
+        required = ("format_version", "concentrations", "prior", "background", "num_classes",
+                    "num_gaussians", "model_fingerprint")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = [k for k in required if k not in data.files]
+                if missing:
+                    raise MapError(f"map file {path} lacks {', '.join(missing)}")
+                version = int(data["format_version"])
+                if version != MAP_FORMAT_VERSION:
+                    raise MapError(f"map file {path} has format version {version}, "
+                                   f"this css_ros reads {MAP_FORMAT_VERSION}")
+                fingerprint = str(data["model_fingerprint"])
+                conc = np.array(data["concentrations"], dtype=np.float64)
+                prior = float(data["prior"])
+                background = float(data["background"])
+                num_classes = int(data["num_classes"])
+                num_gaussians = int(data["num_gaussians"])
+                frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
+        except MapError:
+            raise
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise MapError(f"cannot read map file {path}: {exc}") from exc
+        if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
+            raise MapError(f"map file {path} was made for another model (fingerprint {fingerprint[:12]}…, "
+                           f"{num_gaussians} Gaussians; this model: {model.fingerprint[:12]}…, "
+                           f"{model.num_gaussians} Gaussians)")
+        if conc.shape != (num_gaussians, num_classes) or not np.all(np.isfinite(conc)) or np.any(conc <= 0):
+            raise MapError(f"map file {path} holds invalid concentrations (shape {conc.shape}, "
+                           f"expected ({num_gaussians}, {num_classes}), all finite and > 0)")
+        smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
+        smap.concentrations[...] = conc
+        smap.frames_observed = frames
+        return smap

@@ -1,0 +1,62 @@
+"""ament_python / pip build script for css_ros."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "css_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24,<2.4",
+        "numba>=0.60",
+        "plyfile>=1.0",
+        "pyyaml>=6.0",
+        "rosbags>=0.10",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+        "scipy>=1.10",
+    ],
+    extras_require={
+        # torch pinned: an unpinned requirement pulls a multi-GB CUDA build.
+        "torch": ["torch==2.13.0"],
+        "ros": [
+            "ros-jazzy-rclpy",
+            "ros-jazzy-common-interfaces",
+            "ros-jazzy-rmw-fastrtps-cpp",
+        ],
+        "test": ["pytest>=7", "pytest-timeout>=2.1", "torch==2.13.0"],
+        "all": [
+            "torch==2.13.0",
+            "ros-jazzy-rclpy",
+            "ros-jazzy-common-interfaces",
+            "ros-jazzy-rmw-fastrtps-cpp",
+            "pytest>=7",
+            "pytest-timeout>=2.1",
+        ],
+    },
+    zip_safe=True,
+    maintainer="css_ros maintainers",
+    maintainer_email="css_ros@example.com",
+    description="Continuous Semantic Splatting: probabilistic semantic mapping on 3D Gaussian Splatting.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "css_node = css_ros.node:main",
+            "css_replay = css_ros.replay:main",
+            "css_make_demo = css_ros.make_demo:main",
+            "css_demo = css_ros.demo_player:main",
+            "css_nbv_client = css_ros.nbv_client:main",
+        ],
+    },
+)
