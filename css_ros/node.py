@@ -44,7 +44,7 @@ class NodeParams:
     prior: float = 1e-3
     background: float = 1e-3
     ignore_label: int = 255
-    unknown_threshold: float = 1.0
+    unknown_threshold: float = 0.5
     backend: str = "numba"
     sync_slop: float = 0.05
     max_stamp_future: float = 10.0
@@ -80,7 +80,8 @@ class NodeParams:
         "prior": "initial Dirichlet concentration per class and Gaussian (alpha_0)",
         "background": "background Dirichlet concentration per class (alpha_b)",
         "ignore_label": "segmentation value meaning 'no label'; also published for unknown pixels",
-        "unknown_threshold": "background weight kappa_b above which a pixel is published as ignore_label",
+        "unknown_threshold": "background weight kappa_b above which a pixel is published as ignore_label "
+                             "(1.0: never)",
         "backend": "rasteriser backend: numba or torch",
         "sync_slop": "maximum stamp difference [s] between segmentation, pose and confidence of one frame",
         "max_stamp_future": "drop inputs stamped more than this [s] ahead of the node clock (0: off)",
@@ -423,29 +424,33 @@ def _make_node_class() -> type:
             else:
                 raise CssError("set class_file or num_classes > 0")
             C = classes.num_classes
-            kwargs = dict(num_classes=C, prior=p.prior, background=p.background, ignore_label=p.ignore_label,
-                          unknown_threshold=p.unknown_threshold, backend=p.backend)
-            smap = SemanticMap(model, **kwargs)
-            self.resume_status = "fresh map"
+            kwargs = dict(ignore_label=p.ignore_label, unknown_threshold=p.unknown_threshold, backend=p.backend)
+            smap = None
             ckpt = self._checkpoint_path()
+            self.resume_status = "fresh map"
             if ckpt is not None and p.resume and ckpt.exists():
                 try:
-                    loaded = SemanticMap.load(ckpt, model)
-                    if loaded.num_classes != C:
-                        raise MapError(f"checkpoint has {loaded.num_classes} classes, the class setup has {C}")
-                    smap.concentrations[...] = loaded.concentrations
-                    self.resume_status = f"resumed from {ckpt}"
-                except (MapError, OSError, ValueError) as exc:
+                    smap = SemanticMap.load(ckpt, model, **kwargs)
+                    if smap.num_classes != C:
+                        raise MapError(f"it has {smap.num_classes} classes, the class setup has {C}")
+                    self.resume_status = f"resumed from {ckpt} ({smap.frames_observed} frames observed)"
+                    if (smap.prior, smap.background) != (p.prior, p.background):
+                        log.warning(f"checkpoint prior/background ({smap.prior:g}, {smap.background:g}) "
+                                    f"override the parameters ({p.prior:g}, {p.background:g})")
+                except MapError as exc:
+                    smap = None
                     aside = ckpt.with_name(ckpt.name + f".rejected-{time.strftime('%Y%m%d-%H%M%S')}")
                     try:
                         os.replace(ckpt, aside)
-                        moved = f"; moved it to {aside}"
+                        moved = f"; kept it as {aside}"
                     except OSError:
                         moved = ""
-                    self.resume_status = f"starting fresh: checkpoint {ckpt} refused ({exc}){moved}"
+                    self.resume_status = f"starting fresh: checkpoint refused: {exc}{moved}"
                     log.warning(self.resume_status)
             elif ckpt is not None and p.resume:
                 self.resume_status = f"fresh map (no checkpoint at {ckpt} yet)"
+            if smap is None:
+                smap = SemanticMap(model, num_classes=C, prior=p.prior, background=p.background, **kwargs)
             return smap, classes, model_path
 
         def _checkpoint_path(self) -> Path | None:
@@ -912,7 +917,11 @@ def main(args: Sequence[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
+        print(f"{NODE_NAME}: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections import Counter
@@ -50,7 +51,7 @@ class ReplayConfig:
     max_frames: int | None = None
     prior: float = 1e-3
     background: float = 1e-3
-    unknown_threshold: float = 1.0
+    unknown_threshold: float | None = None  # None = engine default
     ignore_label: int = 255
     backend: str = "numba"
     output_bag: bool = True
@@ -118,8 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many usable frames")
     p.add_argument("--prior", type=float, default=1e-3, help="Dirichlet prior alpha_0 per class (default 1e-3)")
     p.add_argument("--background", type=float, default=1e-3, help="background concentration alpha_b (default 1e-3)")
-    p.add_argument("--unknown-threshold", type=float, default=1.0,
-                   help="label a pixel 'no label' when its background weight exceeds this (default 1.0 = never)")
+    p.add_argument("--unknown-threshold", type=float, default=None,
+                   help="label a rendered pixel 'no label' when its background weight kappa_b exceeds this "
+                        "(default: the engine's, 0.5; 1.0 = never)")
     p.add_argument("--ignore-label", type=int, default=255, help="'no label' value of label images (default 255)")
     p.add_argument("--backend", choices=("numba", "torch"), default="numba", help="rasteriser backend")
     p.add_argument("--slop-ms", type=float, default=10.0,
@@ -492,15 +494,17 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     from .classes import ClassSet
     from .gaussians import GaussianModel
     from .metrics import ConfusionMatrix
-    from .report import write_report
+    from .report import make_plots, write_markdown
     from .semantic_map import SemanticMap
 
     t0 = time.perf_counter()
     model = GaussianModel.from_ply(cfg.model)
     classes = ClassSet.from_yaml(cfg.classes) if cfg.classes else ClassSet.default(int(cfg.num_classes or 0))
     C = classes.num_classes
+    extra = {} if cfg.unknown_threshold is None else {"unknown_threshold": cfg.unknown_threshold}
     smap = SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
-                       ignore_label=cfg.ignore_label, unknown_threshold=cfg.unknown_threshold, backend=cfg.backend)
+                       ignore_label=cfg.ignore_label, backend=cfg.backend, **extra)
+    cfg.unknown_threshold = smap.unknown_threshold
     source = FrameSource(cfg)
     source.check()
     if not source.present.get("gt") and not cfg.quiet:
@@ -590,9 +594,10 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         "load_s": t_load, "fuse_s": t_fuse, "fuse_fps": processed / t_fuse if t_fuse > 0 else None,
         "evaluate_s": t_eval, "evaluate_fps": evaluated_train / t_eval if t_eval > 0 else None,
     }
-    write_report(cfg.out, metrics, evaluator.examples, classes, cfg.ignore_label)
+    plots = make_plots(cfg.out, metrics, evaluator.examples, classes, cfg.ignore_label)
     metrics["timing"]["save_report_s"] = time.perf_counter() - t3
     metrics["timing"]["total_s"] = time.perf_counter() - t0
+    write_markdown(cfg.out, metrics, plots)
     (cfg.out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=2))
     return metrics
 
@@ -654,6 +659,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("css_replay: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - last resort: one line for the user, traceback on request
+        if os.environ.get("CSS_REPLAY_DEBUG"):
+            raise
+        print(f"css_replay: error: unexpected {type(exc).__name__}: {exc} "
+              "(set CSS_REPLAY_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
     print(headline(metrics))
     report = (cfg.out / "report.md").resolve()
     print(f"report: {report}")

@@ -162,6 +162,13 @@ def _f(x: float | None, fmt: str = ".4f") -> str:
 def write_report(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str, Any]], classes: "ClassSet",
                  ignore_label: int = 255) -> Path:
     """Write the PNG plots and ``report.md`` into ``out``; return the report path."""
+    plots = make_plots(out, metrics, examples, classes, ignore_label)
+    return write_markdown(out, metrics, plots)
+
+
+def make_plots(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str, Any]], classes: "ClassSet",
+               ignore_label: int = 255) -> list[tuple[str, str]]:
+    """Write the PNG plots into ``out``; return (title, file name) of each plot written."""
     out = Path(out)
     seg = metrics["segmentation"]
     image_level = metrics["image_level"]
@@ -175,7 +182,13 @@ def write_report(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str
         plots.append(("Per-class IoU", "per_class_iou.png"))
     if plot_examples(examples, classes, ignore_label, out / "examples.png"):
         plots.append(("Example frames", "examples.png"))
+    return plots
 
+
+def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str, str]]) -> Path:
+    """Write ``report.md`` (tables from ``metrics`` + the given plots) into ``out``; return its path."""
+    out = Path(out)
+    seg = metrics["segmentation"]
     f = metrics["frames"]
     t = metrics["timing"]
     lines = [
@@ -215,7 +228,7 @@ def write_report(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str
                   + ". AUSE = area between the curve and the oracle's (lower is better):", "",
                   "| signal | AUSE |", "|---|---|"]
         lines += [f"| {k} | {_f(v)} |" for k, v in px["ause"].items() if k != "oracle"]
-    il = image_level
+    il = metrics["image_level"]
     if il.get("spearman"):
         sp = il["sparsification"]["ause"]
         lines += ["", f"Image level ({il['num_evaluated']} frames, error = 1 - accuracy):", "",
