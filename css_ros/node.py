@@ -300,13 +300,15 @@ def body_to_optical(quats_xyzw: np.ndarray, q_body_optical: np.ndarray) -> np.nd
 
 
 def check_quaternion(q: np.ndarray) -> str | None:
-    """Reason why ``q`` (x, y, z, w) is unusable as an orientation, or None (same rule as Camera.from_pose)."""
+    """Reason why ``q`` (x, y, z, w) is unusable as an orientation, or None.
+
+    Same rule as Camera.from_pose: finite, norm within QUATERNION_NORM_TOLERANCE (then normalised).
+    """
     if not np.all(np.isfinite(q)):
         return "non-finite quaternion"
-    norm = float(np.linalg.norm(q))
     lo, hi = QUATERNION_NORM_TOLERANCE
-    if not lo <= norm <= hi:
-        return f"non-unit quaternion (norm {norm:.4g})"
+    if not lo <= float(np.linalg.norm(q)) <= hi:
+        return "non-unit quaternion"
     return None
 
 
@@ -583,7 +585,7 @@ def _make_node_class() -> type:
                 return
             reason = check_quaternion(quat)
             if reason is not None:
-                self.warn("pose", reason, f"{quat.tolist()}; dropped")
+                self.warn("pose", reason, f"{quat.tolist()} (norm {np.linalg.norm(quat):.4g}); dropped")
                 return
             if msg.header.frame_id and msg.header.frame_id.lstrip("/") != self.p.map_frame:
                 self.warn("pose", "frame_id differs from map_frame",
@@ -885,13 +887,18 @@ def _make_node_class() -> type:
             new = {k: v - self._last_problems.get(k, 0) for k, v in problems.items()
                    if v != self._last_problems.get(k, 0)}
             self._last_problems = problems
-            self.get_logger().info(
-                f"frames processed {s['frames_processed']} ({s['rate_hz']:.2f} Hz, median latency "
-                f"{s['frame_latency_ms_median']:.0f} ms), pending {s['pending_frames']}, dropped {dropped or 0}; "
-                f"candidate requests served {s.get('requests_served', 0)} (median "
-                f"{s['request_latency_ms_median']:.0f} ms); last U_var {s['last_u_var']:.4g} "
-                f"U_exp {s['last_u_exp']:.4g}; PSNR {s['last_psnr_db']:.1f} dB"
-                + (f"; new input problems: {new}" if new else ""))
+            if s["frames_processed"] == 0 and not s.get("requests_served") and not new:
+                self.get_logger().info(
+                    f"waiting for input: no frame yet (needs {', '.join(self._sync_kinds)} with matching stamps "
+                    f"and camera_info); segmentations received {s.get('segmentations_received', 0)}")
+            else:
+                self.get_logger().info(
+                    f"frames processed {s['frames_processed']} ({s['rate_hz']:.2f} Hz, median latency "
+                    f"{s['frame_latency_ms_median']:.0f} ms), pending {s['pending_frames']}, dropped "
+                    f"{dropped or 0}; candidate requests served {s.get('requests_served', 0)} (median "
+                    f"{s['request_latency_ms_median']:.0f} ms); last U_var {s['last_u_var']:.4g} "
+                    f"U_exp {s['last_u_exp']:.4g}; PSNR {s['last_psnr_db']:.1f} dB"
+                    + (f"; new input problems: {new}" if new else ""))
             if self._diag_pub is not None:
                 DiagnosticArray, DiagnosticStatus, KeyValue = self._diag_types
                 level = DiagnosticStatus.WARN if new else DiagnosticStatus.OK

@@ -1,0 +1,111 @@
+"""Unit tests of css_node's ROS-free parts: work queue, warning limiter, pose conversion, parameters."""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from css_ros.camera import body_to_optical_rotation, quaternion_xyzw_to_matrix
+from css_ros.errors import CssError
+from css_ros.node import (BODY_TO_OPTICAL_XYZW, FrameJob, NodeParams, WarnLimiter, WorkQueue, body_to_optical,
+                          check_params, check_quaternion, resolve_data_path)
+
+
+def _frame(i: int) -> FrameJob:
+    z = np.zeros(1)
+    return FrameJob(i, "cam", np.zeros((1, 1), np.uint8), None, None, np.eye(3), z, z, z, 0.0)
+
+
+def test_work_queue_newest_frames_win():
+    q = WorkQueue(max_frames=2)
+    dropped = [q.put_frame(_frame(i)) for i in range(5)]
+    assert [d.stamp_ns for d in dropped if d is not None] == [0, 1, 2]
+    assert [q.get(0).stamp_ns, q.get(0).stamp_ns] == [3, 4]
+    assert q.get(0.01) is None
+
+
+def test_work_queue_alternates_so_nothing_starves():
+    q = WorkQueue(max_frames=10, max_requests=10)
+    for i in range(3):
+        q.put_frame(_frame(i))
+        q.put_request(f"req{i}")  # type: ignore[arg-type]
+    order = [q.get(0) for _ in range(6)]
+    kinds = ["f" if isinstance(j, FrameJob) else "r" for j in order]
+    # A request never waits behind more than one frame, and frames keep flowing between requests.
+    assert kinds == ["f", "r", "f", "r", "f", "r"]
+
+
+def test_work_queue_close_wakes_consumer():
+    q = WorkQueue(max_frames=1)
+    out = []
+    t = threading.Thread(target=lambda: out.append(q.get(10.0)))
+    t.start()
+    time.sleep(0.05)
+    q.close()
+    t.join(2.0)
+    assert not t.is_alive() and out == [None]
+
+
+def test_warn_limiter_counts_everything_logs_rarely():
+    lines: list[str] = []
+    warn = WarnLimiter(lines.append, period=60.0)
+    for _ in range(5):
+        warn("pose", "non-unit quaternion", "x")
+    warn("segmentation", "bad segmentation")
+    warn("pose", "frame_id differs", dropped=False)
+    counts, dropped = warn.snapshot()
+    assert counts["pose: non-unit quaternion"] == 5
+    assert dropped == {"pose": 5, "segmentation": 1}
+    assert len(lines) == 3  # one per key within the period
+    assert lines[0].startswith("[pose] non-unit quaternion")
+
+
+def test_warn_limiter_reports_suppressed_after_period():
+    lines: list[str] = []
+    warn = WarnLimiter(lines.append, period=0.05)
+    for _ in range(4):
+        warn("image", "bad image")
+    time.sleep(0.06)
+    warn("image", "bad image")
+    assert len(lines) == 2 and "+3 similar" in lines[1]
+
+
+def test_body_to_optical_matches_rep103():
+    # Body frame = map frame (identity): the optical axes in the map are z fwd = +x, x right = -y, y down = -z.
+    q = body_to_optical(np.array([0.0, 0.0, 0.0, 1.0]), np.array(BODY_TO_OPTICAL_XYZW))
+    R = quaternion_xyzw_to_matrix(q)
+    np.testing.assert_allclose(R, body_to_optical_rotation(), atol=1e-12)
+    np.testing.assert_allclose(R[:, 2], [1, 0, 0], atol=1e-12)
+    # A body yawed by 90 degrees (facing +y) looks along +y.
+    yaw = np.array([0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
+    R = quaternion_xyzw_to_matrix(body_to_optical(yaw, np.array(BODY_TO_OPTICAL_XYZW)))
+    np.testing.assert_allclose(R[:, 2], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(R[:, 1], [0, 0, -1], atol=1e-12)
+
+
+@pytest.mark.parametrize("q, ok", [((0, 0, 0, 1), True), ((0, 0, 0, 1.05), True), ((0, 0, 0, 2), False),
+                                   ((0, 0, 0, 0), False), ((np.nan, 0, 0, 1), False)])
+def test_check_quaternion(q, ok):
+    assert (check_quaternion(np.array(q, dtype=float)) is None) == ok
+
+
+@pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "cuda"), ("prior", 0.0),
+                                          ("queue_size", 0), ("sync_slop", -1.0), ("output_scale", float("nan")),
+                                          ("body_to_optical_quaternion", [0.0, 0.0, 0.0, 2.0])])
+def test_check_params_rejects(field, value):
+    p = NodeParams()
+    setattr(p, field, value)
+    with pytest.raises(CssError, match=field):
+        check_params(p)
+
+
+def test_resolve_data_path(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "m.ply").write_text("x")
+    assert resolve_data_path("m.ply") == tmp_path / "m.ply"
+    # Relative to the source tree when not in the working directory.
+    assert resolve_data_path("css_ros/node.py") == Path(__file__).resolve().parents[1] / "css_ros" / "node.py"
+    assert resolve_data_path(str(tmp_path / "abs.ply")) == tmp_path / "abs.ply"
