@@ -238,7 +238,7 @@ class GaussianModel:
             raise ModelError(f"{p}: splat model file does not exist (or is not a regular file)")
         try:
             with open(p, "rb") as fh:
-                ply = PlyData.read(fh, mmap=False)
+                ply = PlyData.read(fh, mmap="r")  # memory-mapped: fast for large binary files
         except Exception as exc:  # plyfile raises many types for malformed/truncated files
             raise ModelError(f"{p}: cannot parse as PLY ({type(exc).__name__}: {exc}); "
                              "the file may be truncated (declares more vertices than it holds) "

@@ -103,20 +103,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("bag", nargs="?", type=Path, default=None,
                    help="bag directory (default: the shipped demo bags/demo/bag)")
-    p.add_argument("--model", type=Path, default=None, help="INRIA 3DGS PLY model (default: <bag parent>/model.ply)")
-    p.add_argument("--classes", type=Path, default=None,
+    p.add_argument("--model", type=Path, default=None, metavar="PLY", help="INRIA 3DGS PLY model (default: <bag parent>/model.ply)")
+    p.add_argument("--classes", type=Path, default=None, metavar="YAML",
                    help="class file YAML (default: <bag parent>/classes.yaml)")
-    p.add_argument("--num-classes", type=int, default=None,
+    p.add_argument("--num-classes", type=int, default=None, metavar="N",
                    help="number of classes when no class file exists (anonymous names, generated palette)")
-    p.add_argument("--out", type=Path, default=None, help="output directory (default: out/replay_<bagname>)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output directory (default: out/replay_<bagname>)")
     for kind, topic in DEFAULT_TOPICS.items():
         opt = "--confidence-topic" if kind == "confidence" else f"--{kind.replace('_', '-')}-topic"
-        p.add_argument(opt, dest=f"topic_{kind}", default=topic,
+        p.add_argument(opt, dest=f"topic_{kind}", default=topic, metavar="TOPIC",
                        help=f"{kind} topic (default {topic})" + ("" if kind in ("segmentation", "pose", "camera_info")
                                                               else "; '' = do not use"))
-    p.add_argument("--train-frames", type=int, default=None,
+    p.add_argument("--train-frames", type=int, default=None, metavar="K",
                    help="update the map with the first K frames only; all frames are evaluated (default: all)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after this many usable frames")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after this many usable frames")
     p.add_argument("--prior", type=float, default=1e-3, help="Dirichlet prior alpha_0 per class (default 1e-3)")
     p.add_argument("--background", type=float, default=1e-3, help="background concentration alpha_b (default 1e-3)")
     p.add_argument("--unknown-threshold", type=float, default=None,

@@ -276,11 +276,13 @@ class RosClient:
 
         self.pub["pose"].publish(pose_stamped_msg(position, quat, header_msg(stamp_ns, frame_id)))
 
-    def send_image(self, topic: str, stamp_ns: int, array: np.ndarray, encoding: str, **overrides: Any) -> None:
+    def send_image(self, topic: str, stamp_ns: int, array: np.ndarray, encoding: str,
+                   overrides: dict[str, Any] | None = None) -> None:
+        """Publish ``array`` as an Image; ``overrides`` sets raw message fields afterwards (bad input)."""
         from css_ros.ros_conversions import header_msg, image_msg
 
         msg = image_msg(array, encoding, header_msg(stamp_ns, "camera"))
-        for key, value in overrides.items():
+        for key, value in (overrides or {}).items():
             setattr(msg, key, value)
         pub = self.confidence_publisher() if topic == "segmentation_confidence" else self.pub[topic]
         pub.publish(msg)
