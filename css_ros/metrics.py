@@ -119,7 +119,9 @@ def sparsification_curve(
     cut falls inside a group of equal uncertainties, that group contributes its mean error per
     removed sample. This makes the curve exact and independent of the input order.
     """
-    u = np.asarray(uncertainty, dtype=np.float64).ravel()
+    u = np.asarray(uncertainty).ravel()
+    if not np.issubdtype(u.dtype, np.floating):
+        u = u.astype(np.float64)
     e = np.asarray(error, dtype=np.float64).ravel()
     if u.shape != e.shape:
         raise ValueError(f"uncertainty and error shapes differ: {u.shape} vs {e.shape}")
@@ -128,7 +130,8 @@ def sparsification_curve(
     if m == 0:
         return np.full(fractions.shape, np.nan)
     u = np.where(np.isnan(u), np.inf, u)  # NaN uncertainty = maximally uncertain
-    order = np.argsort(-u, kind="stable")
+    # Exact sort (any order within ties is fine: tie groups are handled below). float32 inputs stay float32.
+    order = np.argsort(-u)
     u_s = u[order]
     e_s = e[order]
     cum = np.concatenate([[0.0], np.cumsum(e_s)])  # cum[k] = error mass of the first k samples
@@ -148,8 +151,25 @@ def sparsification_curve(
 
 def oracle_curve(error: np.ndarray, fractions: np.ndarray = DEFAULT_FRACTIONS) -> np.ndarray:
     """Sparsification curve of the oracle, which removes the samples with the largest error first."""
+    e_s = np.sort(np.asarray(error, dtype=np.float64).ravel())[::-1]
+    return _curve_of_sorted(e_s, fractions)
+
+
+def random_curve(error: np.ndarray, fractions: np.ndarray = DEFAULT_FRACTIONS, seed: int = 0) -> np.ndarray:
+    """Sparsification curve of a uniformly random removal order (seeded permutation)."""
     e = np.asarray(error, dtype=np.float64).ravel()
-    return sparsification_curve(e, e, fractions)
+    return _curve_of_sorted(e[np.random.default_rng(seed).permutation(e.size)], fractions)
+
+
+def _curve_of_sorted(e_s: np.ndarray, fractions: np.ndarray) -> np.ndarray:
+    """Mean of e_s[k:] for k = round(f * M), clipped to M - 1 (removal order = array order, no ties)."""
+    m = e_s.size
+    fractions = np.asarray(fractions, dtype=np.float64)
+    if m == 0:
+        return np.full(fractions.shape, np.nan)
+    cum = np.concatenate([[0.0], np.cumsum(e_s)])
+    k = np.clip(np.rint(fractions * m).astype(np.int64), 0, m - 1)
+    return (cum[m] - cum[k]) / (m - k)
 
 
 def ause(curve: np.ndarray, oracle: np.ndarray, fractions: np.ndarray = DEFAULT_FRACTIONS) -> float:
@@ -174,7 +194,7 @@ def sparsification_report(
     Args:
         uncertainties: name -> (M,) uncertainty (higher = less trustworthy).
         error: (M,) per-sample error.
-        random_seed: seed of the random-ordering baseline (uniform random uncertainties); None = omit.
+        random_seed: seed of the random-ordering baseline (a seeded random permutation); None = omit.
 
     Returns:
         {"fractions": [...], "num_samples": M, "curves": {name: [...], "random": [...], "oracle": [...]},
@@ -186,8 +206,7 @@ def sparsification_report(
     for name, u in uncertainties.items():
         curves[name] = sparsification_curve(u, error, fractions)
     if random_seed is not None:
-        rng = np.random.default_rng(random_seed)
-        curves["random"] = sparsification_curve(rng.random(error.size), error, fractions)
+        curves["random"] = random_curve(error, fractions, random_seed)
     curves["oracle"] = oracle
     return {
         "fractions": [float(f) for f in fractions],

@@ -365,7 +365,9 @@ def _make_node_class() -> type:
             self._last_frame_ns: int | None = None
             self._stale_run = 0
             self._sync_kinds: tuple[str, ...] = ()
-            self.sync = self._make_sync(("segmentation", "pose"))
+            self.sync = self._make_sync(("segmentation", "pose", "confidence") if p.use_confidence
+                                        else ("segmentation", "pose"))
+            self._confidence_topic = self.resolve_topic_name("segmentation_confidence")
             self._sync_counts: Counter[str] = Counter()
             self.queue = WorkQueue(p.max_pending_frames)
             if p.input_qos == "reliable":
@@ -376,11 +378,12 @@ def _make_node_class() -> type:
                                     durability=qos_profile_sensor_data.durability,
                                     history=HistoryPolicy.KEEP_LAST)
             qos_req = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-            self.create_subscription(Image, "image", self._on_image, qos_in)
-            self.create_subscription(Image, "segmentation", self._on_segmentation, qos_in)
-            self.create_subscription(Image, "segmentation_confidence", self._on_confidence, qos_in)
+            # camera_info first: when several messages are ready the executor takes them in this order.
             self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, qos_in)
             self.create_subscription(PoseStamped, "pose", self._on_pose, qos_in)
+            self.create_subscription(Image, "image", self._on_image, qos_in)
+            self.create_subscription(Image, "segmentation_confidence", self._on_confidence, qos_in)
+            self.create_subscription(Image, "segmentation", self._on_segmentation, qos_in)
             self.create_subscription(PoseArray, "candidates", self._on_candidates, qos_req)
 
             # ---- outputs
@@ -469,13 +472,16 @@ def _make_node_class() -> type:
             K = np.array([[16.0, 0, 7.5], [0, 16.0, 5.5], [0, 0, 1]])
             cam = Camera.from_pose(K, 16, 12, centre - np.array([0, 0, extent + 1.0]), (0, 0, 0, 1))
             labels = np.full((12, 16), self.p.ignore_label, dtype=np.int32)
+            frames_observed = getattr(self.smap, "frames_observed", None)
             try:
                 before = self.smap.concentrations.copy()
-                self.smap.update(cam, labels)
+                self.smap.update(cam, labels)  # all pixels "no label": compiles the update, adds nothing
                 self.smap.render(cam)
                 self.smap.render(cam.scaled(0.5))
                 if not np.array_equal(before, self.smap.concentrations):
                     self.smap.concentrations[...] = before
+                if frames_observed is not None:
+                    self.smap.frames_observed = frames_observed
             except CssError as exc:
                 self.get_logger().warning(f"warm-up failed ({exc}); first frame will compile the kernels")
             self.get_logger().info(f"rasteriser warm-up ({self.p.backend}) took {time.perf_counter() - t0:.2f} s")
@@ -502,14 +508,9 @@ def _make_node_class() -> type:
             return FrameSynchronizer(kinds, slop_ns=int(round(self.p.sync_slop * 1e9)),
                                      anchor="segmentation", queue_size=self.p.queue_size)
 
-        def _refresh_sync_kinds(self) -> None:
-            want = ["segmentation", "pose"]
-            if self.p.use_confidence and self.count_publishers(
-                    self.resolve_topic_name("segmentation_confidence")) > 0:
-                want.append("confidence")
-            if tuple(want) != self._sync_kinds:
-                self.get_logger().info(f"synchronising {', '.join(want)}")
-                self.sync = self._make_sync(want)
+        def _confidence_published(self) -> bool:
+            """True while segmentation_confidence has a publisher: frames then wait for a confidence image."""
+            return self.count_publishers(self._confidence_topic) > 0
 
         def _count(self, key: str, n: int = 1) -> None:
             with self._stats_lock:
@@ -524,17 +525,17 @@ def _make_node_class() -> type:
                     return False
             return True
 
-        def _intrinsics_for(self, topic: str, shape: tuple[int, ...]) -> tuple[np.ndarray, int, int] | None:
+        def _size_ok(self, topic: str, shape: tuple[int, ...]) -> bool:
+            """Image size check against the latest camera_info (deferred to the frame if none yet)."""
             info = self._camera_info
             if info is None:
-                self.warn(topic, "no camera_info received yet", "frame dropped")
-                return None
+                return True
             K, w, h = info
             if shape[:2] != (h, w):
                 self.warn(topic, "size mismatch with camera_info",
                           f"image {shape[1]}x{shape[0]}, camera_info {w}x{h}; frame dropped")
-                return None
-            return info
+                return False
+            return True
 
         def _on_camera_info(self, msg: Any) -> None:
             try:
@@ -554,7 +555,7 @@ def _make_node_class() -> type:
                 return
             if rgb.ndim == 2:
                 rgb = np.repeat(rgb[:, :, None], 3, axis=2)
-            if self._intrinsics_for("image", rgb.shape) is None or not self._stamp_ok("image", stamp):
+            if not self._size_ok("image", rgb.shape) or not self._stamp_ok("image", stamp):
                 return
             self._images.append((stamp, rgb))
 
@@ -569,12 +570,9 @@ def _make_node_class() -> type:
             if not np.all(np.isfinite(conf)):
                 self.warn(topic, "non-finite confidence values", "dropped")
                 return
-            if self._intrinsics_for(topic, conf.shape) is None or not self._stamp_ok(topic, stamp):
+            if not self._size_ok(topic, conf.shape) or not self._stamp_ok(topic, stamp):
                 return
-            if not self.p.use_confidence:
-                return
-            self._refresh_sync_kinds()
-            if "confidence" in self._sync_kinds:
+            if self.p.use_confidence:
                 self._push("confidence", topic, stamp, np.clip(conf, 0.0, 1.0))
 
         def _on_pose(self, msg: Any) -> None:
@@ -606,7 +604,7 @@ def _make_node_class() -> type:
             except InputError as exc:
                 self.warn(topic, "bad segmentation", f"{exc}; frame dropped")
                 return
-            if self._intrinsics_for(topic, labels.shape) is None or not self._stamp_ok(topic, stamp):
+            if not self._size_ok(topic, labels.shape) or not self._stamp_ok(topic, stamp):
                 return
             if self._last_frame_ns is not None and stamp <= self._last_frame_ns:
                 self._stale_run += 1
@@ -623,7 +621,9 @@ def _make_node_class() -> type:
                 self.sync = self._make_sync(self._sync_kinds)
             else:
                 self._stale_run = 0
-            self._refresh_sync_kinds()
+            if "confidence" in self._sync_kinds and not self._confidence_published():
+                # Nobody publishes confidence: complete the frame with "no confidence" (weight 1).
+                self._push("confidence", "segmentation_confidence", stamp, None)
             self._push("segmentation", topic, stamp, (labels, msg.header.frame_id, time.monotonic()))
 
         def _push(self, kind: str, topic: str, stamp: int, payload: Any) -> None:
@@ -635,10 +635,13 @@ def _make_node_class() -> type:
                 if n <= 0 or key == "frames" or key.startswith("reordered_"):
                     continue
                 if key == "unmatched":
-                    others = ", ".join(k for k in self._sync_kinds if k != "segmentation")
+                    others = "pose" + (" or segmentation_confidence" if "confidence" in self._sync_kinds
+                                       and self._confidence_published() else "")
                     self.warn("segmentation", "no matching stamp",
                               f"no {others} within sync_slop={self.p.sync_slop:g} s of the segmentation; "
                               "frame dropped")
+                elif key == "overflow_confidence" and not self._confidence_published():
+                    continue  # placeholders of segmentations that never matched a pose
                 else:
                     what, _, k = key.partition("_")
                     name = {"confidence": "segmentation_confidence"}.get(k, k)
@@ -653,9 +656,17 @@ def _make_node_class() -> type:
             info = self._camera_info
             labels, frame_id, t_recv = frame.items["segmentation"]
             position, quat_in, quat_opt = frame.items["pose"]
-            if info is None or labels.shape != (info[2], info[1]):
-                self.warn("segmentation", "size mismatch with camera_info", "camera_info changed; dropped")
+            if info is None:
+                self.warn("segmentation", "no camera_info received yet", "frame dropped")
                 return
+            sizes = [("segmentation", labels.shape)]
+            if frame.items.get("confidence") is not None:
+                sizes.append(("segmentation_confidence", frame.items["confidence"].shape))
+            for topic, shape in sizes:
+                if shape[:2] != (info[2], info[1]):
+                    self.warn(topic, "size mismatch with camera_info",
+                              f"image {shape[1]}x{shape[0]}, camera_info {info[1]}x{info[2]}; frame dropped")
+                    return
             self._last_frame_ns = frame.stamp_ns
             image = None
             slop = self.p.sync_slop * 1e9
@@ -678,10 +689,17 @@ def _make_node_class() -> type:
         def _on_candidates(self, msg: Any) -> None:
             topic = "candidates"
             info = self._camera_info
-            if info is None:
-                self.warn(topic, "no camera_info received yet", "request dropped")
-                return
             m = len(msg.poses)
+            if info is None:
+                # Answer anyway (NaN scores) so that a client waiting for this request id is not left hanging.
+                self.warn(topic, "no camera_info received yet", "cannot render: answered with NaN scores",
+                          dropped=False)
+                positions = np.array([pose_to_arrays(p)[0] for p in msg.poses]).reshape(m, 3)
+                quats = np.array([pose_to_arrays(p)[1] for p in msg.poses]).reshape(m, 4)
+                nan = np.full(m, np.nan)
+                self.pubs["candidate_scores"].publish(
+                    rc.view_points_msg(rc.copy_header(msg.header), positions, quats, nan, nan))
+                return
             if m > self.p.max_candidates:
                 self.warn(topic, "too many candidates", f"{m} > max_candidates={self.p.max_candidates}; "
                                                         "request dropped")
@@ -920,34 +938,45 @@ def _make_node_class() -> type:
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point ``css_node``; returns the process exit code."""
+    """Console entry point ``css_node``; returns the process exit code.
+
+    SIGINT / SIGTERM stop the node cleanly: the worker finishes its job and a final checkpoint is written
+    before the ROS context shuts down.
+    """
+    import signal
+
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
         print(f"{NODE_NAME}: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
         return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     node = None
-    code = 0
     try:
-        CssNode = _make_node_class()
         try:
-            node = CssNode()
+            node = _make_node_class()()
         except CssError as exc:  # ModelError, MapError, bad parameters, class file
             rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
             return 2
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
+            node.get_logger().info("shutting down")
             node.shutdown()
             node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return code
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

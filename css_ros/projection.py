@@ -34,12 +34,14 @@ class GaussianGeometry:
         cov3d: (N, 6) float64 upper triangle (xx, xy, xz, yy, yz, zz) of R S S^T R^T [m^2].
         opacities: (N,) float64 activated opacities in (0, 1).
         sh: (N, K, 3) float32 SH coefficients (K = (degree + 1)^2).
+        max_std: (N,) float64 largest axis standard deviation [m] (for conservative frustum culling).
     """
 
     means: np.ndarray
     cov3d: np.ndarray
     opacities: np.ndarray
     sh: np.ndarray
+    max_std: np.ndarray
 
     @classmethod
     def from_model(cls, model: "GaussianModel") -> "GaussianGeometry":
@@ -60,6 +62,7 @@ class GaussianGeometry:
             cov3d=np.ascontiguousarray(cov3d),
             opacities=np.ascontiguousarray(model.opacities, dtype=np.float64),
             sh=np.ascontiguousarray(model.sh, dtype=np.float32),
+            max_std=np.ascontiguousarray(np.max(np.asarray(model.scales, dtype=np.float64), axis=1)),
         )
 
     @property
@@ -73,32 +76,47 @@ class ProjectedGaussians:
 
     Attributes (M = number kept):
         ids: (M,) int64 indices into the model.
-        means2d: (M, 2) float64 projected centres [px] (u right, v down; pixel centres at integers).
-        conics: (M, 3) float64 (a, b, c) of the inverse screen covariance [1/px^2].
-        opacities: (M,) float64.
-        qmax: (M,) float64 largest Mahalanobis q = d^T conic d at which alpha >= 1/255.
+        packed: (M, 8) float64 rows (u, v, a, b, c, opacity, qmax, depth), one cache line per
+            Gaussian for the compositing kernels: (u, v) projected centre [px] (u right, v down,
+            pixel centres at integers); (a, b, c) inverse screen covariance [1/px^2]; qmax the
+            largest Mahalanobis q = d^T conic d at which alpha >= 1/255; depth camera z [m].
         bbox: (M, 4) int32 inclusive pixel box (u_min, u_max, v_min, v_max) of that ellipse.
-        depths: (M,) float64 camera depth z [m].
-        colors: (M, 3) float32 view-dependent RGB in [0, inf) (SH + 0.5, clamped at 0).
+        colors: (M, 3) float64 view-dependent RGB in [0, inf) (SH + 0.5, clamped at 0).
     """
 
     ids: np.ndarray
-    means2d: np.ndarray
-    conics: np.ndarray
-    opacities: np.ndarray
-    qmax: np.ndarray
+    packed: np.ndarray
     bbox: np.ndarray
-    depths: np.ndarray
     colors: np.ndarray
 
     @property
     def count(self) -> int:
         return int(self.ids.shape[0])
 
+    @property
+    def means2d(self) -> np.ndarray:
+        return self.packed[:, 0:2]
+
+    @property
+    def conics(self) -> np.ndarray:
+        return self.packed[:, 2:5]
+
+    @property
+    def opacities(self) -> np.ndarray:
+        return self.packed[:, 5]
+
+    @property
+    def qmax(self) -> np.ndarray:
+        return self.packed[:, 6]
+
+    @property
+    def depths(self) -> np.ndarray:
+        return self.packed[:, 7]
+
 
 @njit(parallel=True, cache=True)
-def _project_kernel(means, cov3d, opac, rot, trans, fx, fy, cx, cy, width, height,
-                    out_xy, out_conic, out_depth, out_qmax, out_bbox, out_valid):  # pragma: no cover
+def _project_kernel(means, cov3d, opac, max_std, rot, trans, fx, fy, cx, cy, width, height,
+                    out, out_bbox, out_valid):  # pragma: no cover
     n = means.shape[0]
     tan_x = width / (2.0 * fx)
     tan_y = height / (2.0 * fy)
@@ -106,6 +124,7 @@ def _project_kernel(means, cov3d, opac, rot, trans, fx, fy, cx, cy, width, heigh
     hi_x = (width - 0.5 - cx) / fx + FOV_CLAMP * tan_x
     lo_y = -(cy + 0.5) / fy - FOV_CLAMP * tan_y
     hi_y = (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y
+    jac_sq = fx * fx * (1.0 + max(lo_x * lo_x, hi_x * hi_x)) + fy * fy * (1.0 + max(lo_y * lo_y, hi_y * hi_y))
     for i in prange(n):
         out_valid[i] = False
         o = opac[i]
@@ -119,6 +138,12 @@ def _project_kernel(means, cov3d, opac, rot, trans, fx, fy, cx, cy, width, heigh
             continue
         u = fx * x / z + cx
         v = fy * y / z + cy
+        # Conservative early frustum cull before the covariance maths: lambda_max(Sigma') <=
+        # ||J||_F^2 s_max^2 + 0.3 with |t| bounded by the clamp, so a centre farther outside the
+        # image than 3 sqrt(that) + 1 px cannot have its 3-sigma square touch the image.
+        bound = 3.0 * math.sqrt(jac_sq * max_std[i] * max_std[i] / (z * z) + COV2D_DILATION) + 1.0
+        if u < -0.5 - bound or u > width - 0.5 + bound or v < -0.5 - bound or v > height - 0.5 + bound:
+            continue
         txz = min(max(x / z, lo_x), hi_x)
         tyz = min(max(y / z, lo_y), hi_y)
         # J = [[fx/z, 0, -fx*txz/z], [0, fy/z, -fy*tyz/z]];  M = J @ R_cam_map  (2 x 3)
@@ -160,13 +185,14 @@ def _project_kernel(means, cov3d, opac, rot, trans, fx, fy, cx, cy, width, heigh
         vmax = min(height - 1.0, math.floor(v + hy))
         if umin > umax or vmin > vmax:
             continue
-        out_xy[i, 0] = u
-        out_xy[i, 1] = v
-        out_conic[i, 0] = cc / det
-        out_conic[i, 1] = -cb / det
-        out_conic[i, 2] = ca / det
-        out_depth[i] = z
-        out_qmax[i] = qmax
+        out[i, 0] = u
+        out[i, 1] = v
+        out[i, 2] = cc / det
+        out[i, 3] = -cb / det
+        out[i, 4] = ca / det
+        out[i, 5] = o
+        out[i, 6] = qmax
+        out[i, 7] = z
         out_bbox[i, 0] = np.int32(umin)
         out_bbox[i, 1] = np.int32(umax)
         out_bbox[i, 2] = np.int32(vmin)
@@ -179,27 +205,21 @@ def project(geometry: GaussianGeometry, camera: "Camera") -> ProjectedGaussians:
     depth-sort the Gaussians for ``camera``; evaluate their view-dependent colours.
     """
     n = geometry.num_gaussians
-    out_xy = np.empty((n, 2))
-    out_conic = np.empty((n, 3))
-    out_depth = np.empty(n)
-    out_qmax = np.empty(n)
+    out = np.empty((n, 8))
     out_bbox = np.empty((n, 4), dtype=np.int32)
     out_valid = np.empty(n, dtype=np.bool_)
     world_to_cam = np.asarray(camera.world_to_cam, dtype=np.float64)
     k = np.asarray(camera.K, dtype=np.float64)
-    _project_kernel(geometry.means, geometry.cov3d, geometry.opacities,
+    _project_kernel(geometry.means, geometry.cov3d, geometry.opacities, geometry.max_std,
                     np.ascontiguousarray(world_to_cam[:3, :3]), np.ascontiguousarray(world_to_cam[:3, 3]),
                     float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
                     float(camera.width), float(camera.height),
-                    out_xy, out_conic, out_depth, out_qmax, out_bbox, out_valid)
+                    out, out_bbox, out_valid)
     ids = np.flatnonzero(out_valid)
-    ids = ids[np.argsort(out_depth[ids], kind="stable")]
+    ids = ids[np.argsort(out[ids, 7], kind="stable")]
     cam_pos = np.asarray(camera.position, dtype=np.float64)
     colors = _colors(geometry, ids, cam_pos)
-    return ProjectedGaussians(
-        ids=ids, means2d=out_xy[ids], conics=out_conic[ids], opacities=geometry.opacities[ids],
-        qmax=out_qmax[ids], bbox=out_bbox[ids], depths=out_depth[ids], colors=colors,
-    )
+    return ProjectedGaussians(ids=ids, packed=np.ascontiguousarray(out[ids]), bbox=out_bbox[ids], colors=colors)
 
 
 def _colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
@@ -210,4 +230,4 @@ def _colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) ->
         dirs = geometry.means[ids] - cam_pos
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
         rgb = eval_sh(sh, dirs.astype(np.float32))
-    return np.ascontiguousarray(np.maximum(rgb + 0.5, 0.0), dtype=np.float32)
+    return np.ascontiguousarray(np.maximum(rgb + 0.5, 0.0), dtype=np.float64)

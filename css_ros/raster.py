@@ -4,6 +4,12 @@ Every kernel walks a pixel's depth-sorted Gaussian list with the INRIA rules of 
 the weights kappa_in = a_n T_n on the fly; nothing of size (pixels x Gaussians) is ever stored.
 A Gaussian contributes to exactly the pixels where its alpha reaches 1/255 (its binning box covers
 that ellipse), so the result does not depend on the tile size and equals a per-pixel brute force.
+
+Performance notes (see benchmarks/README.md): each tile first copies its Gaussians' packed rows
+(u, v, conic, opacity, qmax) into a contiguous local block, so the per-pixel walk reads memory
+sequentially; tiles are 8 x 8 px (shorter candidate lists per pixel than 16 x 16); the update pass
+of ``observe`` records each pixel's (Gaussian, kappa) list in a bounded per-pixel slot buffer that
+the render pass replays instead of walking and exponentiating again.
 """
 from __future__ import annotations
 
@@ -16,7 +22,8 @@ from numba import njit, prange
 
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN, ProjectedGaussians
 
-TILE_SIZE = 16  # px
+TILE_SIZE = 8        # px
+_ROW = 7             # columns of the packed rows used by the kernels: u v a b c opacity qmax
 
 
 @dataclass(frozen=True)
@@ -67,135 +74,227 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
 
 
 @njit(inline="always")
-def _alpha(u, v, j, xy, conic, opac, qmax):  # pragma: no cover
-    dx = u - xy[j, 0]
-    dy = v - xy[j, 1]
-    q = conic[j, 0] * dx * dx + 2.0 * conic[j, 1] * dx * dy + conic[j, 2] * dy * dy
-    if q > qmax[j]:
-        return 0.0
-    return min(ALPHA_MAX, opac[j] * math.exp(-0.5 * q))
-
-
-@njit(parallel=True, cache=True)
-def _update_kernel(offsets, lists, xy, conic, opac, qmax, labels, weights, width, height,
-                   tile, tiles_x, acc):  # pragma: no cover
-    """acc[chunk, j, c] += sum over pixels (labelled c) of kappa_ij * weight_i; chunk-private rows."""
-    nchunks = acc.shape[0]
-    num_tiles = offsets.shape[0] - 1
-    for ch in prange(nchunks):
-        for t in range(ch, num_tiles, nchunks):
-            start, end = offsets[t], offsets[t + 1]
-            if start == end:
-                continue
-            ty, tx = t // tiles_x, t % tiles_x
-            for v in range(ty * tile, min(height, ty * tile + tile)):
-                for u in range(tx * tile, min(width, tx * tile + tile)):
-                    lab = labels[v, u]
-                    w = weights[v, u]
-                    if lab < 0 or not (w > 0.0):
-                        continue
-                    trans = 1.0
-                    for k in range(start, end):
-                        j = lists[k]
-                        a = _alpha(u, v, j, xy, conic, opac, qmax)
-                        if a < ALPHA_MIN:
-                            continue
-                        test_t = trans * (1.0 - a)
-                        if test_t < T_MIN:
-                            break
-                        acc[ch, j, lab] += a * trans * w
-                        trans = test_t
-
-
-@njit(parallel=True, cache=True)
-def _render_kernel(offsets, lists, xy, conic, opac, qmax, colors, expect, var, totals,
-                   e_bg, v_bg, s_bg, bg_rgb, width, height, tile, tiles_x, want_probs,
-                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
-    num_tiles = offsets.shape[0] - 1
-    num_classes = expect.shape[1]
-    for t in prange(num_tiles):
-        start, end = offsets[t], offsets[t + 1]
-        n = max(end - start, 1)
-        kbuf = np.empty(n)
-        jbuf = np.empty(n, dtype=np.int32)
-        eacc = np.empty(num_classes)
-        ty, tx = t // tiles_x, t % tiles_x
-        for v in range(ty * tile, min(height, ty * tile + tile)):
-            for u in range(tx * tile, min(width, tx * tile + tile)):
-                eacc[:] = 0.0
-                r = 0.0
-                g = 0.0
-                b = 0.0
-                evidence = 0.0
-                trans = 1.0
-                cnt = 0
-                for k in range(start, end):
-                    j = lists[k]
-                    a = _alpha(u, v, j, xy, conic, opac, qmax)
-                    if a < ALPHA_MIN:
-                        continue
-                    test_t = trans * (1.0 - a)
-                    if test_t < T_MIN:
-                        break
-                    kappa = a * trans
-                    r += kappa * colors[j, 0]
-                    g += kappa * colors[j, 1]
-                    b += kappa * colors[j, 2]
-                    evidence += kappa * totals[j]
-                    for c in range(num_classes):
-                        eacc[c] += kappa * expect[j, c]
-                    kbuf[cnt] = kappa
-                    jbuf[cnt] = j
-                    cnt += 1
-                    trans = test_t
-                best = 0
-                for c in range(1, num_classes):
-                    if eacc[c] > eacc[best]:
-                        best = c
-                vhat = trans * trans * v_bg
-                for m in range(cnt):
-                    vhat += kbuf[m] * kbuf[m] * var[jbuf[m], best]
-                out_label[v, u] = best
-                out_exp[v, u] = eacc[best] + trans * e_bg
-                out_var[v, u] = vhat
-                out_bg[v, u] = trans
-                out_evidence[v, u] = evidence + trans * s_bg
-                out_rgb[v, u, 0] = r + trans * bg_rgb[0]
-                out_rgb[v, u, 1] = g + trans * bg_rgb[1]
-                out_rgb[v, u, 2] = b + trans * bg_rgb[2]
-                if want_probs:
-                    for c in range(num_classes):
-                        out_probs[v, u, c] = eacc[c] + trans * e_bg
+def _load_rows(src, lists, start, end, local):  # pragma: no cover
+    """Copy rows ``src[lists[start:end]]`` into ``local`` (grown if needed); return it."""
+    n = end - start
+    cols = src.shape[1]
+    if n > local.shape[0]:
+        local = np.empty((n, cols))
+    for k in range(n):
+        j = lists[start + k]
+        for c in range(cols):
+            local[k, c] = src[j, c]
+    return local
 
 
 @njit(cache=True)
-def _kappa_kernel(offsets, lists, xy, conic, opac, qmax, width, height, tile, tiles_x,
+def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans):  # pragma: no cover
+    """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list.
+
+    Gaussian-outer order (as GPU rasterisers do): for each Gaussian the exact span of pixels of
+    this row inside its alpha >= 1/255 ellipse is solved from the quadratic, and only those
+    pixels are evaluated. Every pixel still sees the Gaussians front to back, so the result is the
+    per-pixel walk of SPEC §3 exactly.
+
+    Args:
+        g: (>= n, 7) packed rows (u, v, a, b, c, opacity, qmax) of the tile's list.
+        active: (W_row,) bool; inactive pixels are skipped (cnt 0, T 1).
+    Outputs:
+        cnt[p]: number of contributions of pixel u0 + p; kidx[p, i] / kval[p, i]: their list
+        index and kappa, front to back; trans[p]: final transmittance (kappa_b).
+    """
+    width = u1 - u0 + 1
+    remaining = 0
+    for p in range(width):
+        cnt[p] = 0
+        trans[p] = 1.0
+        if active[p]:
+            remaining += 1
+    fv = float(v)
+    for k in range(n):
+        if remaining == 0:
+            break
+        a = g[k, 2]
+        b = g[k, 3]
+        c = g[k, 4]
+        qmax = g[k, 6]
+        dy = fv - g[k, 1]
+        bdy = b * dy
+        disc = bdy * bdy - a * (c * dy * dy - qmax)
+        if disc < 0.0:
+            continue
+        root = math.sqrt(disc)
+        mx = g[k, 0]
+        lo = max(u0, int(math.ceil(mx + (-bdy - root) / a - 1e-7)))
+        hi = min(u1, int(math.floor(mx + (-bdy + root) / a + 1e-7)))
+        for u in range(lo, hi + 1):
+            p = u - u0
+            if not active[p]:
+                continue
+            dx = u - mx
+            q = a * dx * dx + 2.0 * bdy * dx + c * dy * dy
+            if q > qmax:
+                continue
+            alpha = min(ALPHA_MAX, g[k, 5] * math.exp(-0.5 * q))
+            if alpha < ALPHA_MIN:
+                continue
+            t = trans[p]
+            test_t = t * (1.0 - alpha)
+            if test_t < T_MIN:
+                active[p] = False
+                remaining -= 1
+                continue
+            i = cnt[p]
+            kidx[p, i] = k
+            kval[p, i] = alpha * t
+            cnt[p] = i + 1
+            trans[p] = test_t
+
+
+@njit(parallel=True, cache=True)
+def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile, tiles_x, acc):  # pragma: no cover
+    """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows)."""
+    nchunks = acc.shape[0]
+    num_tiles = offsets.shape[0] - 1
+    for ch in prange(nchunks):
+        local = np.empty((256, _ROW))
+        kidx = np.empty((tile, 256), dtype=np.int32)
+        kval = np.empty((tile, 256))
+        cnt = np.empty(tile, dtype=np.int32)
+        trans = np.empty(tile)
+        active = np.empty(tile, dtype=np.bool_)
+        for t in range(ch, num_tiles, nchunks):
+            start, end = offsets[t], offsets[t + 1]
+            n = end - start
+            if n == 0:
+                continue
+            local = _load_rows(packed, lists, start, end, local)
+            if n > kidx.shape[1]:
+                kidx = np.empty((tile, n), dtype=np.int32)
+                kval = np.empty((tile, n))
+            ty, tx = t // tiles_x, t % tiles_x
+            u0 = tx * tile
+            u1 = min(width, u0 + tile) - 1
+            for v in range(ty * tile, min(height, ty * tile + tile)):
+                any_active = False
+                for u in range(u0, u1 + 1):
+                    ok = labels[v, u] >= 0 and weights[v, u] > 0.0
+                    active[u - u0] = ok
+                    any_active = any_active or ok
+                if not any_active:
+                    continue
+                _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+                for u in range(u0, u1 + 1):
+                    p = u - u0
+                    lab = labels[v, u]
+                    if lab < 0:
+                        continue
+                    w = weights[v, u]
+                    for i in range(cnt[p]):
+                        acc[ch, lists[start + kidx[p, i]], lab] += kval[p, i] * w
+
+
+@njit(parallel=True, cache=True)
+def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb, width, height,
+                   tile, tiles_x, want_probs, nchunks,
+                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
+    """attrs rows: (r, g, b, S, E_0..E_{C-1}); var: (M, C) Var[theta_n^c]."""
+    num_tiles = offsets.shape[0] - 1
+    num_classes = attrs.shape[1] - 4
+    for ch in prange(nchunks):
+        local = np.empty((256, _ROW))
+        lattr = np.empty((256, attrs.shape[1]))
+        kidx = np.empty((tile, 256), dtype=np.int32)
+        kval = np.empty((tile, 256))
+        cnt = np.empty(tile, dtype=np.int32)
+        trans = np.empty(tile)
+        active = np.empty(tile, dtype=np.bool_)
+        eacc = np.empty(num_classes)
+        for t in range(ch, num_tiles, nchunks):
+            start, end = offsets[t], offsets[t + 1]
+            n = end - start
+            local = _load_rows(packed, lists, start, end, local)
+            lattr = _load_rows(attrs, lists, start, end, lattr)
+            if n > kidx.shape[1]:
+                kidx = np.empty((tile, n), dtype=np.int32)
+                kval = np.empty((tile, n))
+            ty, tx = t // tiles_x, t % tiles_x
+            u0 = tx * tile
+            u1 = min(width, u0 + tile) - 1
+            for v in range(ty * tile, min(height, ty * tile + tile)):
+                for p in range(u1 - u0 + 1):
+                    active[p] = True
+                _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+                for u in range(u0, u1 + 1):
+                    p = u - u0
+                    for c in range(num_classes):
+                        eacc[c] = 0.0
+                    r = 0.0
+                    g = 0.0
+                    b = 0.0
+                    evidence = 0.0
+                    for i in range(cnt[p]):
+                        k = kidx[p, i]
+                        kappa = kval[p, i]
+                        r += kappa * lattr[k, 0]
+                        g += kappa * lattr[k, 1]
+                        b += kappa * lattr[k, 2]
+                        evidence += kappa * lattr[k, 3]
+                        for c in range(num_classes):
+                            eacc[c] += kappa * lattr[k, 4 + c]
+                    best = 0
+                    for c in range(1, num_classes):
+                        if eacc[c] > eacc[best]:
+                            best = c
+                    tr = trans[p]
+                    vhat = tr * tr * v_bg
+                    for i in range(cnt[p]):
+                        kappa = kval[p, i]
+                        vhat += kappa * kappa * var[lists[start + kidx[p, i]], best]
+                    out_label[v, u] = best
+                    out_exp[v, u] = eacc[best] + tr * e_bg
+                    out_var[v, u] = vhat
+                    out_bg[v, u] = tr
+                    out_evidence[v, u] = evidence + tr * s_bg
+                    out_rgb[v, u, 0] = r + tr * bg_rgb[0]
+                    out_rgb[v, u, 1] = g + tr * bg_rgb[1]
+                    out_rgb[v, u, 2] = b + tr * bg_rgb[2]
+                    if want_probs:
+                        for c in range(num_classes):
+                            out_probs[v, u, c] = eacc[c] + tr * e_bg
+
+
+@njit(cache=True)
+def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
                   count_only, pix, gid, kap, bg):  # pragma: no cover
     num_tiles = offsets.shape[0] - 1
-    p = 0
+    total = 0
+    local = np.empty((256, _ROW))
+    cnt = np.empty(tile, dtype=np.int32)
+    trans = np.empty(tile)
+    active = np.empty(tile, dtype=np.bool_)
     for t in range(num_tiles):
         start, end = offsets[t], offsets[t + 1]
+        n = end - start
+        local = _load_rows(packed, lists, start, end, local)
+        kidx = np.empty((tile, max(n, 1)), dtype=np.int32)
+        kval = np.empty((tile, max(n, 1)))
         ty, tx = t // tiles_x, t % tiles_x
+        u0 = tx * tile
+        u1 = min(width, u0 + tile) - 1
         for v in range(ty * tile, min(height, ty * tile + tile)):
-            for u in range(tx * tile, min(width, tx * tile + tile)):
-                trans = 1.0
-                for k in range(start, end):
-                    j = lists[k]
-                    a = _alpha(u, v, j, xy, conic, opac, qmax)
-                    if a < ALPHA_MIN:
-                        continue
-                    test_t = trans * (1.0 - a)
-                    if test_t < T_MIN:
-                        break
-                    if not count_only:
-                        pix[p] = v * width + u
-                        gid[p] = j
-                        kap[p] = a * trans
-                    p += 1
-                    trans = test_t
+            active[:] = True
+            _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+            for u in range(u0, u1 + 1):
+                p = u - u0
                 if not count_only:
-                    bg[v * width + u] = trans
-    return p
+                    for i in range(cnt[p]):
+                        pix[total + i] = v * width + u
+                        gid[total + i] = lists[start + kidx[p, i]]
+                        kap[total + i] = kval[p, i]
+                    bg[v * width + u] = trans[p]
+                total += cnt[p]
+    return total
 
 
 @dataclass(frozen=True)
@@ -211,16 +310,19 @@ class KappaLists:
 
 def kappa_lists(proj: ProjectedGaussians, bins: TileBins, width: int, height: int) -> KappaLists:
     """All non-zero kappa_in of a view as sparse lists (for analysis and tests; O(contributions))."""
-    args = (bins.offsets, bins.lists, proj.means2d, proj.conics, proj.opacities, proj.qmax,
-            width, height, bins.tile_size, bins.tiles_x)
-    empty_i = np.empty(0, dtype=np.int64)
-    n = _kappa_kernel(*args, True, empty_i, np.empty(0, np.int32), np.empty(0), np.empty(0))
+    args = (bins.offsets, bins.lists, proj.packed, width, height, bins.tile_size, bins.tiles_x)
+    n = _kappa_kernel(*args, True, np.empty(0, np.int64), np.empty(0, np.int32), np.empty(0), np.empty(0))
     pix = np.empty(n, dtype=np.int64)
     gid = np.empty(n, dtype=np.int32)
     kap = np.empty(n)
     bg = np.ones(width * height)
     _kappa_kernel(*args, False, pix, gid, kap, bg)
     return KappaLists(pix, proj.ids[gid], kap, bg)
+
+
+def _num_chunks(bins: TileBins) -> int:
+    """Work chunks = threads; tiles are dealt round-robin so both cores get a similar load."""
+    return max(1, min(numba.get_num_threads(), bins.tiles_x * bins.tiles_y))
 
 
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarray, weights: np.ndarray,
@@ -234,11 +336,11 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarr
         (M, C) float64 increments for ``proj.ids`` rows of the concentrations.
     """
     height, width = labels.shape
-    nchunks = max(1, min(numba.get_num_threads(), bins.tiles_x * bins.tiles_y))
-    acc = np.zeros((nchunks, proj.count, num_classes), dtype=np.float32)
-    _update_kernel(bins.offsets, bins.lists, proj.means2d, proj.conics, proj.opacities, proj.qmax,
-                   labels, weights, width, height, bins.tile_size, bins.tiles_x, acc)
-    return acc.sum(axis=0, dtype=np.float64)
+    nchunks = _num_chunks(bins)
+    acc = np.zeros((nchunks, proj.count, num_classes))
+    _update_kernel(bins.offsets, bins.lists, proj.packed, labels, weights, width, height,
+                   bins.tile_size, bins.tiles_x, acc)
+    return acc[0] if nchunks == 1 else acc.sum(axis=0)
 
 
 @dataclass
@@ -266,6 +368,10 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
     """
     num_classes = expect.shape[1]
+    attrs = np.empty((proj.count, 4 + num_classes))
+    attrs[:, :3] = proj.colors
+    attrs[:, 3] = totals
+    attrs[:, 4:] = expect
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))
@@ -273,9 +379,8 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_ev = np.empty((height, width))
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
-    _render_kernel(bins.offsets, bins.lists, proj.means2d, proj.conics, proj.opacities, proj.qmax,
-                   proj.colors, expect, var, totals, e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.packed, attrs, np.ascontiguousarray(var), e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
-                   want_probs, out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
+                   want_probs, _num_chunks(bins), out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
                          out_probs if want_probs else None)

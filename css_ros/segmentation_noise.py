@@ -32,7 +32,7 @@ The corruption stages, in order:
 Pixels without ground truth (255) stay 255. The **confidence** (float32 in [0, 1]) imitates a softmax score,
 informative but imperfect: ~0.95 in clean interiors, lowered towards label boundaries (exp(-d / 2.5 px)),
 lowered in most corrupted regions (but ``overconfident_fraction`` of the errors keep a high score),
-lowered on bad frames, with mild smooth noise; quantised to 1/256.
+lowered on bad frames, with mild smooth variation; quantised to steps of 1/64.
 """
 from __future__ import annotations
 
@@ -42,13 +42,13 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import ndimage
-from scipy.special import ndtri
+from scipy.special import ndtr, ndtri
 
 __all__ = ["DEFAULT_CONFUSIONS", "DEFAULT_MISS_PROB", "NoiseConfig", "SegmentationNoise", "confusion_matrix"]
 
 #: Look-alike confusions by class name: source -> {target: relative weight}. Rows are normalised.
 DEFAULT_CONFUSIONS: dict[str, dict[str, float]] = {
-    "wall": {"ceiling": 0.45, "door": 0.2, "window": 0.1, "cabinet": 0.15, "picture": 0.1},
+    "wall": {"ceiling": 0.3, "door": 0.2, "window": 0.1, "cabinet": 0.2, "picture": 0.2},
     "ceiling": {"wall": 1.0},
     "floor": {"rug": 0.7, "table": 0.3},
     "rug": {"floor": 1.0},
@@ -67,12 +67,12 @@ DEFAULT_CONFUSIONS: dict[str, dict[str, float]] = {
 }
 #: Fraction of a class's pixels affected by look-alike confusion on an average frame.
 DEFAULT_CONFUSION_RATE: dict[str, float] = {
-    "wall": 0.05, "ceiling": 0.18, "floor": 0.03, "rug": 0.12, "door": 0.15, "window": 0.1, "table": 0.12,
-    "chair": 0.15, "shelf": 0.15, "sofa": 0.08, "cabinet": 0.18, "lamp": 0.15, "picture": 0.15, "outlet": 0.2,
-    "plant": 0.1, "box": 0.2,
+    "wall": 0.08, "ceiling": 0.25, "floor": 0.06, "rug": 0.18, "door": 0.2, "window": 0.15, "table": 0.18,
+    "chair": 0.2, "shelf": 0.2, "sofa": 0.12, "cabinet": 0.22, "lamp": 0.2, "picture": 0.2, "outlet": 0.2,
+    "plant": 0.15, "box": 0.2,
 }
 #: Probability that a region of a small class is missed entirely on an average frame.
-DEFAULT_MISS_PROB: dict[str, float] = {"outlet": 0.55, "lamp": 0.3, "box": 0.3, "picture": 0.2}
+DEFAULT_MISS_PROB: dict[str, float] = {"outlet": 0.55, "lamp": 0.3, "box": 0.2, "picture": 0.2}
 
 
 def confusion_matrix(class_names: Sequence[str],
@@ -106,10 +106,13 @@ class NoiseConfig:
     miss_prob: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_MISS_PROB))
     tiny_region_px: int = 40           # regions smaller than this (at 320x240) are missed more often
     confusion_rate: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_CONFUSION_RATE))
-    whole_region_prob: float = 0.06    # probability that a whole region is confused on an average frame
-    blob_fraction: float = 0.025       # image fraction covered by wrong-label blobs on an average frame
+    whole_region_prob: float = 0.08    # probability that a whole object region is confused on an average frame
+    whole_region_max_area: float = 0.15  # ... for regions up to this fraction of the image (not floor, walls)
+    context_px: float = 25.0           # decay length (px at 320x240) of confusion near a look-alike class
+    context_prob: float = 0.6          # probability that the confused label is the nearby look-alike class
+    blob_fraction: float = 0.04       # image fraction covered by wrong-label blobs on an average frame
     blob_random_class_prob: float = 0.35
-    boundary_shift_px: float = 1.6     # amplitude of the smooth boundary displacement, pixels at 320x240
+    boundary_shift_px: float = 2.0     # amplitude of the smooth boundary displacement, pixels at 320x240
     boundary_jitter_prob: float = 0.35
     overconfident_fraction: float = 0.35  # fraction of corrupted area whose confidence stays high
 
@@ -147,7 +150,8 @@ class SegmentationNoise:
 
     # ---------------------------------------------------------------------------------------------- fields
     def _rng(self, *key: int) -> np.random.Generator:
-        return np.random.default_rng([self.seed, *[int(k) for k in key]])
+        # keys are shifted so that small negative indices (block -1) stay valid SeedSequence entropy
+        return np.random.default_rng([self.seed, *[int(k) + 1000 for k in key]])
 
     def _field_at_key(self, shape: tuple[int, int], tag: int, key: int, scale: float) -> np.ndarray:
         H, W = shape
@@ -187,7 +191,7 @@ class SegmentationNoise:
             rng = self._rng(902, b_)
             if rng.random() < cfg.burst_prob:
                 centre = b_ * 30 + rng.uniform(0, 30)
-                amp = rng.uniform(0.8, 1.5)
+                amp = rng.uniform(0.5, 1.0)
                 burst += amp * math.exp(-0.5 * ((frame - centre) / 1.2) ** 2)
         return s * (1.0 + burst)
 
@@ -210,7 +214,6 @@ class SegmentationNoise:
                 continue
             if u is None:  # uniform-ish [0, 1] field from a smooth Gaussian field (probability integral)
                 g = self.smooth_field(lab.shape, frame, 11, scale=0.2)
-                from scipy.special import ndtr
                 u = ndtr(g)
             comp, n = ndimage.label(mask)
             if n == 0:
@@ -235,45 +238,62 @@ class SegmentationNoise:
         changed = np.zeros(lab.shape, dtype=bool)
         present = np.unique(lab[valid])
         g_region = self.smooth_field(lab.shape, frame, 21)
-        g_target = self.smooth_field(lab.shape, frame, 22, scale=0.3)
-        from scipy.special import ndtr
-        u_target = ndtr(g_target)
+        u_target = ndtr(self.smooth_field(lab.shape, frame, 22, scale=0.3))
+        u_whole = ndtr(self.smooth_field(lab.shape, frame, 23, scale=0.25))
+        max_whole = self.config.whole_region_max_area * H * W
         for c in present:
             if self.rate[c] <= 0:
                 continue
             mask = (lab == c) & valid
             rate = min(0.9, self.rate[c] * sev)
-            # per-class offset of the shared field so classes are not confused in the same places
+            targets = np.nonzero(self.confusion[c] > 0)[0]
+            near = np.isin(lab, targets) & valid
+            nearest = None
+            if near.any():
+                # contextual: errors concentrate where a look-alike class is close (the net extends it)
+                d, (iy, ix) = ndimage.distance_transform_edt(~near, return_indices=True)
+                boost = np.exp(-d / (self.config.context_px * W / 320.0))
+                rate_map = np.clip(rate * (0.35 + 1.3 * boost), 1e-6, 0.95)
+                nearest = lab[iy, ix]
+            else:
+                rate_map = np.full(lab.shape, rate * 0.35)
+            # per-class shift of the shared field so classes are not confused in the same places
             g = np.roll(g_region, shift=(int(c) * 37 % H, int(c) * 53 % W), axis=(0, 1))
-            patch = mask & (g > ndtri(1.0 - rate))
-            # whole-region confusion (decided at the region centroid from another smooth field)
+            patch = mask & (g > ndtri(1.0 - rate_map))
+            # whole-region confusion of objects (decided at the region centroid from a smooth field)
             comp, n = ndimage.label(mask)
             if n:
                 idx = np.arange(1, n + 1)
+                sizes = ndimage.sum_labels(np.ones(lab.shape), comp, idx)
                 cy, cx = np.array(ndimage.center_of_mass(mask, comp, idx)).reshape(-1, 2).T
-                g_w = ndtr(self.smooth_field(lab.shape, frame, 23 + int(c), scale=0.25))
-                uc = g_w[np.clip(np.rint(cy).astype(int), 0, H - 1), np.clip(np.rint(cx).astype(int), 0, W - 1)]
-                whole = idx[uc < min(0.5, self.config.whole_region_prob * sev)]
+                uw = np.roll(u_whole, shift=(int(c) * 41 % H, int(c) * 29 % W), axis=(0, 1))
+                uc = uw[np.clip(np.rint(cy).astype(int), 0, H - 1), np.clip(np.rint(cx).astype(int), 0, W - 1)]
+                whole = idx[(uc < min(0.5, self.config.whole_region_prob * sev)) & (sizes <= max_whole)]
                 if whole.size:
                     patch |= np.isin(comp, whole)
             if not patch.any():
                 continue
-            tgt = np.searchsorted(self._cum[c], u_target[patch] * self._cum[c, -1], side="right")
-            out[patch] = np.minimum(tgt, self.num_classes - 1)
+            ut = u_target[patch]
+            tgt = np.searchsorted(self._cum[c], ut * self._cum[c, -1], side="right")
+            tgt = np.minimum(tgt, self.num_classes - 1)
+            if nearest is not None:
+                # mostly the look-alike class that is actually nearby, else one drawn from the row
+                use_near = np.roll(u_target, shift=(H // 3, W // 3), axis=(0, 1))[patch] < self.config.context_prob
+                tgt = np.where(use_near, nearest[patch], tgt)
+            out[patch] = tgt
             changed |= patch
         return out, changed
 
     def _blobs(self, lab: np.ndarray, valid: np.ndarray, frame: int, sev: float) -> tuple[np.ndarray, np.ndarray]:
         H, W = lab.shape
         frac = min(0.3, self.config.blob_fraction * sev)
-        g = self.smooth_field(lab.shape, frame, 31, scale=0.09)
+        g = self.smooth_field(lab.shape, frame, 31, scale=0.15)
         blob = (g > ndtri(1.0 - frac)) & valid
         if not blob.any():
             return lab, blob
         comp, n = ndimage.label(blob)
         idx = np.arange(1, n + 1)
         cy, cx = np.array(ndimage.center_of_mass(blob, comp, idx)).reshape(-1, 2).T
-        from scipy.special import ndtr
         u = ndtr(self.smooth_field(lab.shape, frame, 32, scale=0.3))
         v = ndtr(self.smooth_field(lab.shape, frame, 33, scale=0.3))
         iy = np.clip(np.rint(cy).astype(int), 0, H - 1)
@@ -285,7 +305,11 @@ class SegmentationNoise:
         sy = np.clip(np.rint(cy + dist * np.sin(ang)).astype(int), 0, H - 1)
         sx = np.clip(np.rint(cx + dist * np.cos(ang)).astype(int), 0, W - 1)
         bleed = lab[sy, sx]
-        rand_cls = np.minimum((vc * 7919 % 1.0 * self.num_classes).astype(int), self.num_classes - 1)
+        present = np.unique(lab[valid & (lab < self.num_classes)])
+        w = (vc * 7919.0) % 1.0
+        any_cls = np.minimum((w * self.num_classes).astype(int), self.num_classes - 1)
+        in_img = present[np.minimum((w * len(present)).astype(int), len(present) - 1)] if len(present) else any_cls
+        rand_cls = np.where(uc < 0.3 * self.config.blob_random_class_prob, any_cls, in_img)
         use_rand = (uc < self.config.blob_random_class_prob) | (bleed == self.ignore_label) | \
             (bleed == lab[iy, ix])
         blob_cls = np.where(use_rand, rand_cls, bleed)
@@ -353,8 +377,7 @@ class SegmentationNoise:
         conf = np.where(detected, np.minimum(conf, low), conf)
         conf = np.where(missed, conf * 0.85, conf)
         conf *= 1.0 / (1.0 + 0.25 * max(0.0, sev - 1.0))
-        conf += rng.normal(0.0, 0.02, conf.shape)
-        conf = np.round(np.clip(conf, 0.02, 1.0) * 256.0) / 256.0
+        conf = np.round(np.clip(conf, 1.0 / 64.0, 1.0) * 64.0) / 64.0  # 1/64 steps: compresses well in a bag
         conf = np.where(valid, conf, 0.0)
         return lab.astype(np.uint8), conf.astype(np.float32)
 

@@ -25,26 +25,26 @@ __all__ = ["LATE_PHASE_START", "Trajectory", "WAYPOINTS", "look_at_rotation", "r
 #: Waypoints (x [m], y [m], camera height [m], yaw [deg, 0 = +x, ccw], pitch [deg, negative = looking down]).
 WAYPOINTS: tuple[tuple[float, float, float, float, float], ...] = (
     # phase 1: east half and north side
-    (3.0, -0.6, 1.00, 0.0, 12.0),       # window (looking up a little: ceiling)
-    (3.1, -1.2, 1.00, -65.0, -14.0),    # south-east corner: lamp, sofa
-    (2.4, -0.6, 1.05, -110.0, -18.0),   # sofa, rug, coffee table
-    (2.9, 0.6, 1.00, 40.0, 2.0),        # plant by the window, east wall outlet
-    (2.1, 1.9, 1.00, 95.0, -12.0),      # cabinet, picture on the north wall
-    (0.4, 2.0, 1.05, 120.0, -4.0),      # north wall, outlet
-    (-1.2, 2.0, 1.00, 160.0, 8.0),      # door, lamp in the north-west corner
-    (-2.6, 2.1, 1.00, 115.0, 0.0),      # close to the door
-    (-2.6, 2.0, 1.05, -45.0, -22.0),    # turn round (through north and east): dining table from the north-west
+    (2.2, -0.4, 1.00, 0.0, 10.0),       # window (looking up a little: ceiling)
+    (2.6, -0.9, 1.00, -60.0, -14.0),    # south-east corner: lamp, sofa
+    (2.3, -0.5, 1.05, -110.0, -18.0),   # sofa, rug, coffee table
+    (2.4, 0.5, 1.00, 40.0, 0.0),        # plant by the window, east wall outlet
+    (1.6, 1.2, 1.00, 95.0, -10.0),      # cabinet, picture on the north wall
+    (0.4, 1.7, 1.05, 125.0, 10.0),      # north wall, outlet, ceiling
+    (-1.0, 1.9, 1.00, 160.0, 6.0),      # door, lamp in the north-west corner
+    (-2.2, 1.9, 1.00, 110.0, -2.0),     # close to the door
+    (-2.6, 1.9, 1.05, -45.0, -22.0),    # turn round (through north and east): dining table from the north-west
     # phase 2: revisits
     (-0.3, 1.8, 1.00, -85.0, -20.0),    # dining table from the north-east
-    (1.4, 1.8, 1.00, -60.0, -15.0),     # across the room to the sofa
-    (2.6, 0.2, 1.00, -115.0, -15.0),    # sofa again
+    (1.4, 1.6, 1.00, -60.0, -15.0),     # across the room to the sofa
+    (2.5, 0.2, 1.00, -115.0, -15.0),    # sofa again
     (2.3, -0.65, 1.00, -125.0, -10.0),  # rug and coffee table from close by
     # phase 3: the late part
     (0.4, -0.7, 1.00, -160.0, -10.0),   # turning west: the south-west corner comes into view
     (-1.6, -0.85, 1.00, -145.0, -12.0),  # bookshelf and plant
-    (-2.8, -0.6, 1.05, -120.0, -15.0),
-    (-3.0, -0.4, 1.00, -190.0, -5.0),   # west wall, picture
-    (-2.9, -0.3, 1.00, -270.0, -15.0),  # dining table from the south-west
+    (-2.6, -0.75, 1.05, -120.0, -15.0),
+    (-2.7, -0.45, 1.00, -190.0, -5.0),  # west wall, picture
+    (-2.7, -0.3, 1.00, -270.0, -15.0),  # dining table from the south-west
 )
 #: Index of the first waypoint of phase 3 (the part of the room seen only late).
 LATE_PHASE_START = 12

@@ -14,6 +14,7 @@ from css_ros.metrics import (
     ause,
     oracle_curve,
     psnr,
+    random_curve,
     rankdata,
     sparsification_curve,
     sparsification_report,
@@ -156,3 +157,13 @@ def test_psnr():
     b[0, 0, 0] = 255  # mse = 255^2 / 48
     assert psnr(a, b) == pytest.approx(10 * np.log10(48))
     assert psnr(a, a) == float("inf")
+
+
+def test_oracle_and_random_match_explicit_orderings():
+    rng = np.random.default_rng(5)
+    e = rng.random(777)  # real-valued errors (image level)
+    np.testing.assert_allclose(oracle_curve(e), brute_curve(e, e, DEFAULT_FRACTIONS))
+    perm = np.random.default_rng(9).permutation(e.size)
+    u = np.empty(e.size)
+    u[perm] = np.arange(e.size)[::-1]  # removal order = perm
+    np.testing.assert_allclose(random_curve(e, seed=9), brute_curve(u, e, DEFAULT_FRACTIONS))

@@ -199,8 +199,8 @@ BAD_INPUTS = {
     "stamps far apart": (lambda lv, s: (lv.client.send_image("segmentation", s, rh.wall_labels(), "mono8"),
                                         time.sleep(0.1), lv.client.send_pose(s + 400_000_000)),
                          "segmentation: no matching stamp", "no matching stamp"),
-    "stamp in the future": (lambda lv, s: (lv.client.send_pose(s + 10**18), lv.client.send_image(
-        "segmentation", s + 10**18, rh.wall_labels(), "mono8")),
+    "stamp in the future": (lambda lv, s: (lv.client.send_pose(time.time_ns() + 3600 * 10**9), lv.client.send_image(
+        "segmentation", time.time_ns() + 3600 * 10**9, rh.wall_labels(), "mono8")),
         "segmentation: stamp in the future", "ahead of the node clock"),
     "invalid camera_info": (lambda lv, s: lv.client.send_camera_info(s, K_=np.zeros((3, 3))),
                             "camera_info: invalid camera_info", "keeping the previous one"),
