@@ -526,14 +526,18 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     with bag_ctx as obag, _progress(expected, "fuse", cfg.quiet) as bar:
         for frame in source.frames() if expected > 0 else ():
             if frame.index < K:
-                view = smap.observe(frame.camera, frame.labels, frame.confidence)
+                if obag is not None:
+                    view = smap.observe(frame.camera, frame.labels, frame.confidence)
+                else:  # no online outputs wanted: skip the render (the evaluation renders in pass 2)
+                    smap.update(frame.camera, frame.labels, frame.confidence)
+                    view = None
                 trained += 1
             else:
                 view = smap.render(frame.camera)
                 evaluator.add(frame, view, trained=False)  # map is final: evaluate now
             if frame.gt is not None:
                 input_cm.update(frame.gt, frame.labels)
-            if obag is not None:
+            if obag is not None and view is not None:
                 _write_outputs(obag, frame, view, classes, cfg)
             processed += 1
             bar.update(1)
