@@ -12,11 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from css_ros.errors import ModelError
+from css_ros.sh import SH_C0, num_sh_coeffs
 
 __all__ = ["GaussianModel", "SH_C0", "num_sh_coeffs", "sh_degree_from_rest_count"]
 
-#: Zeroth-order real spherical-harmonic constant, as in the INRIA code.
-SH_C0 = 0.28209479177387814
 
 _REST_COUNT_TO_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}
 _SCALE_FIELDS = ("scale_0", "scale_1", "scale_2")
@@ -28,11 +27,6 @@ _REST_RE = re.compile(r"^f_rest_(\d+)$")
 _PLY_SCALAR_DTYPES = {
     np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")
 }
-
-
-def num_sh_coeffs(degree: int) -> int:
-    """Number of SH coefficients per colour channel for ``degree`` (``(d+1)^2``)."""
-    return (int(degree) + 1) ** 2
 
 
 def sh_degree_from_rest_count(count: int) -> int:

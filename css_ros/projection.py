@@ -45,16 +45,7 @@ class GaussianGeometry:
 
     @classmethod
     def from_model(cls, model: "GaussianModel") -> "GaussianGeometry":
-        q = np.asarray(model.quats_wxyz, dtype=np.float64)
-        q = q / np.linalg.norm(q, axis=1, keepdims=True)
-        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-        rot = np.stack([
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ], axis=1).reshape(-1, 3, 3)
-        m = rot * np.asarray(model.scales, dtype=np.float64)[:, None, :]
-        cov = m @ m.transpose(0, 2, 1)
+        cov = model.covariances()
         cov3d = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2],
                           cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
         return cls(

@@ -45,16 +45,7 @@ class TorchBackend:
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
         self.means = t(model.means)
         self.opacities = t(model.opacities)
-        q = t(model.quats_wxyz)
-        q = q / q.norm(dim=1, keepdim=True)
-        w, x, y, z = q.unbind(1)
-        rot = torch.stack([
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ], dim=1).reshape(-1, 3, 3)
-        m = rot * t(model.scales)[:, None, :]
-        self.cov3d = m @ m.transpose(1, 2)           # [N, 3, 3]
+        self.cov3d = t(model.covariances())          # [N, 3, 3]
         self.sh = torch.as_tensor(np.asarray(model.sh), dtype=torch.float32, device=self.device)
 
     # ------------------------------------------------------------------ projection + binning
