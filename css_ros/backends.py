@@ -30,12 +30,18 @@ class RasterBackend(Protocol):
 
 
 class NumbaBackend:
-    """Compiled CPU path: numba projection, tile binning and per-pixel kernels."""
+    """Compiled CPU path: numba projection, tile binning and per-pixel kernels.
+
+    ``accumulate`` records each pixel's contributions; a ``render`` of the same frame (as in
+    ``SemanticMap.observe``) replays them instead of compositing a second time.
+    """
 
     def __init__(self, model: "GaussianModel") -> None:
         from .projection import GaussianGeometry
+        from .raster import ContributionStore
 
         self.geometry = GaussianGeometry.from_model(model)
+        self._store = ContributionStore()
 
     def prepare(self, camera: "Camera") -> Any:
         from .projection import project
@@ -52,7 +58,10 @@ class NumbaBackend:
         from .raster import accumulate_update
 
         proj, bins, _ = frame
-        return proj.ids, accumulate_update(proj, bins, labels, weights, num_classes)
+        self._store.owner = None
+        increments = accumulate_update(proj, bins, labels, weights, num_classes, self._store)
+        self._store.owner = frame
+        return proj.ids, increments
 
     def render(self, frame: Any, expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
                e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
@@ -60,8 +69,9 @@ class NumbaBackend:
         from .raster import render_semantic
 
         proj, bins, camera = frame
+        store = self._store if self._store.owner is frame else None
         return render_semantic(proj, bins, camera.width, camera.height, expect, var, totals,
-                               e_bg, v_bg, s_bg, bg_rgb, want_probs)
+                               e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
 
 
 def _torch_backend(model: "GaussianModel") -> RasterBackend:

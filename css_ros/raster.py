@@ -152,10 +152,17 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans):  # pragma: 
 
 
 @njit(parallel=True, cache=True)
-def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile, tiles_x, acc):  # pragma: no cover
-    """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows)."""
+def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile, tiles_x, acc,
+                   store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
+    """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows).
+
+    With ``store``, each labelled pixel's contributions (tile-list index, kappa) are appended to its
+    chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T); pixels that were
+    not composited or did not fit get pix_cnt = -1.
+    """
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
+    cap = st_k.shape[1]
     for ch in prange(nchunks):
         local = np.empty((256, _ROW))
         kidx = np.empty((tile, 256), dtype=np.int32)
@@ -163,18 +170,18 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
         cnt = np.empty(tile, dtype=np.int32)
         trans = np.empty(tile)
         active = np.empty(tile, dtype=np.bool_)
+        pos = 0
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
-            if n == 0:
-                continue
-            local = _load_rows(packed, lists, start, end, local)
-            if n > kidx.shape[1]:
-                kidx = np.empty((tile, n), dtype=np.int32)
-                kval = np.empty((tile, n))
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
+            if n > 0:
+                local = _load_rows(packed, lists, start, end, local)
+            if n > kidx.shape[1]:
+                kidx = np.empty((tile, n), dtype=np.int32)
+                kval = np.empty((tile, n))
             for v in range(ty * tile, min(height, ty * tile + tile)):
                 any_active = False
                 for u in range(u0, u1 + 1):
@@ -182,23 +189,83 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
                     active[u - u0] = ok
                     any_active = any_active or ok
                 if not any_active:
+                    if store:
+                        for u in range(u0, u1 + 1):
+                            pix_cnt[v * width + u] = -1
                     continue
                 _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
                 for u in range(u0, u1 + 1):
                     p = u - u0
                     lab = labels[v, u]
-                    if lab < 0:
-                        continue
                     w = weights[v, u]
-                    for i in range(cnt[p]):
+                    if lab < 0 or not (w > 0.0):
+                        if store:
+                            pix_cnt[v * width + u] = -1
+                        continue
+                    c = cnt[p]
+                    for i in range(c):
                         acc[ch, lists[start + kidx[p, i]], lab] += kval[p, i] * w
+                    if store:
+                        q = v * width + u
+                        if pos + c <= cap:
+                            for i in range(c):
+                                st_k[ch, pos + i] = kidx[p, i]
+                                st_v[ch, pos + i] = kval[p, i]
+                            pix_off[q] = pos
+                            pix_cnt[q] = c
+                            pix_t[q] = trans[p]
+                            pos += c
+                        else:
+                            pix_cnt[q] = -1
+
+
+@njit(inline="always")
+def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, var, lists, start, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+                 out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
+    """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs."""
+    num_classes = eacc.shape[0]
+    for c in range(num_classes):
+        eacc[c] = 0.0
+    r = 0.0
+    g = 0.0
+    b = 0.0
+    evidence = 0.0
+    for i in range(cnt):
+        k = ks[i]
+        kappa = vs[i]
+        r += kappa * lattr[k, 0]
+        g += kappa * lattr[k, 1]
+        b += kappa * lattr[k, 2]
+        evidence += kappa * lattr[k, 3]
+        for c in range(num_classes):
+            eacc[c] += kappa * lattr[k, 4 + c]
+    best = 0
+    for c in range(1, num_classes):
+        if eacc[c] > eacc[best]:
+            best = c
+    vhat = tr * tr * v_bg
+    for i in range(cnt):
+        kappa = vs[i]
+        vhat += kappa * kappa * var[lists[start + ks[i]], best]
+    out_label[v, u] = best
+    out_exp[v, u] = eacc[best] + tr * e_bg
+    out_var[v, u] = vhat
+    out_bg[v, u] = tr
+    out_evidence[v, u] = evidence + tr * s_bg
+    out_rgb[v, u, 0] = r + tr * bg_rgb[0]
+    out_rgb[v, u, 1] = g + tr * bg_rgb[1]
+    out_rgb[v, u, 2] = b + tr * bg_rgb[2]
+    if want_probs:
+        for c in range(num_classes):
+            out_probs[v, u, c] = eacc[c] + tr * e_bg
 
 
 @njit(parallel=True, cache=True)
 def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb, width, height,
-                   tile, tiles_x, want_probs, nchunks,
+                   tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
-    """attrs rows: (r, g, b, S, E_0..E_{C-1}); var: (M, C) Var[theta_n^c]."""
+    """attrs rows: (r, g, b, S, E_0..E_{C-1}); var: (M, C) Var[theta_n^c]. With ``use_store``,
+    pixels recorded by the update pass (pix_cnt >= 0) replay their contributions."""
     num_tiles = offsets.shape[0] - 1
     num_classes = attrs.shape[1] - 4
     for ch in prange(nchunks):
@@ -213,8 +280,8 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
-            local = _load_rows(packed, lists, start, end, local)
             lattr = _load_rows(attrs, lists, start, end, lattr)
+            loaded = False
             if n > kidx.shape[1]:
                 kidx = np.empty((tile, n), dtype=np.int32)
                 kval = np.empty((tile, n))
@@ -222,46 +289,29 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
             for v in range(ty * tile, min(height, ty * tile + tile)):
-                for p in range(u1 - u0 + 1):
-                    active[p] = True
-                _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+                need = False
+                for u in range(u0, u1 + 1):
+                    a = not use_store or pix_cnt[v * width + u] < 0
+                    active[u - u0] = a
+                    need = need or a
+                if need:
+                    if not loaded:
+                        local = _load_rows(packed, lists, start, end, local)
+                        loaded = True
+                    _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
                 for u in range(u0, u1 + 1):
                     p = u - u0
-                    for c in range(num_classes):
-                        eacc[c] = 0.0
-                    r = 0.0
-                    g = 0.0
-                    b = 0.0
-                    evidence = 0.0
-                    for i in range(cnt[p]):
-                        k = kidx[p, i]
-                        kappa = kval[p, i]
-                        r += kappa * lattr[k, 0]
-                        g += kappa * lattr[k, 1]
-                        b += kappa * lattr[k, 2]
-                        evidence += kappa * lattr[k, 3]
-                        for c in range(num_classes):
-                            eacc[c] += kappa * lattr[k, 4 + c]
-                    best = 0
-                    for c in range(1, num_classes):
-                        if eacc[c] > eacc[best]:
-                            best = c
-                    tr = trans[p]
-                    vhat = tr * tr * v_bg
-                    for i in range(cnt[p]):
-                        kappa = kval[p, i]
-                        vhat += kappa * kappa * var[lists[start + kidx[p, i]], best]
-                    out_label[v, u] = best
-                    out_exp[v, u] = eacc[best] + tr * e_bg
-                    out_var[v, u] = vhat
-                    out_bg[v, u] = tr
-                    out_evidence[v, u] = evidence + tr * s_bg
-                    out_rgb[v, u, 0] = r + tr * bg_rgb[0]
-                    out_rgb[v, u, 1] = g + tr * bg_rgb[1]
-                    out_rgb[v, u, 2] = b + tr * bg_rgb[2]
-                    if want_probs:
-                        for c in range(num_classes):
-                            out_probs[v, u, c] = eacc[c] + tr * e_bg
+                    q = v * width + u
+                    if use_store and pix_cnt[q] >= 0:
+                        off = pix_off[q]
+                        c = pix_cnt[q]
+                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, var,
+                                     lists, start, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
+                                     out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs)
+                    else:
+                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, var, lists, start, eacc,
+                                     e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
+                                     out_evidence, out_rgb, out_probs)
 
 
 @njit(cache=True)
@@ -325,22 +375,64 @@ def _num_chunks(bins: TileBins) -> int:
     return max(1, min(numba.get_num_threads(), bins.tiles_x * bins.tiles_y))
 
 
+class ContributionStore:
+    """Each pixel's (tile-list index, kappa) contributions, recorded by an update pass so that the
+    render of the same frame (``SemanticMap.observe``) replays them instead of compositing again.
+
+    Bounded: per work chunk ``STORE_SLOTS_PER_PIXEL`` x (pixels / chunks) entries (12 bytes each);
+    pixels that do not fit, or that the update skipped (no label), are composited again by the
+    render. ``np.empty`` buffers are reused across frames of the same size; untouched pages cost no
+    memory.
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[int, int] | None = None
+        self.owner: object | None = None
+        self.k = np.empty((1, 0), np.int32)
+        self.v = np.empty((1, 0))
+        self.off = np.empty(0, np.int64)
+        self.cnt = np.empty(0, np.int32)
+        self.t = np.empty(0)
+
+    def reserve(self, pixels: int, nchunks: int) -> "ContributionStore":
+        if self._key != (pixels, nchunks):
+            cap = STORE_SLOTS_PER_PIXEL * ((pixels + nchunks - 1) // nchunks)
+            self.k = np.empty((nchunks, cap), np.int32)
+            self.v = np.empty((nchunks, cap))
+            self.off = np.empty(pixels, np.int64)
+            self.cnt = np.empty(pixels, np.int32)
+            self.t = np.empty(pixels)
+            self._key = (pixels, nchunks)
+        return self
+
+
+STORE_SLOTS_PER_PIXEL = 40
+_NO_STORE = (np.empty((1, 0), np.int32), np.empty((1, 0)), np.empty(0, np.int64), np.empty(0, np.int32),
+             np.empty(0))
+
+
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarray, weights: np.ndarray,
-                      num_classes: int) -> np.ndarray:
+                      num_classes: int, store: ContributionStore | None = None) -> np.ndarray:
     """Per visible Gaussian, sum_i kappa_in * y_i^c.
 
     Args:
         labels: (H, W) int32 class id per pixel, -1 where the pixel contributes nothing.
         weights: (H, W) float32 confidence per pixel (1 without a confidence image).
+        store: if given, records the contributions for a following :func:`render_semantic`.
     Returns:
         (M, C) float64 increments for ``proj.ids`` rows of the concentrations.
     """
     height, width = labels.shape
     nchunks = _num_chunks(bins)
     acc = np.zeros((nchunks, proj.count, num_classes))
+    arrays = _NO_STORE if store is None else (*_store_arrays(store.reserve(width * height, nchunks)),)
     _update_kernel(bins.offsets, bins.lists, proj.packed, labels, weights, width, height,
-                   bins.tile_size, bins.tiles_x, acc)
+                   bins.tile_size, bins.tiles_x, acc, store is not None, *arrays)
     return acc[0] if nchunks == 1 else acc.sum(axis=0)
+
+
+def _store_arrays(store: ContributionStore) -> tuple[np.ndarray, ...]:
+    return store.k, store.v, store.off, store.cnt, store.t
 
 
 @dataclass
@@ -359,10 +451,11 @@ class RenderBuffers:
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
                     expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-                    want_probs: bool) -> RenderBuffers:
+                    want_probs: bool, store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
+        store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
         expect, var: (M, C) float64 E[theta_n^c] and Var[theta_n^c] of the projected Gaussians.
         totals: (M,) float64 Dirichlet totals S_n.
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
@@ -381,6 +474,7 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
     _render_kernel(bins.offsets, bins.lists, proj.packed, attrs, np.ascontiguousarray(var), e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
-                   want_probs, _num_chunks(bins), out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
+                   want_probs, _num_chunks(bins), store is not None,
+                   *(_NO_STORE if store is None else _store_arrays(store)), out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
                          out_probs if want_probs else None)
