@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import shutil
+import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
@@ -20,7 +21,7 @@ if TYPE_CHECKING:
     from rosbags.typesys.store import Typestore
 
 #: Exceptions rosbags raises for unreadable bags (truncated, corrupt, wrong format); translated to BagError.
-ROSBAGS_ERRORS: tuple[type[BaseException], ...] = (AnyReaderError, ReaderError, SerdeError, WriterError)
+ROSBAGS_ERRORS: tuple[type[BaseException], ...] = (AnyReaderError, ReaderError, SerdeError, WriterError, sqlite3.Error)
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -144,14 +145,15 @@ def _msg(exc: BaseException) -> str:
 
 
 class OutputBag:
-    """Writes the node's output topics (SPEC §8) into a new rosbag2 bag (MCAP storage, format version 9).
+    """Writes the node's output topics (SPEC §8) into a new rosbag2 bag (MCAP storage, format version 9, zstd chunks).
 
     Every message's header stamp and the bag log time are the input frame's stamp. Use as a context
     manager; an existing bag directory at ``path`` is replaced.
     """
 
-    def __init__(self, path: str | Path, namespace: str = "/css_node") -> None:
+    def __init__(self, path: str | Path, namespace: str = "/css_node", compress: bool = True) -> None:
         self.path = Path(path)
+        self.compress = compress
         self.namespace = namespace.rstrip("/")
         self.store = typestore()
         self._writer: Writer | None = None
@@ -168,6 +170,8 @@ class OutputBag:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
             self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            if self.compress:  # zstd-compressed MCAP chunks (readable by ros2 bag / any MCAP reader)
+                self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             self._writer.open()
         except ROSBAGS_ERRORS as exc:
             raise BagError(f"cannot create output bag {self.path}: {_msg(exc)}") from None

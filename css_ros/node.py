@@ -105,8 +105,46 @@ class NodeParams:
     }
 
 
+def _coerce(name: str, value: Any, default: Any) -> Any:
+    """Convert a parameter value to the type of its default (int -> float allowed); CssError otherwise."""
+    def bad() -> CssError:
+        return CssError(f"parameter {name}={value!r}: expected {type(default).__name__}"
+                        + (" of numbers" if isinstance(default, list) else ""))
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise bad()
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad()
+        return float(value)
+    if isinstance(default, int):
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float)
+                                                                       and float(value).is_integer())):
+            raise bad()
+        return int(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise bad()
+        return value
+    if isinstance(default, list):
+        try:
+            values = list(value)
+        except TypeError:
+            raise bad() from None
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            raise bad()
+        return [float(v) for v in values]
+    return value
+
+
 def declare_params(node: Any) -> NodeParams:
-    """Declare every NodeParams field as a read-only ROS parameter and return their values."""
+    """Declare every NodeParams field as a read-only ROS parameter and return their values.
+
+    Parameters are declared with dynamic typing and converted here, so ``-p prior:=1`` (an integer for a
+    float parameter) works and a wrong type is a clear CssError naming the parameter.
+    """
     from rcl_interfaces.msg import ParameterDescriptor
 
     defaults = NodeParams()
@@ -114,13 +152,10 @@ def declare_params(node: Any) -> NodeParams:
     for name in NodeParams.__dataclass_fields__:
         default = getattr(defaults, name)
         desc = ParameterDescriptor(description=NodeParams.DESCRIPTIONS.get(name, name.replace("_", " ")),
-                                   read_only=True)
-        if isinstance(default, list):
-            default = [float(v) for v in default]
-        values[name] = node.declare_parameter(name, default, desc).value
-    params = NodeParams(**values)
-    params.body_to_optical_quaternion = list(params.body_to_optical_quaternion)
-    return params
+                                   read_only=True, dynamic_typing=True)
+        value = node.declare_parameter(name, default, desc).value
+        values[name] = _coerce(name, value, default)
+    return NodeParams(**values)
 
 
 def check_params(p: NodeParams) -> None:
@@ -498,8 +533,10 @@ def _make_node_class() -> type:
             self.get_logger().info(f"inputs ({p.input_qos} QoS; candidates reliable): {ins}")
             self.get_logger().info(
                 f"outputs: {outs}; services: {self.resolve_topic_name('~/save_map')}, "
-                f"{self.resolve_topic_name('~/reset_map')}; checkpoint {self._checkpoint_path() or 'disabled'}"
-                f" every {p.checkpoint_period:g} s; sync slop {p.sync_slop * 1e3:g} ms")
+                f"{self.resolve_topic_name('~/reset_map')}; checkpoint "
+                + (f"{self._checkpoint_path()} every {p.checkpoint_period:g} s" if self._checkpoint_path()
+                   else "disabled")
+                + f"; sync slop {p.sync_slop * 1e3:g} ms")
 
         # ------------------------------------------------------------------ input callbacks
         def _make_sync(self, kinds: Sequence[str]) -> FrameSynchronizer:
@@ -907,8 +944,9 @@ def _make_node_class() -> type:
             self._last_problems = problems
             if s["frames_processed"] == 0 and not s.get("requests_served") and not new:
                 self.get_logger().info(
-                    f"waiting for input: no frame yet (needs {', '.join(self._sync_kinds)} with matching stamps "
-                    f"and camera_info); segmentations received {s.get('segmentations_received', 0)}")
+                    "waiting for input: no frame yet (needs segmentation and pose with matching stamps, "
+                    "segmentation_confidence too while it has a publisher, and camera_info); segmentations "
+                    f"received {s.get('segmentations_received', 0)}")
             else:
                 self.get_logger().info(
                     f"frames processed {s['frames_processed']} ({s['rate_hz']:.2f} Hz, median latency "

@@ -7,18 +7,24 @@ import os
 import sys
 import time
 from collections import Counter
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
-from .errors import CssError
-
-if TYPE_CHECKING:
-    from .camera import Camera
-    from .classes import ClassSet
-    from .semantic_map import SemanticMap
+from .bag_io import CAMERA_INFO_TYPE, IMAGE_TYPE, POSE_STAMPED_TYPE, BagError, InputBag, OutputBag
+from .camera import Camera
+from .classes import ClassSet
+from .errors import CameraError, CssError, InputError
+from .gaussians import GaussianModel
+from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
+                       image_to_array, pose_to_arrays, stamp_to_ns)
+from .metrics import ConfusionMatrix, PixelSampler, psnr, sparsification_report, spearman
+from .semantic_map import RenderedView, SemanticMap
+from .sync import FrameSynchronizer
 
 PACKAGE = "css_ros"
 DEFAULT_DEMO = Path("bags") / "demo" / "bag"
@@ -56,7 +62,7 @@ class ReplayConfig:
     backend: str = "numba"
     output_bag: bool = True
     quiet: bool = False
-    slop_ms: float = 10.0
+    slop_ms: float = 50.0
     sync_queue: int = 100
     namespace: str = "/css_node"
     max_pixels: int = 4_000_000
@@ -103,12 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("bag", nargs="?", type=Path, default=None,
                    help="bag directory (default: the shipped demo bags/demo/bag)")
-    p.add_argument("--model", type=Path, default=None, metavar="PLY", help="INRIA 3DGS PLY model (default: <bag parent>/model.ply)")
+    p.add_argument("--model", type=Path, default=None, metavar="PLY",
+                   help="INRIA 3DGS PLY model (default: <bag parent>/model.ply)")
     p.add_argument("--classes", type=Path, default=None, metavar="YAML",
                    help="class file YAML (default: <bag parent>/classes.yaml)")
     p.add_argument("--num-classes", type=int, default=None, metavar="N",
                    help="number of classes when no class file exists (anonymous names, generated palette)")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output directory (default: out/replay_<bagname>)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="output directory (default: out/replay_<bagname>)")
     for kind, topic in DEFAULT_TOPICS.items():
         opt = "--confidence-topic" if kind == "confidence" else f"--{kind.replace('_', '-')}-topic"
         p.add_argument(opt, dest=f"topic_{kind}", default=topic, metavar="TOPIC",
@@ -124,8 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: the engine's, 0.5; 1.0 = never)")
     p.add_argument("--ignore-label", type=int, default=255, help="'no label' value of label images (default 255)")
     p.add_argument("--backend", choices=("numba", "torch"), default="numba", help="rasteriser backend")
-    p.add_argument("--slop-ms", type=float, default=10.0,
-                   help="max stamp difference [ms] between a segmentation and its pose/image/GT (default 10)")
+    p.add_argument("--slop-ms", type=float, default=50.0,
+                   help="max stamp difference [ms] between a segmentation and its pose/image/GT "
+                        "(default 50, as css_node's sync_slop)")
     p.add_argument("--sync-queue", type=int, default=100, help="pending messages kept per topic while syncing")
     p.add_argument("--namespace", default="/css_node", help="namespace of the output topics (default /css_node)")
     p.add_argument("--max-pixels", type=int, default=4_000_000,
@@ -205,7 +214,7 @@ class Frame:
 
     index: int
     stamp_ns: int
-    camera: "Camera"
+    camera: Camera
     labels: np.ndarray
     confidence: np.ndarray | None
     gt: np.ndarray | None
@@ -234,8 +243,6 @@ class FrameSource:
 
     def check(self) -> None:
         """Open the bag once: check topics and types, count segmentation messages (raises BagError)."""
-        from .bag_io import CAMERA_INFO_TYPE, IMAGE_TYPE, POSE_STAMPED_TYPE, InputBag
-
         types = {"image": IMAGE_TYPE, "segmentation": IMAGE_TYPE, "confidence": IMAGE_TYPE,
                  "camera_info": CAMERA_INFO_TYPE, "pose": POSE_STAMPED_TYPE, "gt": IMAGE_TYPE}
         with InputBag(self.cfg.bag) as bag:
@@ -246,8 +253,6 @@ class FrameSource:
 
     def frames(self) -> Iterator[Frame]:
         """Yield the usable frames in stamp order (call :meth:`check` first)."""
-        from .sync import FrameSynchronizer
-
         cfg = self.cfg
         kinds = [k for k in self.SYNC_KINDS if self.present.get(k)]
         sync = FrameSynchronizer(kinds, slop_ns=int(round(cfg.slop_ms * 1e6)), anchor="segmentation",
@@ -261,10 +266,7 @@ class FrameSource:
         finally:
             self._finish(sync, exhausted)
 
-    def _iterate(self, bag_path: Path, sync: Any, topic_kind: dict[str, str], cam_topic: str) -> Iterator[Frame]:
-        from .bag_io import BagError, InputBag
-        from .messages import stamp_to_ns
-
+    def _iterate(self, bag_path: Path, sync: FrameSynchronizer, topic_kind: dict[str, str], cam_topic: str) -> Iterator[Frame]:
         index = 0
         with InputBag(bag_path) as bag:
             self.undecodable = bag.undecodable  # shared dict, filled while reading
@@ -289,7 +291,7 @@ class FrameSource:
                         index += 1
                         yield frame
 
-    def _finish(self, sync: Any, exhausted: bool) -> None:
+    def _finish(self, sync: FrameSynchronizer, exhausted: bool) -> None:
         """Turn the synchroniser's diagnostics into skip counts (pending anchors only at the end of the bag)."""
         self.sync_counts = dict(sync.counts)
         if sync.counts.get("unmatched"):
@@ -304,11 +306,6 @@ class FrameSource:
             self.skips[f"undecodable_{topic}"] += n
 
     def _decode(self, index: int, stamp_ns: int, items: dict[str, Any], camera_info: Any) -> Frame | None:
-        from .camera import Camera
-        from .errors import CameraError, InputError
-        from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
-                               image_to_array, pose_to_arrays)
-
         try:
             K, width, height = camera_info_to_intrinsics(camera_info)
         except (InputError, AttributeError, TypeError, ValueError):
@@ -360,9 +357,7 @@ class FrameSource:
 class Evaluator:
     """Accumulates CSS-vs-GT metrics of rendered views (pixel + image level) and the report's example frames."""
 
-    def __init__(self, cfg: ReplayConfig, classes: "ClassSet", example_indices: Sequence[int]) -> None:
-        from .metrics import ConfusionMatrix, PixelSampler
-
+    def __init__(self, cfg: ReplayConfig, classes: ClassSet, example_indices: Sequence[int]) -> None:
         C = classes.num_classes
         self.cfg = cfg
         self.classes = classes
@@ -374,9 +369,7 @@ class Evaluator:
         self.example_indices = set(example_indices)
         self.examples: list[dict[str, Any]] = []
 
-    def add(self, frame: Frame, view: Any, trained: bool) -> None:
-        from .metrics import psnr
-
+    def add(self, frame: Frame, view: RenderedView, trained: bool) -> None:
         rec: dict[str, Any] = {
             "index": frame.index, "stamp_ns": frame.stamp_ns, "trained": trained,
             "u_var": float(view.u_var), "u_exp": float(view.u_exp), "error": None, "psnr": None,
@@ -406,8 +399,6 @@ class Evaluator:
             })
 
     def pixel_report(self) -> dict[str, Any] | None:
-        from .metrics import sparsification_report
-
         cols = self.pixels.columns()
         if not cols or cols["wrong"].size == 0:
             return None
@@ -425,8 +416,6 @@ class Evaluator:
         return rep
 
     def image_report(self) -> dict[str, Any]:
-        from .metrics import sparsification_report, spearman
-
         recs = [r for r in self.images if r["error"] is not None]
         out: dict[str, Any] = {"frames": self.images, "num_evaluated": len(recs)}
         if len(recs) >= 2:
@@ -464,14 +453,12 @@ def gaussian_semantics(concentrations: np.ndarray) -> dict[str, np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 # Orchestration
 # ----------------------------------------------------------------------------------------------
-def _progress(total: int | None, desc: str, quiet: bool):
-    from tqdm import tqdm
-
+def _progress(total: int | None, desc: str, quiet: bool) -> tqdm:
     return tqdm(total=total, desc=desc, unit="frame", disable=quiet, dynamic_ncols=True, leave=True,
                 file=sys.stderr)
 
 
-def _write_outputs(obag: Any, frame: Frame, view: Any, classes: "ClassSet", cfg: ReplayConfig) -> None:
+def _write_outputs(obag: OutputBag, frame: Frame, view: RenderedView, classes: ClassSet, cfg: ReplayConfig) -> None:
     C = classes.num_classes
     label_enc = "mono8" if max(C - 1, cfg.ignore_label) <= 255 else "mono16"
     labels = view.labels
@@ -488,14 +475,7 @@ def _write_outputs(obag: Any, frame: Frame, view: Any, classes: "ClassSet", cfg:
 
 def run(cfg: ReplayConfig) -> dict[str, Any]:
     """Replay ``cfg.bag``; write outputs into ``cfg.out``; return the metrics dict (also in metrics.json)."""
-    from contextlib import nullcontext
-
-    from .bag_io import OutputBag
-    from .classes import ClassSet
-    from .gaussians import GaussianModel
-    from .metrics import ConfusionMatrix
-    from .report import make_plots, write_markdown
-    from .semantic_map import SemanticMap
+    from .report import make_plots, write_markdown  # matplotlib: imported only when a report is made
 
     t0 = time.perf_counter()
     model = GaussianModel.from_ply(cfg.model)
@@ -516,6 +496,7 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     example_indices = sorted({int(round(i)) for i in np.linspace(0, max(expected - 1, 0), n_ex)}) if n_ex else []
     evaluator = Evaluator(cfg, classes, example_indices)
     input_cm = ConfusionMatrix(C, cfg.ignore_label)
+    online_cm = ConfusionMatrix(C, cfg.ignore_label)  # the online renders written to the output bag
     cfg.out.mkdir(parents=True, exist_ok=True)
     t_load = time.perf_counter() - t0
 
@@ -537,6 +518,8 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
                 evaluator.add(frame, view, trained=False)  # map is final: evaluate now
             if frame.gt is not None:
                 input_cm.update(frame.gt, frame.labels)
+                if view is not None:
+                    online_cm.update(frame.gt, view.labels)
             if obag is not None and view is not None:
                 _write_outputs(obag, frame, view, classes, cfg)
             processed += 1
@@ -587,6 +570,10 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
                                "ignore_label (or >= C) are excluded; predicted 'no label' counts as wrong",
             "input": input_cm.summary(classes.names) if has_gt else None,
             "css": evaluator.css.summary(classes.names) if has_gt else None,
+            "css_online": online_cm.summary(classes.names) if has_gt and online_cm.num_pixels else None,
+            "css_definition": "css: every frame rendered with the FINAL map (after all training frames, the "
+                              "paper's protocol); css_online: the renders published per frame (output bag), "
+                              "made right after that frame's update",
         },
         "pixel_sparsification": evaluator.pixel_report(),
         "image_level": evaluator.image_report(),

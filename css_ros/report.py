@@ -125,8 +125,10 @@ def plot_examples(examples: Sequence[dict[str, Any]], classes: "ClassSet", ignor
     titles = ("RGB", "ground truth", "input segmentation", "CSS labels", "expectation E", "variance Var")
     fig, axes = plt.subplots(len(examples), len(cols), figsize=(2.6 * len(cols), 2.1 * len(examples)),
                              squeeze=False)
-    var_max = max(float(np.nanmax(e["variance"])) for e in examples) or 1.0
-    for row, ex in zip(axes, examples):
+    # colour scale of the variance: 99th percentile over the examples (a few background pixels dominate the max)
+    var_max = max(float(np.nanpercentile(e["variance"], 99)) for e in examples) or 1.0
+    for r, ex in enumerate(examples):
+        row = axes[r]
         for ax, key, title in zip(row, cols, titles):
             img = ex.get(key)
             ax.set_xticks([])
@@ -141,12 +143,13 @@ def plot_examples(examples: Sequence[dict[str, Any]], classes: "ClassSet", ignor
                 ax.imshow(img, cmap="magma", vmin=0.0, vmax=var_max, interpolation="nearest")
             else:
                 ax.imshow(img, interpolation="nearest")
-            if ax is row[0]:
+            if key == cols[0]:
                 ax.set_ylabel(f"frame {ex['index']}", fontsize=8)
-            if row is axes[0]:
+            if r == 0:
                 ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.subplots_adjust(left=0.03, right=0.995, bottom=0.01, top=1 - 0.35 / (2.1 * len(examples)),
+                        wspace=0.04, hspace=0.06)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
     return True
 
@@ -197,8 +200,8 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
         f"- bag: `{metrics['bag']}`",
         f"- model: `{metrics['model']}` ({metrics['num_gaussians']} Gaussians), {len(metrics['classes'])} classes",
         f"- frames: {f['processed']} processed, {f['trained']} fused into the map, {f['evaluated']} evaluated; "
-        f"skipped: {sum(f['skipped'].values())} " + (f"({', '.join(f'{k}: {v}' for k, v in f['skipped'].items())})"
-                                                      if f["skipped"] else ""),
+        f"skipped: {sum(f['skipped'].values())}" + (f" ({', '.join(f'{k}: {v}' for k, v in f['skipped'].items())})"
+                                                     if f["skipped"] else ""),
         f"- time: {t['total_s']:.1f} s total (fusion {_f(t.get('fuse_fps'), '.1f')} frames/s, "
         f"evaluation {_f(t.get('evaluate_fps'), '.1f')} frames/s)",
         "",
@@ -214,7 +217,8 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
         lines += ["| method | mIoU (%) | accuracy (%) |", "|---|---|---|",
                   f"| input segmentation | {_pct(seg['input']['miou'])} | {_pct(seg['input']['pixel_accuracy'])} |",
                   f"| CSS (fused map) | {_pct(seg['css']['miou'])} | {_pct(seg['css']['pixel_accuracy'])} |"]
-        for key, label in (("css_trained_frames", "CSS, fused frames only"),
+        for key, label in (("css_online", "CSS online (per-frame renders in the output bag)"),
+                           ("css_trained_frames", "CSS, fused frames only"),
                            ("css_heldout_frames", "CSS, held-out frames only")):
             if seg.get(key):
                 lines.append(f"| {label} | {_pct(seg[key]['miou'])} | {_pct(seg[key]['pixel_accuracy'])} |")

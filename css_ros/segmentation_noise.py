@@ -1,41 +1,55 @@
 """Noisy-segmentation model imitating a real network's errors on ground-truth label images (numpy/scipy only).
 
-Given a ground-truth label image (H, W) (255 = no label) and its frame index t, :meth:`SegmentationNoise.apply`
-returns a corrupted label image and a confidence image. It is deterministic for (seed, t) and random-access:
-frame t does not depend on which frames were generated before. All random fields are *smooth in space and
-time*: white noise at coarse resolution, Gaussian-blurred and bilinearly upsampled, drawn afresh every
-``keyframe_period`` frames and cross-faded in between, so errors drift and morph over frames like a real
-network's rather than flickering per pixel.
+Given a label image (H, W) (255 = no label) and its frame index t, :meth:`SegmentationNoise.apply` returns a
+corrupted label image and a confidence image. It is deterministic for (seed, t) and random-access: frame t does
+not depend on which frames were generated before. All random fields are *smooth in space and time*: white
+noise on a coarse grid, Gaussian-blurred and bilinearly upsampled, drawn afresh every ``keyframe_period``
+frames and cross-faded in between, so errors drift and morph over frames like a real network's instead of
+flickering per pixel.
 
-The corruption stages, in order:
+Stage 0 happens in 3D, before this module sees the image (``css_make_demo`` does it):
 
-1. **Frame severity** s_t: a smooth log-normal process (periodic in nothing, drawn per 10-frame knot) times
-   occasional bursts (about one bad frame every ~30, 1.8-2.5x worse: motion blur, exposure changes). It scales
-   the rates of stages 2-5. Mean ~1.
-2. **Missing small objects**: every connected region of a "small" class (outlet, picture, box, lamp by
-   default) is erased with a class-specific probability (outlet 0.55, lamp 0.3, box 0.3, picture 0.2, higher
-   for regions under 40 px); its pixels take the label of the nearest remaining pixel (the surroundings, e.g.
-   an outlet becomes wall). Which regions vanish is decided by a smooth field sampled at the region centroid,
-   so an object stays missing over consecutive frames.
-3. **Look-alike confusion**: pixels of class c inside smooth patches covering a fraction ~rate_c * s_t of the
-   image are relabelled to a look-alike class drawn from row c of the confusion matrix (wall <-> ceiling,
-   wall -> door/window, table <-> shelf/cabinet, chair <-> sofa/table, rug <-> floor, box -> shelf,
-   picture -> window, plant -> chair, ...); the target is piecewise constant (a second smooth field quantised
-   into the row's cumulative probabilities). In addition, a whole region is relabelled with probability
-   ``whole_region_prob`` * s_t (a cabinet seen entirely as a shelf).
-4. **Blobs of wrong labels**: smooth blobs covering ~``blob_fraction`` * s_t of the image take one label
-   per blob: mostly the label of a neighbouring region ~20 px away (bleeding), else a random class.
+0. **View-consistent (systematic) errors** (:data:`DEFAULT_SYSTEMATIC`): selected scene parts are labelled as a
+   look-alike class during stretches of frames (a smooth on/off process per rule, "on" with the rule's
+   probability): the cabinet as shelf, the top band of the walls as ceiling, the books on the shelf as shelf,
+   the door as wall, the window sill as wall. These errors are attached to the surfaces, so they are
+   consistent across viewpoints, and fusing many frames cannot simply average them away. The image the
+   2D stages start from is rendered from the splat with these labels (:meth:`SegmentationNoise.systematic_active`
+   says which rules are on at frame t).
+
+The 2D corruption stages, in order:
+
+1. **Frame severity** s_t: a smooth log-normal drift (knots every 10 frames) times occasional bursts (about one
+   bad frame per ~85, up to 2x worse: motion blur, exposure). It scales the rates of stages 2-5. Mean ~1.
+2. **Missing small objects**: every connected region of a "small" class is erased with a class-specific
+   probability (:data:`DEFAULT_MISS_PROB`: outlet 0.55, lamp 0.3, box 0.2, picture 0.2; x1.6 for regions under
+   40 px at 320x240); its pixels take the label of the nearest remaining pixel (an outlet becomes wall).
+   Which regions vanish is decided by a smooth field sampled at the region centroid, so an object stays
+   missing over consecutive frames.
+3. **Look-alike confusion** (:data:`DEFAULT_CONFUSIONS`, rates :data:`DEFAULT_CONFUSION_RATE`): pixels of class c
+   inside smooth patches are relabelled to a look-alike class. The patch density is ~rate_c * s_t, raised
+   near pixels of a look-alike class and lowered far from them (the network extends the neighbouring
+   class: the ceiling creeps down the wall); the new label is, with probability ``context_prob``, the nearest
+   look-alike class actually in view, else one drawn from row c of the confusion matrix (wall <-> ceiling,
+   wall -> door/window/cabinet/picture, table <-> shelf/cabinet/chair, chair <-> sofa, rug <-> floor,
+   box -> shelf, picture <-> window, outlet -> wall, ...), piecewise constant over the patch. In addition a
+   whole object region (up to 15 % of the image) is relabelled with probability ``whole_region_prob`` * s_t.
+4. **Blobs of wrong labels**: smooth blobs covering ~``blob_fraction`` * s_t of the image take one label per
+   blob: mostly the label of a region ~20 px away (bleeding), else a class present in the image, rarely any
+   class.
 5. **Boundary errors**: the label image is resampled through a smooth displacement field (amplitude
-   ``boundary_shift_px`` * s_t pixels, nearest neighbour), so boundaries wobble and thin structures erode
-   or dilate, plus 1-2 px per-pixel jitter on pixels next to a class boundary.
+   ``boundary_shift_px`` * s_t pixels, nearest neighbour), so boundaries wobble and thin structures erode or
+   dilate, plus 1-2 px jitter on a third of the pixels next to a class boundary.
 
 Pixels without ground truth (255) stay 255. The **confidence** (float32 in [0, 1]) imitates a softmax score,
-informative but imperfect: ~0.95 in clean interiors, lowered towards label boundaries (exp(-d / 2.5 px)),
-lowered in most corrupted regions (but ``overconfident_fraction`` of the errors keep a high score),
-lowered on bad frames, with mild smooth variation; quantised to steps of 1/64.
+informative but imperfect: ~0.96 in clean interiors, lowered towards label boundaries (x (1 - 0.45
+exp(-d / 2.5 px))), ~0.45 +- 0.15 over most regions corrupted by stages 3-4 (but ``overconfident_fraction``
+of them keep a high score), x0.85 where a small object was erased, lower on bad frames; quantised to steps of
+1/64 (compresses well in a bag). The systematic errors of stage 0 are *not* flagged by the confidence.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
@@ -44,7 +58,16 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import ndtr, ndtri
 
-__all__ = ["DEFAULT_CONFUSIONS", "DEFAULT_MISS_PROB", "NoiseConfig", "SegmentationNoise", "confusion_matrix"]
+__all__ = [
+    "DEFAULT_CONFUSIONS",
+    "DEFAULT_CONFUSION_RATE",
+    "DEFAULT_MISS_PROB",
+    "DEFAULT_SYSTEMATIC",
+    "NoiseConfig",
+    "SegmentationNoise",
+    "SystematicError",
+    "confusion_matrix",
+]
 
 #: Look-alike confusions by class name: source -> {target: relative weight}. Rows are normalised.
 DEFAULT_CONFUSIONS: dict[str, dict[str, float]] = {
@@ -73,6 +96,30 @@ DEFAULT_CONFUSION_RATE: dict[str, float] = {
 }
 #: Probability that a region of a small class is missed entirely on an average frame.
 DEFAULT_MISS_PROB: dict[str, float] = {"outlet": 0.55, "lamp": 0.3, "box": 0.2, "picture": 0.2}
+
+
+
+@dataclass(frozen=True)
+class SystematicError:
+    """A view-consistent confusion (stage 0): Gaussians of ``source_class`` (optionally only on scene
+    primitives whose name starts with ``name_prefix`` and only above ``min_z`` metres) are labelled
+    ``target_class`` during stretches of frames that cover a fraction ``probability`` of the sequence."""
+
+    source_class: str
+    target_class: str
+    probability: float
+    name_prefix: str | None = None
+    min_z: float | None = None
+
+
+#: Stage-0 rules of the demo room (names refer to :mod:`css_ros.demo_scene` primitives).
+DEFAULT_SYSTEMATIC: tuple[SystematicError, ...] = (
+    SystematicError("cabinet", "shelf", 0.5, name_prefix="cabinet"),
+    SystematicError("wall", "ceiling", 0.6, min_z=2.3),
+    SystematicError("box", "shelf", 0.5, name_prefix="shelf_box"),
+    SystematicError("door", "wall", 0.35, name_prefix="door"),
+    SystematicError("window", "wall", 0.7, name_prefix="window_sill"),
+)
 
 
 def confusion_matrix(class_names: Sequence[str],
@@ -160,9 +207,8 @@ class SegmentationNoise:
         g = self._rng(tag, key, gh, gw).standard_normal((gh, gw))
         g = ndimage.gaussian_filter(g, 1.0, mode="wrap")
         g /= 0.28209479177387814  # std of unit white noise after a sigma=1 Gaussian blur is 1/(2 sqrt(pi))
-        ys = (np.arange(H) + 0.5) / cell + 1.0
-        xs = (np.arange(W) + 0.5) / cell + 1.0
-        return ndimage.map_coordinates(g, np.meshgrid(ys, xs, indexing="ij"), order=1, mode="nearest")
+        # bilinear upsampling as two small matrix products (separable)
+        return _interp_matrix(H, gh, cell) @ g @ _interp_matrix(W, gw, cell).T
 
     def smooth_field(self, shape: tuple[int, int], frame: int, tag: int, scale: float | None = None) -> np.ndarray:
         """Zero-mean, ~unit-std random field (H, W), smooth in space (correlation ~``scale`` x width) and in
@@ -176,6 +222,20 @@ class SegmentationNoise:
             return f0
         f1 = self._field_at_key(shape, tag, k + 1, scale)
         return ((1.0 - w) * f0 + w * f1) / math.sqrt((1.0 - w) ** 2 + w ** 2)
+
+    def systematic_active(self, frame: int, rule: int, probability: float, period: int = 12) -> bool:
+        """Whether stage-0 rule ``rule`` is on at ``frame``: a smooth Gaussian process in time (knots every
+        ``period`` frames, cosine-interpolated) thresholded so it is on for ~``probability`` of the frames."""
+        if probability <= 0.0:
+            return False
+        if probability >= 1.0:
+            return True
+        k, r = divmod(int(frame), period)
+        a = self._rng(950 + int(rule), k).standard_normal()
+        b = self._rng(950 + int(rule), k + 1).standard_normal()
+        w = 0.5 - 0.5 * math.cos(math.pi * r / period)
+        g = ((1 - w) * a + w * b) / math.sqrt((1 - w) ** 2 + w ** 2)
+        return bool(g < ndtri(probability))
 
     def severity(self, frame: int) -> float:
         """Frame severity s_t > 0 (mean ~1): smooth log-normal drift times occasional bursts."""
@@ -202,8 +262,8 @@ class SegmentationNoise:
         _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
         return labels[iy, ix]
 
-    def _miss_small(self, lab: np.ndarray, valid: np.ndarray, frame: int, sev: float,
-                    scale_px: float) -> tuple[np.ndarray, np.ndarray]:
+    def _miss_small(self, lab: np.ndarray, valid: np.ndarray, frame: int,
+                    sev: float) -> tuple[np.ndarray, np.ndarray]:
         H, W = lab.shape
         missed = np.zeros(lab.shape, dtype=bool)
         u = None
@@ -219,9 +279,8 @@ class SegmentationNoise:
             if n == 0:
                 continue
             idx = np.arange(1, n + 1)
-            sizes = ndimage.sum_labels(np.ones_like(lab, dtype=np.float64), comp, idx)
-            cy, cx = np.array(ndimage.center_of_mass(mask, comp, idx)).reshape(-1, 2).T
-            uc = u[np.clip(np.rint(cy).astype(int), 0, H - 1), np.clip(np.rint(cx).astype(int), 0, W - 1)]
+            sizes, iy, ix = _regions(comp, n)
+            uc = u[iy, ix]
             p = np.clip(self.miss[c] * sev * np.where(sizes < self.config.tiny_region_px * area_scale, 1.6, 1.0),
                         0.0, 0.95)
             drop = idx[uc < p]
@@ -251,10 +310,12 @@ class SegmentationNoise:
             nearest = None
             if near.any():
                 # contextual: errors concentrate where a look-alike class is close (the net extends it)
-                d, (iy, ix) = ndimage.distance_transform_edt(~near, return_indices=True)
+                # (at half resolution: the distance only sets a smooth rate, ~1 px error is irrelevant)
+                d2, (iy, ix) = ndimage.distance_transform_edt(~near[::2, ::2], return_indices=True)
+                d = _upsample2(d2, H, W) * 2.0
+                nearest = _upsample2(lab[::2, ::2][iy, ix], H, W)
                 boost = np.exp(-d / (self.config.context_px * W / 320.0))
                 rate_map = np.clip(rate * (0.35 + 1.3 * boost), 1e-6, 0.95)
-                nearest = lab[iy, ix]
             else:
                 rate_map = np.full(lab.shape, rate * 0.35)
             # per-class shift of the shared field so classes are not confused in the same places
@@ -264,10 +325,8 @@ class SegmentationNoise:
             comp, n = ndimage.label(mask)
             if n:
                 idx = np.arange(1, n + 1)
-                sizes = ndimage.sum_labels(np.ones(lab.shape), comp, idx)
-                cy, cx = np.array(ndimage.center_of_mass(mask, comp, idx)).reshape(-1, 2).T
-                uw = np.roll(u_whole, shift=(int(c) * 41 % H, int(c) * 29 % W), axis=(0, 1))
-                uc = uw[np.clip(np.rint(cy).astype(int), 0, H - 1), np.clip(np.rint(cx).astype(int), 0, W - 1)]
+                sizes, iy, ix = _regions(comp, n)
+                uc = u_whole[(iy + int(c) * 41) % H, (ix + int(c) * 29) % W]
                 whole = idx[(uc < min(0.5, self.config.whole_region_prob * sev)) & (sizes <= max_whole)]
                 if whole.size:
                     patch |= np.isin(comp, whole)
@@ -292,12 +351,10 @@ class SegmentationNoise:
         if not blob.any():
             return lab, blob
         comp, n = ndimage.label(blob)
-        idx = np.arange(1, n + 1)
-        cy, cx = np.array(ndimage.center_of_mass(blob, comp, idx)).reshape(-1, 2).T
+        _, iy, ix = _regions(comp, n)
+        cy, cx = iy.astype(np.float64), ix.astype(np.float64)
         u = ndtr(self.smooth_field(lab.shape, frame, 32, scale=0.3))
         v = ndtr(self.smooth_field(lab.shape, frame, 33, scale=0.3))
-        iy = np.clip(np.rint(cy).astype(int), 0, H - 1)
-        ix = np.clip(np.rint(cx).astype(int), 0, W - 1)
         uc, vc = u[iy, ix], v[iy, ix]
         # bleeding: label of the region ~20 px away in direction angle(v); else a random class
         ang = 2 * math.pi * vc
@@ -355,7 +412,7 @@ class SegmentationNoise:
         sev = self.severity(frame)
         rng = self._rng(777, frame)
 
-        lab, missed = self._miss_small(lab, valid, frame, sev, cfg.field_scale * W)
+        lab, missed = self._miss_small(lab, valid, frame, sev)
         lab, confused = self._confuse(lab, valid, frame, sev)
         lab, blobbed = self._blobs(lab, valid, frame, sev)
         lab = self._boundaries(lab, frame, sev, rng)
@@ -382,6 +439,38 @@ class SegmentationNoise:
         return lab.astype(np.uint8), conf.astype(np.float32)
 
     __call__ = apply
+
+
+def _regions(comp: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sizes (n,) in pixels and rounded centroid rows/cols (n,) of the regions 1..n of a label image."""
+    H, W = comp.shape
+    flat = comp.ravel()
+    sizes = np.bincount(flat, minlength=n + 1)[1:].astype(np.float64)
+    rows = np.repeat(np.arange(H, dtype=np.float64), W)
+    cols = np.tile(np.arange(W, dtype=np.float64), H)
+    safe = np.maximum(sizes, 1.0)
+    cy = np.bincount(flat, weights=rows, minlength=n + 1)[1:] / safe
+    cx = np.bincount(flat, weights=cols, minlength=n + 1)[1:] / safe
+    return sizes, np.clip(np.rint(cy).astype(int), 0, H - 1), np.clip(np.rint(cx).astype(int), 0, W - 1)
+
+
+def _upsample2(a: np.ndarray, H: int, W: int) -> np.ndarray:
+    """Nearest-neighbour 2x upsampling of a [::2, ::2] subsampled image back to (H, W)."""
+    return np.repeat(np.repeat(a, 2, axis=0), 2, axis=1)[:H, :W]
+
+
+@functools.lru_cache(maxsize=64)
+def _interp_matrix(n_out: int, n_in: int, cell: float) -> np.ndarray:
+    """(n_out, n_in) linear-interpolation weights sampling a coarse grid (spacing ``cell`` output pixels) at the
+    output pixel centres, offset by one coarse cell (so indices stay inside the grid)."""
+    pos = (np.arange(n_out) + 0.5) / cell + 1.0
+    i0 = np.clip(np.floor(pos).astype(int), 0, n_in - 2)
+    f = pos - i0
+    M = np.zeros((n_out, n_in))
+    M[np.arange(n_out), i0] = 1.0 - f
+    M[np.arange(n_out), i0 + 1] = f
+    M.setflags(write=False)
+    return M
 
 
 def _boundary_mask(lab: np.ndarray) -> np.ndarray:

@@ -1,14 +1,14 @@
-"""Robot-like camera trajectory through the demo room: smooth, at robot camera height, with revisits and a late part.
+"""Robot-like camera path through the demo room: smooth, at robot camera height, with revisits and a late part.
 
-The path is a C1 monotone cubic (PCHIP) spline through hand-placed waypoints (x, y, camera height, yaw, pitch) in the free
-space of :mod:`css_ros.demo_scene`'s room, timed like a slow mobile robot (0.5 m/s, 35 deg/s turns). Its
-three phases:
+The path is a C1 monotone cubic (PCHIP) spline through hand-placed waypoints (x, y, camera height, yaw,
+pitch) in the free space of :mod:`css_ros.demo_scene`'s room, timed like a slow mobile robot (0.5 m/s,
+35 deg/s turns). Its three phases:
 
 1. the east half and the north side (window, sofa corner with rug and coffee table, cabinet, north wall, door,
    dining table from the north) - the south-west corner (bookshelf, plant) stays out of view;
 2. back east along the north side and to the sofa: *revisits* of places seen in phase 1 from new viewpoints;
-3. (from waypoint ``LATE_PHASE_START``) west along the south corridor to the bookshelf and plant corner, *seen for the first
-   time*, then a last look at the west wall and the dining table.
+3. (from waypoint ``LATE_PHASE_START``) west along the south corridor to the bookshelf and plant corner,
+   *seen for the first time*, then a last look at the west wall and the dining table.
 
 Poses are T_map_cam of the camera OPTICAL frame (z forward, x right, y down) in the map frame (z up).
 """

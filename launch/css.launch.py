@@ -15,10 +15,10 @@ def generate_launch_description() -> LaunchDescription:
     args = [
         DeclareLaunchArgument("params_file", default_value=os.path.join(share, "config", "css_node.yaml"),
                               description="css_node parameter file"),
-        DeclareLaunchArgument("model_path", default_value=os.path.join(share, "bags", "demo", "model.ply"),
+        # Relative paths are resolved by css_node against the working directory, share/css_ros and the source tree.
+        DeclareLaunchArgument("model_path", default_value="bags/demo/model.ply",
                               description="3DGS PLY of the scene (map frame)"),
-        DeclareLaunchArgument("class_file", default_value=os.path.join(share, "bags", "demo", "classes.yaml"),
-                              description="class YAML"),
+        DeclareLaunchArgument("class_file", default_value="bags/demo/classes.yaml", description="class YAML"),
         DeclareLaunchArgument("namespace", default_value="", description="namespace of the node"),
         # Input topic names (remappings of the node's relative inputs).
         DeclareLaunchArgument("image", default_value="image"),

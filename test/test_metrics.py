@@ -111,7 +111,8 @@ def test_ties_use_expected_value():
 
 def test_ause_trapezoid_closed_form():
     fr = np.array([0.0, 0.5, 1.0])
-    assert ause(np.array([0.4, 0.4, 0.4]), np.array([0.4, 0.2, 0.0]), fr) == pytest.approx(0.5 * 0.5 * 0.2 + 0.5 * 0.5 * 0.6)
+    # differences 0, 0.2, 0.4 at x = 0, 0.5, 1: trapezoids 0.5 * (0 + 0.2) / 2 + 0.5 * (0.2 + 0.4) / 2 = 0.2
+    assert ause(np.array([0.4, 0.4, 0.4]), np.array([0.4, 0.2, 0.0]), fr) == pytest.approx(0.2)
 
 
 def test_sparsification_report_random_is_near_flat():

@@ -44,6 +44,7 @@ class Live:
         stamp = self.stamp()
         self.client.send_frame(stamp, labels, **kwargs)
         assert self.client.wait_stamp("view_uncertainty", stamp), f"frame {stamp} not processed\n{self.tail()}"
+        self.last_frame = stamp
         return stamp
 
     def query(self, positions: np.ndarray, quats: np.ndarray, frame_id: str = "map") -> tuple[Any, np.ndarray]:
@@ -193,8 +194,8 @@ BAD_INPUTS = {
                             "pose: non-unit quaternion", "norm 2"),
     "zero quaternion": (lambda lv, s: lv.client.send_pose(s, quat=(0, 0, 0, 0)),
                         "pose: non-unit quaternion", "norm 0"),
-    "stamp out of order": (lambda lv, s: (lv.client.send_pose(s - 10**9), lv.client.send_image(
-        "segmentation", s - 10**9, rh.wall_labels(), "mono8")),
+    "stamp out of order": (lambda lv, s: (lv.client.send_pose(lv.last_frame - 10**8), lv.client.send_image(
+        "segmentation", lv.last_frame - 10**8, rh.wall_labels(), "mono8")),
         "segmentation: stamp out of order", "stamp out of order"),
     "stamps far apart": (lambda lv, s: (lv.client.send_image("segmentation", s, rh.wall_labels(), "mono8"),
                                         time.sleep(0.1), lv.client.send_pose(s + 400_000_000)),
@@ -268,3 +269,46 @@ def test_confidence_is_synchronised_and_weights_the_update(live: Live) -> None:
     live.client._conf_pub = None
     time.sleep(1.0)
     live.frame()
+
+
+def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
+    import subprocess
+    import sys
+
+    from geometry_msgs.msg import PoseStamped
+
+    from css_ros.messages import pose_to_arrays
+
+    nbv: list[Any] = []
+    live.client.node.create_subscription(PoseStamped, "next_best_view", nbv.append, 10)
+    live.frame()
+    stop = False
+
+    def keep_publishing_pose() -> None:
+        while not stop:
+            live.client.send_pose(live.stamp())
+            time.sleep(0.1)
+
+    import threading
+    th = threading.Thread(target=keep_publishing_pose, daemon=True)
+    th.start()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "css_ros.nbv_client", "--once", "--num-candidates", "7",
+                               "--yaw-range", "150", "--timeout", "20"], env=rh.node_env(live.domain),
+                              capture_output=True, text=True, timeout=60)
+    finally:
+        stop = True
+        th.join()
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "next best view" in proc.stdout + proc.stderr
+    assert rh.RosClient.wait_until(lambda: nbv, 5.0)
+    best = nbv[-1]
+    reply = live.client.wait_stamp("candidate_scores", stamp_to_ns(best.header.stamp))
+    pts = unpack_view_points(reply)
+    assert len(pts) == 7
+    i = int(np.nanargmax(pts["u_var"]))
+    position, quat = pose_to_arrays(best.pose)
+    np.testing.assert_allclose(position, [pts["x"][i], pts["y"][i], pts["z"][i]], atol=1e-6)
+    np.testing.assert_allclose(quat, [pts["qx"][i], pts["qy"][i], pts["qz"][i], pts["qw"][i]], atol=1e-6)
+    # Turning away from the mapped wall is more uncertain than the current view (candidate 0).
+    assert i != 0 and pts["u_var"][i] > pts["u_var"][0]

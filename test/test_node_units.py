@@ -109,3 +109,36 @@ def test_resolve_data_path(tmp_path, monkeypatch):
     # Relative to the source tree when not in the working directory.
     assert resolve_data_path("css_ros/node.py") == Path(__file__).resolve().parents[1] / "css_ros" / "node.py"
     assert resolve_data_path(str(tmp_path / "abs.ply")) == tmp_path / "abs.ply"
+
+
+@pytest.mark.parametrize("case", ["missing model", "corrupt model", "missing class file", "bad parameter",
+                                  "wrong parameter type"])
+def test_start_up_errors_are_clean_fatal_exits(tmp_path, case):
+    import subprocess
+    import sys
+
+    import ros_helpers as rh
+
+    model = rh.write_wall_model(tmp_path / "wall.ply")
+    params = {"model_path": str(model), "class_file": "", "num_classes": "3", "warmup": "false",
+              "checkpoint_path": ""}
+    expect = ""
+    if case == "missing model":
+        params["model_path"] = expect = str(tmp_path / "nope" / "model.ply")
+    elif case == "corrupt model":
+        bad = tmp_path / "corrupt.ply"
+        bad.write_bytes(model.read_bytes()[:400])
+        params["model_path"] = expect = str(bad)
+    elif case == "missing class file":
+        params["class_file"] = expect = str(tmp_path / "classes.yaml")
+    elif case == "bad parameter":
+        params["input_qos"], expect = "fastest", "input_qos"
+    else:
+        params["prior"], expect = "lots", "prior"
+    args = [sys.executable, "-m", "css_ros.node", "--ros-args"]
+    for k, v in params.items():
+        args += ["-p", f"{k}:={v if v != '' else chr(39) * 2}"]
+    res = subprocess.run(args, env=rh.node_env(rh.next_domain_id()), capture_output=True, text=True, timeout=120)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2, out
+    assert "FATAL" in out and expect in out and "Traceback" not in out

@@ -1,0 +1,198 @@
+"""css_nbv_client: example next-best-view loop: sample candidate views around the current pose, ask css_node to
+score them, publish the most uncertain one."""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from .camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from .messages import pose_to_arrays, stamp_to_ns, unpack_view_points
+
+
+def yaw_about_map_z(angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` [rad] about the map's vertical (z) axis."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def sample_candidates(position: np.ndarray, quat_xyzw: np.ndarray, num: int, yaw_range: float,
+                      position_std: float, vertical_std: float, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate poses around a camera pose (same convention as the input pose: optical or body frame).
+
+    Candidate 0 is the current pose itself (the reference). The others turn the camera about the map's
+    vertical axis by evenly spread yaw offsets in [-yaw_range, yaw_range] [rad] and shift it by Gaussian noise
+    (``position_std`` horizontally, ``vertical_std`` vertically, metres).
+
+    Returns:
+        positions (num, 3) [m], quaternions (num, 4) xyzw, yaw offsets (num,) [rad].
+    """
+    R = quaternion_xyzw_to_matrix(quat_xyzw)
+    yaws = np.zeros(num)
+    if num > 1:
+        yaws[1:] = np.linspace(-yaw_range, yaw_range, num - 1)
+    positions = np.repeat(np.asarray(position, dtype=np.float64)[None], num, axis=0)
+    quats = np.zeros((num, 4))
+    for i, yaw in enumerate(yaws):
+        if i > 0:
+            positions[i, :2] += rng.normal(0.0, position_std, 2)
+            positions[i, 2] += rng.normal(0.0, vertical_std)
+        quats[i] = matrix_to_quaternion_xyzw(yaw_about_map_z(yaw) @ R)
+    return positions, quats, yaws
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="css_nbv_client",
+        description="Next-best-view loop over css_node's topics: take the latest pose (topic 'pose'), sample "
+                    "candidate views around it, publish them as a PoseArray on 'candidates', receive "
+                    "NODE/candidate_scores (matched by the request stamp) and publish the most uncertain "
+                    "candidate as a PoseStamped on 'next_best_view'. Topic names are relative (remappable "
+                    "with --ros-args -r).")
+    p.add_argument("--node", default="/css_node", help="css_node's name with namespace (default /css_node)")
+    p.add_argument("--num-candidates", type=int, default=16, help="candidates per request, incl. the current "
+                   "pose (default 16)")
+    p.add_argument("--yaw-range", type=float, default=90.0, help="max yaw offset [deg] (default 90)")
+    p.add_argument("--position-std", type=float, default=0.3, help="horizontal position noise [m] (default 0.3)")
+    p.add_argument("--vertical-std", type=float, default=0.0, help="vertical position noise [m] (default 0)")
+    p.add_argument("--metric", choices=("u_var", "u_exp"), default="u_var",
+                   help="uncertainty to maximise (default u_var)")
+    p.add_argument("--period", type=float, default=2.0, help="seconds between requests (default 2)")
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for an answer (default 10)")
+    p.add_argument("--once", action="store_true", help="one request, print the result, exit (0 on success)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the position noise")
+    return p
+
+
+class NbvClient:
+    """rclpy node ``css_nbv_client`` doing the request / answer / publish loop."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        import rclpy
+        from geometry_msgs.msg import PoseArray, PoseStamped
+        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+
+        self.args = args
+        self.node = rclpy.create_node("css_nbv_client", cli_args=None)
+        self.log = self.node.get_logger()
+        self.rng = np.random.default_rng(args.seed)
+        self.lock = threading.Lock()
+        self.pose: Any = None
+        self.replies: dict[int, Any] = {}
+        # sensor-data QoS matches both best-effort and reliable pose publishers.
+        self.node.create_subscription(PoseStamped, "pose", self._on_pose, qos_profile_sensor_data)
+        self.node.create_subscription(PointCloud2, f"{args.node.rstrip('/')}/candidate_scores", self._on_scores,
+                                      QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.pub_candidates = self.node.create_publisher(PoseArray, "candidates", 10)
+        self.pub_nbv = self.node.create_publisher(PoseStamped, "next_best_view", 10)
+        self._stamp_last = 0
+
+    def _on_pose(self, msg: Any) -> None:
+        with self.lock:
+            self.pose = msg
+
+    def _on_scores(self, msg: Any) -> None:
+        with self.lock:
+            self.replies[stamp_to_ns(msg.header.stamp)] = msg
+
+    def request(self) -> dict[str, Any] | None:
+        """One request around the latest pose; returns the chosen candidate (or None)."""
+        import rclpy
+        from geometry_msgs.msg import PoseStamped
+
+        from .ros_conversions import header_msg, pose_array_msg, pose_msg
+
+        with self.lock:
+            pose = self.pose
+        if pose is None:
+            self.log.warning("no pose received yet on " + self.node.resolve_topic_name("pose"))
+            return None
+        if self.pub_candidates.get_subscription_count() == 0:
+            self.log.warning(f"nobody subscribes to {self.pub_candidates.topic_name} (is css_node running?)")
+            return None
+        position, quat = pose_to_arrays(pose.pose)
+        positions, quats, yaws = sample_candidates(position, quat, self.args.num_candidates,
+                                                   math.radians(self.args.yaw_range), self.args.position_std,
+                                                   self.args.vertical_std, self.rng)
+        # The request id is the header stamp: strictly increasing wall-clock time.
+        stamp = max(self.node.get_clock().now().nanoseconds, self._stamp_last + 1)
+        self._stamp_last = stamp
+        frame = pose.header.frame_id or "map"
+        self.pub_candidates.publish(pose_array_msg(positions, quats, header_msg(stamp, frame)))
+        end = time.monotonic() + self.args.timeout
+        reply = None
+        while time.monotonic() < end and rclpy.ok():
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+            with self.lock:
+                reply = self.replies.pop(stamp, None)
+            if reply is not None:
+                break
+        if reply is None:
+            self.log.warning(f"no answer on {self.args.node}/candidate_scores within {self.args.timeout:g} s")
+            return None
+        pts = unpack_view_points(reply)
+        if len(pts) != len(positions):
+            self.log.warning(f"answer has {len(pts)} points for {len(positions)} candidates")
+            return None
+        score = np.asarray(pts[self.args.metric], dtype=np.float64)
+        if not np.any(np.isfinite(score)):
+            self.log.warning("every candidate scored NaN (no camera_info at the node yet?)")
+            return None
+        best = int(np.nanargmax(score))
+        out = PoseStamped(header=header_msg(stamp, frame), pose=pose_msg(positions[best], quats[best]))
+        self.pub_nbv.publish(out)
+        result = {"index": best, "yaw_deg": math.degrees(yaws[best]), "position": positions[best],
+                  "quat_xyzw": quats[best], "u_var": float(pts["u_var"][best]), "u_exp": float(pts["u_exp"][best]),
+                  "current_u_var": float(pts["u_var"][0]), "current_u_exp": float(pts["u_exp"][0]),
+                  "stamp_ns": stamp, "latency_ms": (time.monotonic() - (end - self.args.timeout)) * 1e3}
+        self.log.info(
+            f"next best view: candidate {best}/{len(positions)} yaw {result['yaw_deg']:+.0f} deg at "
+            f"({positions[best][0]:.2f}, {positions[best][1]:.2f}, {positions[best][2]:.2f}) m: "
+            f"U_var {result['u_var']:.3e} U_exp {result['u_exp']:.3f} (current view U_var "
+            f"{result['current_u_var']:.3e} U_exp {result['current_u_exp']:.3f}); answer after "
+            f"{result['latency_ms']:.0f} ms")
+        return result
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point ``css_nbv_client`` (ROS arguments after --ros-args are passed to rclpy)."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.utilities import remove_ros_args
+
+    argv = list(sys.argv if argv is None else ["css_nbv_client", *argv])
+    args = build_parser().parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    client = NbvClient(args)
+    code = 0
+    try:
+        if args.once:
+            end = time.monotonic() + args.timeout
+            while (client.pose is None or client.pub_candidates.get_subscription_count() == 0) \
+                    and time.monotonic() < end:
+                rclpy.spin_once(client.node, timeout_sec=0.1)
+            time.sleep(0.3)  # let both ends of the candidates / scores pairs finish matching
+            code = 0 if client.request() is not None else 1
+        else:
+            while rclpy.ok():
+                t0 = time.monotonic()
+                client.request()
+                while rclpy.ok() and time.monotonic() - t0 < args.period:
+                    rclpy.spin_once(client.node, timeout_sec=0.05)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        client.node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
