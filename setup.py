@@ -14,6 +14,8 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/bags/demo", glob("bags/demo/*.*")),
+        (f"share/{PACKAGE}/bags/demo/bag", glob("bags/demo/bag/*")),
     ],
     python_requires=">=3.10",
     install_requires=[

@@ -432,7 +432,7 @@ def _make_node_class() -> type:
                                     ("candidate_scores", PointCloud2, True)):
                 if flag:
                     self.pubs[name] = self.create_publisher(typ, f"~/{name}", 10)
-            self._diag_pub = (self.create_publisher(DiagnosticArray, "diagnostics", 10)
+            self._diag_pub = (self.create_publisher(DiagnosticArray, "/diagnostics", 10)
                               if p.publish_diagnostics else None)
             self._diag_types = (DiagnosticArray, DiagnosticStatus, KeyValue)
             self.create_service(Trigger, "~/save_map", self._on_save_map)

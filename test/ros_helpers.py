@@ -127,7 +127,9 @@ class RosClient:
     OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rendered_image", "view_uncertainty",
                "candidate_scores")
 
-    def __init__(self, domain_id: int, node_ns: str = "/css_node", input_reliable: bool = True) -> None:
+    def __init__(self, domain_id: int, node_ns: str = "/css_node", input_reliable: bool = True,
+                 topics: dict[str, str] | None = None) -> None:
+        """``node_ns``: css_node's full name (outputs live below it); ``topics``: input topic names by kind."""
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseArray, PoseStamped
@@ -146,12 +148,17 @@ class RosClient:
         self.received: dict[str, list[Any]] = {name: [] for name in (*self.OUTPUTS, "diagnostics")}
         qos_in = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
                             else ReliabilityPolicy.BEST_EFFORT)
+        self.topics = {k: k for k in ("image", "segmentation", "segmentation_confidence", "camera_info", "pose",
+                                      "candidates")}
+        self.topics.update(topics or {})
+        self.node_ns = node_ns
+        t = self.topics
         self.pub = {
-            "image": self.node.create_publisher(Image, "image", qos_in),
-            "segmentation": self.node.create_publisher(Image, "segmentation", qos_in),
-            "camera_info": self.node.create_publisher(CameraInfo, "camera_info", qos_in),
-            "pose": self.node.create_publisher(PoseStamped, "pose", qos_in),
-            "candidates": self.node.create_publisher(PoseArray, "candidates", 10),
+            "image": self.node.create_publisher(Image, t["image"], qos_in),
+            "segmentation": self.node.create_publisher(Image, t["segmentation"], qos_in),
+            "camera_info": self.node.create_publisher(CameraInfo, t["camera_info"], qos_in),
+            "pose": self.node.create_publisher(PoseStamped, t["pose"], qos_in),
+            "candidates": self.node.create_publisher(PoseArray, t["candidates"], 10),
         }
         self._conf_pub = None
         self._qos_in = qos_in
@@ -184,7 +191,7 @@ class RosClient:
         from sensor_msgs.msg import Image
 
         if self._conf_pub is None:
-            self._conf_pub = self.node.create_publisher(Image, "segmentation_confidence", self._qos_in)
+            self._conf_pub = self.node.create_publisher(Image, self.topics["segmentation_confidence"], self._qos_in)
         return self._conf_pub
 
     def close(self) -> None:
@@ -219,8 +226,8 @@ class RosClient:
         """Wait until the node subscribes to our inputs and publishes the outputs we listen to."""
         def ok() -> bool:
             subs = all(p.get_subscription_count() > 0 for p in self.pub.values())
-            pubs = self.node.count_publishers("/css_node/view_uncertainty") > 0 and \
-                self.node.count_publishers("/css_node/candidate_scores") > 0
+            pubs = self.node.count_publishers(f"{self.node_ns}/view_uncertainty") > 0 and \
+                self.node.count_publishers(f"{self.node_ns}/candidate_scores") > 0
             return subs and pubs and self.save_client.service_is_ready()
         return bool(self.wait_until(ok, timeout, 0.05))
 

@@ -348,6 +348,7 @@ def test_tiny_bag_reads_back_with_all_topics(tiny_demo):
     }
     stamps: dict[str, list[int]] = {t: [] for t in expected}
     arrays: dict[str, list[np.ndarray]] = {t: [] for t in expected}
+    poses = []
     with AnyReader([out / "bag"]) as reader:
         assert {c.topic: c.msgtype for c in reader.connections} == {t: v[0] for t, v in expected.items()}
         for conn, log_ns, raw in reader.messages():
@@ -368,6 +369,7 @@ def test_tiny_bag_reads_back_with_all_topics(tiny_demo):
                 assert msg.header.frame_id == "map"
                 q = msg.pose.orientation
                 assert abs(math.sqrt(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2) - 1) < 1e-9
+                poses.append((msg.pose.position, q))
     ref = stamps["/image"]
     assert len(ref) == 4 and len(set(ref)) == 4 and ref == sorted(ref)
     for t in expected:
@@ -376,8 +378,15 @@ def test_tiny_bag_reads_back_with_all_topics(tiny_demo):
         assert seg.dtype == np.uint8 and conf.dtype == np.float32
         assert set(np.unique(gt)) <= set(range(len(CLASS_NAMES))) | {255}
         assert np.all((conf >= 0) & (conf <= 1))
+    # the poses are the trajectory's optical-frame poses T_map_cam
+    traj = robot_trajectory(4, seed=0)
+    for i, (p, q) in enumerate(poses):
+        np.testing.assert_allclose([p.x, p.y, p.z], traj.positions[i], atol=1e-12)
+        np.testing.assert_allclose(quaternion_xyzw_to_matrix([q.x, q.y, q.z, q.w]), traj.T_map_cam[i][:3, :3],
+                                   atol=1e-9)
     model = GaussianModel.from_ply(out / "model.ply")
     assert model.num_gaussians == 3000
+    np.testing.assert_allclose(np.linalg.norm(model.normals, axis=1), 1.0, atol=1e-5)
     cs = ClassSet.from_yaml(out / "classes.yaml")
     assert cs.names == CLASS_NAMES
     assert (out / "README.md").read_text().count("/segmentation_gt") >= 1

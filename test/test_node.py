@@ -312,3 +312,18 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
     np.testing.assert_allclose(quat, [pts["qx"][i], pts["qy"][i], pts["qz"][i], pts["qw"][i]], atol=1e-6)
     # Turning away from the mapped wall is more uncertain than the current view (candidate 0).
     assert i != 0 and pts["u_var"][i] > pts["u_var"][0]
+
+
+def test_clock_reset_accepted_after_consecutive_old_stamps(live: Live) -> None:
+    """A replay restarted with older stamps: a few frames are dropped as out of order, then accepted."""
+    from css_ros.node import STAMP_RESET_COUNT
+
+    live.frame()
+    old = [live.last_frame // 2 + k * 10**8 for k in range(STAMP_RESET_COUNT)]
+    for s in old:
+        live.client.send_frame(s)
+        time.sleep(0.05)
+    assert live.client.wait_stamp("view_uncertainty", old[-1]), live.tail()
+    assert all(live.client.wait_stamp("view_uncertainty", s, timeout=0.05) is None for s in old[:-1])
+    assert "assuming the clock was reset" in live.node.log()
+    live.frame()

@@ -23,8 +23,13 @@ def test_flood_bounded_memory_counted_drops_responsive(tmp_path):
     node = rh.NodeProcess(dict(model_path=str(model), class_file="", num_classes=rh.NUM_CLASSES,
                                checkpoint_path="", resume=False, log_period=0.3, output_scale=0.5,
                                max_pending_frames=2, candidate_scale=0.1),
-                          domain, tmp_path / "node.log")
-    client = rh.RosClient(domain, input_reliable=False)
+                          domain, tmp_path / "node.log",
+                          # Namespaced node with one input remapped: outputs follow the node's namespace.
+                          remaps={"__ns": "/robot1", "segmentation": "/camera/labels"})
+    client = rh.RosClient(domain, node_ns="/robot1/css_node", input_reliable=False,
+                          topics={"segmentation": "/camera/labels", "image": "/robot1/image",
+                                  "camera_info": "/robot1/camera_info", "pose": "/robot1/pose",
+                                  "candidates": "/robot1/candidates"})
     try:
         assert client.wait_connected(60.0), node.log()
         time.sleep(0.5)
@@ -75,10 +80,13 @@ def test_flood_bounded_memory_counted_drops_responsive(tmp_path):
               f"processed {processed}, dropped busy {busy}, dropped per topic "
               f"{ {k: v for k, v in diag.items() if k.startswith('dropped[')} }; candidate reply after "
               f"{reply_latency * 1e3:.0f} ms; RSS {rss_before:.0f} -> {rss_after:.0f} MB; "
-              f"median frame latency {diag.get('frame_latency_ms_median')} ms")
+              f"median frame latency {diag.get('frame_latency_ms_median')} ms, request latency in node "
+              f"{diag.get('request_latency_ms_median')} ms")
         # Slower than the input: frames were dropped and counted, not queued without bound.
         assert processed < received <= N_FLOOD + 1
         assert busy > 0
+        # Inside the node a request waits for at most about one frame (the worker alternates).
+        assert float(diag["request_latency_ms_median"]) < 2000.0
         assert rss_after - rss_before < 150.0
         # Still alive and mapping afterwards.
         final = stamp + (N_FLOOD + 100) * 10_000_000
