@@ -22,6 +22,7 @@ COV2D_DILATION = 0.3        # px^2 added to the screen covariance diagonal
 ALPHA_MIN = 1.0 / 255.0     # smaller per-pixel alphas are skipped
 ALPHA_MAX = 0.99            # per-pixel alpha clamp
 T_MIN = 1e-4                # compositing stops before transmittance would drop below this
+BLOCK = 32                  # px; screen blocks that order the projected rows for cache locality
 FOV_CLAMP = 0.3             # J is evaluated at the view ray clamped to 1.3 x the half field of view
 
 
@@ -63,10 +64,15 @@ class GaussianGeometry:
 
 @dataclass(frozen=True)
 class ProjectedGaussians:
-    """Gaussians that can touch the image, sorted front to back by camera depth.
+    """Gaussians that can touch the image.
+
+    Rows are stored in screen-space order (by the 32 x 32 px block of the projected centre) so
+    that the per-tile lists of neighbouring tiles touch neighbouring rows (cache locality in the
+    kernels); ``depth_order`` gives the front-to-back order.
 
     Attributes (M = number kept):
         ids: (M,) int64 indices into the model.
+        depth_order: (M,) int32 row indices sorted front to back by camera depth.
         packed: (M, 8) float64 rows (u, v, a, b, c, opacity, qmax, depth), one cache line per
             Gaussian for the compositing kernels: (u, v) projected centre [px] (u right, v down,
             pixel centres at integers); (a, b, c) inverse screen covariance [1/px^2]; qmax the
@@ -76,6 +82,7 @@ class ProjectedGaussians:
     """
 
     ids: np.ndarray
+    depth_order: np.ndarray
     packed: np.ndarray
     bbox: np.ndarray
     colors: np.ndarray
@@ -207,10 +214,15 @@ def project(geometry: GaussianGeometry, camera: "Camera") -> ProjectedGaussians:
                     float(camera.width), float(camera.height),
                     out, out_bbox, out_valid)
     ids = np.flatnonzero(out_valid)
-    ids = ids[np.argsort(out[ids, 7], kind="stable")]
+    block_x = (int(camera.width) + BLOCK - 1) // BLOCK
+    bb = out_bbox[ids]
+    centre_block = ((bb[:, 2] + bb[:, 3]) // (2 * BLOCK)) * block_x + (bb[:, 0] + bb[:, 1]) // (2 * BLOCK)
+    ids = ids[np.argsort(centre_block, kind="stable")]
+    depth_order = np.argsort(out[ids, 7], kind="stable").astype(np.int32)
     cam_pos = np.asarray(camera.position, dtype=np.float64)
     colors = _colors(geometry, ids, cam_pos)
-    return ProjectedGaussians(ids=ids, packed=np.ascontiguousarray(out[ids]), bbox=out_bbox[ids], colors=colors)
+    return ProjectedGaussians(ids=ids, depth_order=depth_order, packed=np.ascontiguousarray(out[ids]),
+                              bbox=out_bbox[ids], colors=colors)
 
 
 def _colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:

@@ -44,7 +44,7 @@ class TileBins:
 
 
 @njit(cache=True)
-def _bin_kernel(bbox, tiles_x, tiles_y, tile):  # pragma: no cover
+def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile):  # pragma: no cover
     m = bbox.shape[0]
     num_tiles = tiles_x * tiles_y
     offsets = np.zeros(num_tiles + 1, dtype=np.int64)
@@ -56,7 +56,8 @@ def _bin_kernel(bbox, tiles_x, tiles_y, tile):  # pragma: no cover
         offsets[t + 1] += offsets[t]
     fill = offsets[:-1].copy()
     lists = np.empty(offsets[-1], dtype=np.int32)
-    for j in range(m):  # j ascends in depth, so each tile list is front to back
+    for r in range(m):  # front to back, so each tile list is depth-sorted
+        j = depth_order[r]
         for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
             for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
                 t = ty * tiles_x + tx
@@ -69,7 +70,7 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
     """Counting-sort the depth-sorted Gaussians into the tiles their alpha >= 1/255 box overlaps."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    offsets, lists = _bin_kernel(proj.bbox, tiles_x, tiles_y, tile_size)
+    offsets, lists = _bin_kernel(proj.bbox, proj.depth_order, tiles_x, tiles_y, tile_size)
     return TileBins(offsets, lists, tiles_x, tiles_y, tile_size)
 
 
