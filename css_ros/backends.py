@@ -19,20 +19,18 @@ class RasterBackend(Protocol):
 
     def prepare(self, camera: "Camera") -> Any: ...
 
-    def frame_ids(self, frame: Any) -> np.ndarray: ...
+    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+        """concentrations[n, c] += sum_i kappa_in y_i^c (labels (H, W) int32, -1 = none; weights (H, W))."""
 
-    def accumulate(self, frame: Any, labels: np.ndarray, weights: np.ndarray,
-                   num_classes: int) -> tuple[np.ndarray, np.ndarray]: ...
-
-    def render(self, frame: Any, expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
-               e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-               want_probs: bool) -> "RenderBuffers": ...
+    def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
+               bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
+        """Composite colour, E, Var (argmax class), kappa_b and evidence from the current concentrations."""
 
 
 class NumbaBackend:
     """Compiled CPU path: numba projection, tile binning and per-pixel kernels.
 
-    ``accumulate`` records each pixel's contributions; a ``render`` of the same frame (as in
+    ``update`` records each pixel's contributions; a ``render`` of the same frame (as in
     ``SemanticMap.observe``) replays them instead of compositing a second time.
     """
 
@@ -50,27 +48,23 @@ class NumbaBackend:
         proj = project(self.geometry, camera)
         return proj, bin_tiles(proj, camera.width, camera.height), camera
 
-    def frame_ids(self, frame: Any) -> np.ndarray:
-        return frame[0].ids
-
-    def accumulate(self, frame: Any, labels: np.ndarray, weights: np.ndarray,
-                   num_classes: int) -> tuple[np.ndarray, np.ndarray]:
-        from .raster import accumulate_update
+    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+        from .raster import accumulate_update, add_increments
 
         proj, bins, _ = frame
         self._store.owner = None
-        increments = accumulate_update(proj, bins, labels, weights, num_classes, self._store)
+        acc = accumulate_update(proj, bins, labels, weights, concentrations.shape[1], self._store)
         self._store.owner = frame
-        return proj.ids, increments
+        add_increments(concentrations, proj.ids, acc)
 
-    def render(self, frame: Any, expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
-               e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-               want_probs: bool) -> "RenderBuffers":
-        from .raster import render_semantic
+    def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
+               bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
+        from .raster import dirichlet_attributes, render_semantic
 
         proj, bins, camera = frame
+        attrs, var = dirichlet_attributes(concentrations, proj.ids, proj.colors)
         store = self._store if self._store.owner is frame else None
-        return render_semantic(proj, bins, camera.width, camera.height, expect, var, totals,
+        return render_semantic(proj, bins, camera.width, camera.height, attrs, var,
                                e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
 
 

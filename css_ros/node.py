@@ -403,6 +403,9 @@ def _make_node_class() -> type:
             self.sync = self._make_sync(("segmentation", "pose", "confidence") if p.use_confidence
                                         else ("segmentation", "pose"))
             self._confidence_topic = self.resolve_topic_name("segmentation_confidence")
+            #: last messages pushed per non-anchor kind (re-offered to the synchroniser after a clock reset)
+            self._recent: dict[str, deque[tuple[int, Any]]] = {
+                k: deque(maxlen=p.queue_size) for k in self._sync_kinds if k != "segmentation"}
             self._sync_counts: Counter[str] = Counter()
             self.queue = WorkQueue(p.max_pending_frames)
             if p.input_qos == "reliable":
@@ -652,10 +655,19 @@ def _make_node_class() -> type:
                 self.get_logger().warning(
                     f"[{topic}] {self._stale_run} consecutive stamps older than the last frame: assuming the "
                     f"clock was reset (bag restarted?), accepting the new stamps")
+                old_last = self._last_frame_ns
                 self._last_frame_ns = None
                 self._stale_run = 0
                 self._images.clear()
                 self.sync = self._make_sync(self._sync_kinds)
+                # The poses / confidences of the new time line were refused as stale: offer them again
+                # (those still stamped after the old last frame belong to the old time line).
+                slop = int(round(self.p.sync_slop * 1e9))
+                for kind, recent in self._recent.items():
+                    for t, payload in sorted(recent, key=lambda e: e[0]):
+                        if stamp - slop <= t < old_last:
+                            self.sync.push(kind, t, payload)
+                self._sync_counts = Counter(self.sync.counts)
             else:
                 self._stale_run = 0
             if "confidence" in self._sync_kinds and not self._confidence_published():
@@ -664,6 +676,8 @@ def _make_node_class() -> type:
             self._push("segmentation", topic, stamp, (labels, msg.header.frame_id, time.monotonic()))
 
         def _push(self, kind: str, topic: str, stamp: int, payload: Any) -> None:
+            if kind != "segmentation":
+                self._recent[kind].append((stamp, payload))
             frames = self.sync.push(kind, stamp, payload)
             # Report what the synchroniser dropped (stale, unmatched, overflow) under the topic concerned.
             counts = self.sync.counts

@@ -414,14 +414,15 @@ _NO_STORE = (np.empty((1, 0), np.int32), np.empty((1, 0)), np.empty(0, np.int64)
 
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarray, weights: np.ndarray,
                       num_classes: int, store: ContributionStore | None = None) -> np.ndarray:
-    """Per visible Gaussian, sum_i kappa_in * y_i^c.
+    """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums.
 
     Args:
         labels: (H, W) int32 class id per pixel, -1 where the pixel contributes nothing.
         weights: (H, W) float32 confidence per pixel (1 without a confidence image).
         store: if given, records the contributions for a following :func:`render_semantic`.
     Returns:
-        (M, C) float64 increments for ``proj.ids`` rows of the concentrations.
+        (chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations
+        (sum over axis 0, or apply with :func:`add_increments`).
     """
     height, width = labels.shape
     nchunks = _num_chunks(bins)
@@ -429,7 +430,51 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarr
     arrays = _NO_STORE if store is None else (*_store_arrays(store.reserve(width * height, nchunks)),)
     _update_kernel(bins.offsets, bins.lists, proj.packed, labels, weights, width, height,
                    bins.tile_size, bins.tiles_x, acc, store is not None, *arrays)
-    return acc[0] if nchunks == 1 else acc.sum(axis=0)
+    return acc
+
+
+@njit(parallel=True, cache=True)
+def add_increments(concentrations, ids, acc):  # pragma: no cover
+    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (ids are unique)."""
+    m, num_classes = acc.shape[1], acc.shape[2]
+    for j in prange(m):
+        row = ids[j]
+        for c in range(num_classes):
+            total = 0.0
+            for ch in range(acc.shape[0]):
+                total += acc[ch, j, c]
+            concentrations[row, c] += total
+
+
+@njit(parallel=True, cache=True)
+def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
+    """Per projected Gaussian j: attrs[j] = (r, g, b, S, E_0..E_{C-1}) and var[j, c] (SPEC §4 moments).
+
+    Args:
+        concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours.
+    Returns:
+        attrs (M, 4 + C) float64 and var (M, C) float64 with E = alpha / S, Var = E (1 - E) / (1 + S).
+    """
+    m = ids.shape[0]
+    num_classes = concentrations.shape[1]
+    attrs = np.empty((m, 4 + num_classes))
+    var = np.empty((m, num_classes))
+    for j in prange(m):
+        row = ids[j]
+        total = 0.0
+        for c in range(num_classes):
+            total += concentrations[row, c]
+        inv = 1.0 / total
+        denom = 1.0 / (1.0 + total)
+        attrs[j, 0] = colors[j, 0]
+        attrs[j, 1] = colors[j, 1]
+        attrs[j, 2] = colors[j, 2]
+        attrs[j, 3] = total
+        for c in range(num_classes):
+            e = concentrations[row, c] * inv
+            attrs[j, 4 + c] = e
+            var[j, c] = e * (1.0 - e) * denom
+    return attrs, var
 
 
 def _store_arrays(store: ContributionStore) -> tuple[np.ndarray, ...]:
@@ -450,22 +495,18 @@ class RenderBuffers:
 
 
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
-                    expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
+                    attrs: np.ndarray, var: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
                     want_probs: bool, store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
-        expect, var: (M, C) float64 E[theta_n^c] and Var[theta_n^c] of the projected Gaussians.
-        totals: (M,) float64 Dirichlet totals S_n.
+        attrs: (M, 4 + C) float64 rows (r, g, b, S_n, E[theta_n^0..C-1]) of the projected
+            Gaussians (see :func:`dirichlet_attributes`); var: (M, C) float64 Var[theta_n^c].
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
     """
-    num_classes = expect.shape[1]
-    attrs = np.empty((proj.count, 4 + num_classes))
-    attrs[:, :3] = proj.colors
-    attrs[:, 3] = totals
-    attrs[:, 4:] = expect
+    num_classes = var.shape[1]
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))

@@ -120,9 +120,6 @@ class TorchBackend:
         return TorchFrame(camera, idx.cpu().numpy(), torch.stack([u, v], 1)[idx], conics,
                           self.opacities[idx], colors, offsets, lists, tiles_x, ts)
 
-    def frame_ids(self, frame: TorchFrame) -> np.ndarray:
-        return frame.ids
-
     # ------------------------------------------------------------------ per-tile compositing
     def _tiles(self, frame: TorchFrame):
         """Yield (pixel rows, pixel cols, list indices, kappa [P, L], final transmittance [P])."""
@@ -153,8 +150,8 @@ class TorchBackend:
             final_t = torch.prod(torch.where(keep, one_minus, torch.ones_like(one_minus)), dim=1)
             yield vv, uu, lst, kappa, final_t
 
-    def accumulate(self, frame: TorchFrame, labels: np.ndarray, weights: np.ndarray,
-                   num_classes: int) -> tuple[np.ndarray, np.ndarray]:
+    def update(self, frame: TorchFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+        num_classes = concentrations.shape[1]
         lab = torch.as_tensor(labels, device=self.device).long()
         wts = torch.as_tensor(weights, device=self.device, dtype=self.dtype)
         acc = torch.zeros((len(frame.ids), num_classes), dtype=self.dtype, device=self.device)
@@ -168,15 +165,16 @@ class TorchBackend:
             y = torch.zeros((len(vv), num_classes), dtype=self.dtype, device=self.device)
             y[valid, pl[valid]] = wts[vv, uu][valid]
             acc.index_add_(0, lst, kappa.T @ y)
-        return frame.ids, acc.cpu().numpy()
+        concentrations[frame.ids] += acc.cpu().numpy()
 
-    def render(self, frame: TorchFrame, expect: np.ndarray, var: np.ndarray, totals: np.ndarray,
-               e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
+    def render(self, frame: TorchFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
+               bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         cam, dev, dt = frame.camera, self.device, self.dtype
-        h, w, c = cam.height, cam.width, expect.shape[1]
-        ex = torch.as_tensor(expect, dtype=dt, device=dev)
-        va = torch.as_tensor(var, dtype=dt, device=dev)
-        tot = torch.as_tensor(totals, dtype=dt, device=dev)
+        h, w, c = cam.height, cam.width, concentrations.shape[1]
+        alpha = torch.as_tensor(concentrations[frame.ids], dtype=dt, device=dev)
+        tot = alpha.sum(dim=1)
+        ex = alpha / tot[:, None]
+        va = ex * (1.0 - ex) / (1.0 + tot[:, None])
         bg = torch.as_tensor(np.asarray(bg_rgb), dtype=dt, device=dev)
         probs = torch.empty((h, w, c), dtype=dt, device=dev)
         out_label = torch.empty((h, w), dtype=torch.int64, device=dev)

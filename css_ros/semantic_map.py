@@ -157,19 +157,13 @@ class SemanticMap:
     def _update_frame(self, frame: Any, camera: "Camera", labels: np.ndarray,
                       confidence: np.ndarray | None) -> UpdateStats:
         lab, weights, stats = self._prepare_labels(camera, labels, confidence)
-        ids, increments = self._backend.accumulate(frame, lab, weights, self.num_classes)
-        self.concentrations[ids] += increments
+        self._backend.update(frame, lab, weights, self.concentrations)
         self.frames_observed += 1
         return stats
 
     def _render_frame(self, frame: Any, probabilities: bool) -> RenderedView:
-        ids = self._backend.frame_ids(frame)
-        alpha = self.concentrations[ids]
-        totals = alpha.sum(axis=1)
-        expect = alpha / totals[:, None]
-        var = expect * (1.0 - expect) / (1.0 + totals[:, None])
         e_b, v_b, s_b = self._background_moments()
-        buf = self._backend.render(frame, expect, var, totals, e_b, v_b, s_b, self.background_rgb, probabilities)
+        buf = self._backend.render(frame, self.concentrations, e_b, v_b, s_b, self.background_rgb, probabilities)
         labels = buf.labels
         labels[buf.background > self.unknown_threshold] = self.ignore_label
         u_var, u_exp = image_uncertainty(buf.expectation, buf.variance)

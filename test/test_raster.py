@@ -99,9 +99,7 @@ def test_colour_render_matches_reference(degree):
                           log_scales=base.log_scales, rotations=base.rotations)
     cam = camera(position=(0.2, 0.1, -0.3))
     backend = NumbaBackend(model)
-    frame = backend.prepare(cam)
-    m = len(frame[0].ids)
-    buf = backend.render(frame, np.full((m, 2), 0.5), np.zeros((m, 2)), np.ones(m), 0.5, 0.0, 1.0,
+    buf = backend.render(backend.prepare(cam), np.ones((model.num_gaussians, 2)), 0.5, 0.0, 1.0,
                          np.array([0.2, 0.4, 0.6]), False)
     kap, bg = reference(model, cam)
     dirs = model.means.astype(np.float64) - cam.position
