@@ -37,6 +37,8 @@ setup(
             "ros-jazzy-rmw-fastrtps-cpp",
         ],
         "test": ["pytest>=7", "pytest-timeout>=2.1", "torch==2.13.0"],
+        # proves the package builds as an ament_python package (test/test_node_colcon.py)
+        "colcon": ["colcon-core", "colcon-ros", "colcon-python-setup-py", "ros-jazzy-ament-package"],
         "all": [
             "torch==2.13.0",
             "ros-jazzy-rclpy",
@@ -44,6 +46,10 @@ setup(
             "ros-jazzy-rmw-fastrtps-cpp",
             "pytest>=7",
             "pytest-timeout>=2.1",
+            "colcon-core",
+            "colcon-ros",
+            "colcon-python-setup-py",
+            "ros-jazzy-ament-package",
         ],
     },
     zip_safe=True,

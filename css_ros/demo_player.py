@@ -169,15 +169,26 @@ class DemoPlayer:
             rec.accuracy = float(np.mean(labels[valid] == gt[valid]))
 
     # ---------------------------------------------------------------- playing
-    def wait_for_node(self, timeout: float) -> bool:
-        """Wait until css_node subscribes to the segmentation topic."""
-        from sensor_msgs.msg import Image
+    def create_publishers(self, bag_path: Path) -> None:
+        """One publisher per played topic of the bag, created before playing so discovery completes first."""
+        from .bag_io import InputBag
+        from .ros_conversions import _rclpy_class
 
-        pub = self.publisher("/segmentation", Image())
+        with InputBag(bag_path) as bag:
+            topics = bag.topics()
+        missing = [t for t in ("/segmentation", "/pose", "/camera_info") if t not in topics]
+        if missing:
+            raise CssError(f"bag {bag_path} lacks {', '.join(missing)} (has {', '.join(sorted(topics))})")
+        for topic in PLAYED_TOPICS:
+            if topic in topics:
+                self.publisher(topic, _rclpy_class(topics[topic][0])())
+
+    def wait_for_node(self, timeout: float) -> bool:
+        """Wait until css_node subscribes to every played topic."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
-            if pub.get_subscription_count() > 0:
-                time.sleep(0.5)  # let every reader/writer pair finish matching
+            if self.pubs and all(pub.get_subscription_count() > 0 for pub in self.pubs.values()):
+                time.sleep(0.5)  # let both ends of every reader/writer pair finish matching
                 return True
             time.sleep(0.1)
         return False
@@ -191,9 +202,6 @@ class DemoPlayer:
         with InputBag(bag_path) as bag:
             topics = bag.topics()
             present = [t for t in PLAYED_TOPICS if t in topics]
-            missing = [t for t in ("/segmentation", "/pose", "/camera_info") if t not in topics]
-            if missing:
-                raise CssError(f"bag {bag_path} lacks {', '.join(missing)} (has {', '.join(sorted(topics))})")
             wanted = present + ([GT_TOPIC] if GT_TOPIC in topics else [])
             for loop in range(max(1, args.loops)):
                 t_wall0 = time.monotonic()
@@ -290,20 +298,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``css_demo``."""
     import rclpy
 
-    args = build_parser().parse_args(argv)
+    raw = list(sys.argv[1:] if argv is None else argv)
+    # Everything from --ros-args on goes to rclpy (not rclpy's remove_ros_args: it would also eat the
+    # NAME:=VALUE of --node-param as an old-style remap rule).
+    cut = raw.index("--ros-args") if "--ros-args" in raw else len(raw)
+    args = build_parser().parse_args(raw[:cut])
+    ros_args = raw[cut:]
     bag = _resolve(args.bag)
     if not bag.exists():
         print(f"css_demo: bag not found: {bag} (generate the demo with css_make_demo, or pass a bag)",
               file=sys.stderr)
         return 2
     child = None
-    rclpy.init()
+    rclpy.init(args=["css_demo", *ros_args])
     player = None
     code = 0
     try:
         if args.start_node:
             child = start_node(args, bag)
         player = DemoPlayer(args)
+        player.create_publishers(bag)
         print(f"css_demo: waiting for {args.node} to subscribe to {args.prefix.rstrip('/')}/segmentation ...",
               flush=True)
         if not player.wait_for_node(args.wait + (60.0 if child else 0.0)):

@@ -37,8 +37,10 @@ VIEW_DTYPE = np.dtype([(name, "<f4") for name in VIEW_FIELDS])
 def _data_bytes(data: Any) -> np.ndarray:
     if isinstance(data, np.ndarray):
         return data.view(np.uint8).reshape(-1)
-    return np.frombuffer(bytes(data) if not isinstance(data, (bytes, bytearray, memoryview)) else data,
-                         dtype=np.uint8)
+    try:  # bytes, bytearray, array.array (rclpy): no copy
+        return np.frombuffer(memoryview(data).cast("B"), dtype=np.uint8)
+    except TypeError:  # e.g. a list of ints
+        return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
 def image_to_array(msg: Any, allowed: tuple[str, ...] | None = None) -> np.ndarray:

@@ -1,5 +1,4 @@
-"""css_nbv_client: example next-best-view loop: sample candidate views around the current pose, ask css_node to
-score them, publish the most uncertain one."""
+"""css_nbv_client: example next-best-view loop over css_node's candidate-scoring topics."""
 from __future__ import annotations
 
 import argparse

@@ -319,7 +319,7 @@ def test_clock_reset_accepted_after_consecutive_old_stamps(live: Live) -> None:
     from css_ros.node import STAMP_RESET_COUNT
 
     live.frame()
-    old = [live.last_frame // 2 + k * 10**8 for k in range(STAMP_RESET_COUNT)]
+    old = [live.last_frame // 2 + 12_345_678 + k * 10**8 for k in range(STAMP_RESET_COUNT)]  # unused stamps
     for s in old:
         live.client.send_frame(s)
         time.sleep(0.05)
