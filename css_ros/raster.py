@@ -88,68 +88,68 @@ def _load_rows(src, lists, start, end, local):  # pragma: no cover
     return local
 
 
-@njit(cache=True)
-def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans):  # pragma: no cover
-    """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list.
+@njit(inline="always")
+def _load_columns(packed, lists, start, end, local):  # pragma: no cover
+    """Copy the tile's packed rows transposed into ``local`` (_ROW, >= n): one contiguous array
+    per quantity, so the per-pixel candidate test vectorises. Returns ``local`` (grown if needed)."""
+    n = end - start
+    if n > local.shape[1]:
+        local = np.empty((_ROW, n))
+    for k in range(n):
+        j = lists[start + k]
+        for c in range(_ROW):
+            local[c, k] = packed[j, c]
+    return local
 
-    Gaussian-outer order (as GPU rasterisers do): for each Gaussian the exact span of pixels of
-    this row inside its alpha >= 1/255 ellipse is solved from the quadratic, and only those
-    pixels are evaluated. Every pixel still sees the Gaussians front to back, so the result is the
-    per-pixel walk of SPEC §3 exactly.
+
+@njit(cache=True)
+def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):  # pragma: no cover
+    """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list (SPEC §3).
+
+    Per pixel, the Mahalanobis distances q of all n candidates are computed in a branch-free loop
+    (SIMD), the indices with q <= qmax (alpha >= 1/255) are compacted without branches, and only
+    those are composited in order with early termination.
 
     Args:
-        g: (>= n, 7) packed rows (u, v, a, b, c, opacity, qmax) of the tile's list.
+        g: (_ROW, >= n) columns (u, v, a, b, c, opacity, qmax) of the tile's list.
         active: (W_row,) bool; inactive pixels are skipped (cnt 0, T 1).
+        qbuf, hits: scratch of length >= n.
     Outputs:
         cnt[p]: number of contributions of pixel u0 + p; kidx[p, i] / kval[p, i]: their list
         index and kappa, front to back; trans[p]: final transmittance (kappa_b).
     """
-    width = u1 - u0 + 1
-    remaining = 0
-    for p in range(width):
+    fv = float(v)
+    gx, gy, ga, gb, gc, go, gq = g[0], g[1], g[2], g[3], g[4], g[5], g[6]
+    for p in range(u1 - u0 + 1):
         cnt[p] = 0
         trans[p] = 1.0
-        if active[p]:
-            remaining += 1
-    fv = float(v)
-    for k in range(n):
-        if remaining == 0:
-            break
-        a = g[k, 2]
-        b = g[k, 3]
-        c = g[k, 4]
-        qmax = g[k, 6]
-        dy = fv - g[k, 1]
-        bdy = b * dy
-        disc = bdy * bdy - a * (c * dy * dy - qmax)
-        if disc < 0.0:
+        if not active[p]:
             continue
-        root = math.sqrt(disc)
-        mx = g[k, 0]
-        lo = max(u0, int(math.ceil(mx + (-bdy - root) / a - 1e-7)))
-        hi = min(u1, int(math.floor(mx + (-bdy + root) / a + 1e-7)))
-        for u in range(lo, hi + 1):
-            p = u - u0
-            if not active[p]:
-                continue
-            dx = u - mx
-            q = a * dx * dx + 2.0 * bdy * dx + c * dy * dy
-            if q > qmax:
-                continue
-            alpha = min(ALPHA_MAX, g[k, 5] * math.exp(-0.5 * q))
+        fu = float(u0 + p)
+        for k in range(n):
+            dx = fu - gx[k]
+            dy = fv - gy[k]
+            qbuf[k] = ga[k] * dx * dx + 2.0 * gb[k] * dx * dy + gc[k] * dy * dy
+        m = 0
+        for k in range(n):
+            hits[m] = k
+            m += qbuf[k] <= gq[k]
+        t = 1.0
+        i = 0
+        for h in range(m):
+            k = hits[h]
+            alpha = min(ALPHA_MAX, go[k] * math.exp(-0.5 * qbuf[k]))
             if alpha < ALPHA_MIN:
                 continue
-            t = trans[p]
             test_t = t * (1.0 - alpha)
             if test_t < T_MIN:
-                active[p] = False
-                remaining -= 1
-                continue
-            i = cnt[p]
+                break
             kidx[p, i] = k
             kval[p, i] = alpha * t
-            cnt[p] = i + 1
-            trans[p] = test_t
+            i += 1
+            t = test_t
+        cnt[p] = i
+        trans[p] = t
 
 
 @njit(parallel=True, cache=True)
@@ -165,12 +165,19 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
     num_tiles = offsets.shape[0] - 1
     cap = st_k.shape[1]
     for ch in prange(nchunks):
-        local = np.empty((256, _ROW))
+        local = np.empty((_ROW, 256))
+        qbuf = np.empty(256)
+        hits = np.empty(256, dtype=np.int32)
         kidx = np.empty((tile, 256), dtype=np.int32)
         kval = np.empty((tile, 256))
         cnt = np.empty(tile, dtype=np.int32)
         trans = np.empty(tile)
         active = np.empty(tile, dtype=np.bool_)
+        num_classes = acc.shape[2]
+        # Tile-local accumulator (class, list position): the per-contribution scatter stays in
+        # cache; only the classes present in the tile are zeroed and flushed to the chunk's rows.
+        lacc = np.empty((num_classes, 256))
+        present = np.empty(num_classes, dtype=np.bool_)
         pos = 0
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
@@ -179,10 +186,14 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
             if n > 0:
-                local = _load_rows(packed, lists, start, end, local)
+                local = _load_columns(packed, lists, start, end, local)
             if n > kidx.shape[1]:
                 kidx = np.empty((tile, n), dtype=np.int32)
                 kval = np.empty((tile, n))
+                qbuf = np.empty(n)
+                hits = np.empty(n, dtype=np.int32)
+                lacc = np.empty((num_classes, n))
+            present[:] = False
             for v in range(ty * tile, min(height, ty * tile + tile)):
                 any_active = False
                 for u in range(u0, u1 + 1):
@@ -194,7 +205,7 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
                         for u in range(u0, u1 + 1):
                             pix_cnt[v * width + u] = -1
                     continue
-                _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+                _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
                 for u in range(u0, u1 + 1):
                     p = u - u0
                     lab = labels[v, u]
@@ -204,8 +215,12 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
                             pix_cnt[v * width + u] = -1
                         continue
                     c = cnt[p]
+                    if not present[lab]:
+                        present[lab] = True
+                        for k in range(n):
+                            lacc[lab, k] = 0.0
                     for i in range(c):
-                        acc[ch, lists[start + kidx[p, i]], lab] += kval[p, i] * w
+                        lacc[lab, kidx[p, i]] += kval[p, i] * w
                     if store:
                         q = v * width + u
                         if pos + c <= cap:
@@ -218,6 +233,10 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
                             pos += c
                         else:
                             pix_cnt[q] = -1
+            for c in range(num_classes):
+                if present[c]:
+                    for k in range(n):
+                        acc[ch, lists[start + k], c] += lacc[c, k]
 
 
 @njit(inline="always")
@@ -270,7 +289,9 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
     num_tiles = offsets.shape[0] - 1
     num_classes = attrs.shape[1] - 4
     for ch in prange(nchunks):
-        local = np.empty((256, _ROW))
+        local = np.empty((_ROW, 256))
+        qbuf = np.empty(256)
+        hits = np.empty(256, dtype=np.int32)
         lattr = np.empty((256, attrs.shape[1]))
         kidx = np.empty((tile, 256), dtype=np.int32)
         kval = np.empty((tile, 256))
@@ -286,6 +307,8 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
             if n > kidx.shape[1]:
                 kidx = np.empty((tile, n), dtype=np.int32)
                 kval = np.empty((tile, n))
+                qbuf = np.empty(n)
+                hits = np.empty(n, dtype=np.int32)
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
@@ -297,9 +320,9 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
                     need = need or a
                 if need:
                     if not loaded:
-                        local = _load_rows(packed, lists, start, end, local)
+                        local = _load_columns(packed, lists, start, end, local)
                         loaded = True
-                    _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+                    _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
                 for u in range(u0, u1 + 1):
                     p = u - u0
                     q = v * width + u
@@ -320,22 +343,27 @@ def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
                   count_only, pix, gid, kap, bg):  # pragma: no cover
     num_tiles = offsets.shape[0] - 1
     total = 0
-    local = np.empty((256, _ROW))
+    local = np.empty((_ROW, 256))
+    qbuf = np.empty(256)
+    hits = np.empty(256, dtype=np.int32)
     cnt = np.empty(tile, dtype=np.int32)
     trans = np.empty(tile)
     active = np.empty(tile, dtype=np.bool_)
     for t in range(num_tiles):
         start, end = offsets[t], offsets[t + 1]
         n = end - start
-        local = _load_rows(packed, lists, start, end, local)
+        local = _load_columns(packed, lists, start, end, local)
         kidx = np.empty((tile, max(n, 1)), dtype=np.int32)
         kval = np.empty((tile, max(n, 1)))
+        if n > qbuf.shape[0]:
+            qbuf = np.empty(n)
+            hits = np.empty(n, dtype=np.int32)
         ty, tx = t // tiles_x, t % tiles_x
         u0 = tx * tile
         u1 = min(width, u0 + tile) - 1
         for v in range(ty * tile, min(height, ty * tile + tile)):
             active[:] = True
-            _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans)
+            _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
             for u in range(u0, u1 + 1):
                 p = u - u0
                 if not count_only:
