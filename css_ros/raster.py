@@ -80,7 +80,7 @@ def _load_rows(src, lists, start, end, local):  # pragma: no cover
     n = end - start
     cols = src.shape[1]
     if n > local.shape[0]:
-        local = np.empty((n, cols))
+        local = np.empty((n, cols), dtype=src.dtype)
     for k in range(n):
         j = lists[start + k]
         for c in range(cols):
@@ -292,7 +292,7 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
         local = np.empty((_ROW, 256))
         qbuf = np.empty(256)
         hits = np.empty(256, dtype=np.int32)
-        lattr = np.empty((256, attrs.shape[1]))
+        lattr = np.empty((256, attrs.shape[1]), dtype=attrs.dtype)
         kidx = np.empty((tile, 256), dtype=np.int32)
         kval = np.empty((tile, 256))
         cnt = np.empty(tile, dtype=np.int32)
@@ -481,12 +481,13 @@ def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours.
     Returns:
-        attrs (M, 4 + C) float64 and var (M, C) float64 with E = alpha / S, Var = E (1 - E) / (1 + S).
+        attrs (M, 4 + C) and var (M, C), float32 (halves the render's memory traffic; the
+        accumulations over contributions stay float64), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
-    attrs = np.empty((m, 4 + num_classes))
-    var = np.empty((m, num_classes))
+    attrs = np.empty((m, 4 + num_classes), dtype=np.float32)
+    var = np.empty((m, num_classes), dtype=np.float32)
     for j in prange(m):
         row = ids[j]
         total = 0.0
@@ -494,14 +495,14 @@ def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
             total += concentrations[row, c]
         inv = 1.0 / total
         denom = 1.0 / (1.0 + total)
-        attrs[j, 0] = colors[j, 0]
-        attrs[j, 1] = colors[j, 1]
-        attrs[j, 2] = colors[j, 2]
-        attrs[j, 3] = total
+        attrs[j, 0] = np.float32(colors[j, 0])
+        attrs[j, 1] = np.float32(colors[j, 1])
+        attrs[j, 2] = np.float32(colors[j, 2])
+        attrs[j, 3] = np.float32(total)
         for c in range(num_classes):
             e = concentrations[row, c] * inv
-            attrs[j, 4 + c] = e
-            var[j, c] = e * (1.0 - e) * denom
+            attrs[j, 4 + c] = np.float32(e)
+            var[j, c] = np.float32(e * (1.0 - e) * denom)
     return attrs, var
 
 
