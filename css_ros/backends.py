@@ -35,17 +35,18 @@ class NumbaBackend:
     """
 
     def __init__(self, model: "GaussianModel") -> None:
-        from .projection import GaussianGeometry
+        from .projection import GaussianGeometry, ProjectionScratch
         from .raster import ContributionStore
 
         self.geometry = GaussianGeometry.from_model(model)
+        self._scratch = ProjectionScratch()
         self._store = ContributionStore()
 
     def prepare(self, camera: "Camera") -> Any:
         from .projection import project
         from .raster import bin_tiles
 
-        proj = project(self.geometry, camera)
+        proj = project(self.geometry, camera, self._scratch)
         return proj, bin_tiles(proj, camera.width, camera.height), camera
 
     def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:

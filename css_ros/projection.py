@@ -36,6 +36,8 @@ class GaussianGeometry:
         opacities: (N,) float64 activated opacities in (0, 1).
         sh: (N, K, 3) float32 SH coefficients (K = (degree + 1)^2).
         max_std: (N,) float64 largest axis standard deviation [m] (for conservative frustum culling).
+        base_rgb: (N, 3) float64 max(0, SH_0 + 0.5): the colour when the SH degree is 0
+            (view-independent, so computed once).
     """
 
     means: np.ndarray
@@ -43,6 +45,7 @@ class GaussianGeometry:
     opacities: np.ndarray
     sh: np.ndarray
     max_std: np.ndarray
+    base_rgb: np.ndarray
 
     @classmethod
     def from_model(cls, model: "GaussianModel") -> "GaussianGeometry":
@@ -55,6 +58,7 @@ class GaussianGeometry:
             opacities=np.ascontiguousarray(model.opacities, dtype=np.float64),
             sh=np.ascontiguousarray(model.sh, dtype=np.float32),
             max_std=np.ascontiguousarray(np.max(np.asarray(model.scales, dtype=np.float64), axis=1)),
+            base_rgb=np.ascontiguousarray(np.maximum(eval_sh(model.sh[:, :1].astype(np.float64), None) + 0.5, 0.0)),
         )
 
     @property
@@ -113,7 +117,7 @@ class ProjectedGaussians:
 
 
 @njit(parallel=True, cache=True)
-def _project_kernel(means, cov3d, opac, max_std, rot, trans, fx, fy, cx, cy, width, height,
+def _project_kernel(means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, cx, cy, width, height,
                     out, out_bbox, out_valid):  # pragma: no cover
     n = means.shape[0]
     tan_x = width / (2.0 * fx)
@@ -191,6 +195,9 @@ def _project_kernel(means, cov3d, opac, max_std, rot, trans, fx, fy, cx, cy, wid
         out[i, 5] = o
         out[i, 6] = qmax
         out[i, 7] = z
+        out[i, 8] = base_rgb[i, 0]
+        out[i, 9] = base_rgb[i, 1]
+        out[i, 10] = base_rgb[i, 2]
         out_bbox[i, 0] = np.int32(umin)
         out_bbox[i, 1] = np.int32(umax)
         out_bbox[i, 2] = np.int32(vmin)
@@ -198,39 +205,113 @@ def _project_kernel(means, cov3d, opac, max_std, rot, trans, fx, fy, cx, cy, wid
         out_valid[i] = True
 
 
-def project(geometry: GaussianGeometry, camera: "Camera") -> ProjectedGaussians:
+class ProjectionScratch:
+    """Per-Gaussian output buffers of the projection kernel, reused across frames (fresh
+    allocations of N x 8 doubles would page-fault every frame). One per thread of use."""
+
+    def __init__(self) -> None:
+        self.n = -1
+        self.out = np.empty((0, 11))
+        self.bbox = np.empty((0, 4), dtype=np.int32)
+        self.valid = np.empty(0, dtype=np.bool_)
+
+    def get(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if n != self.n:
+            self.out = np.empty((n, 11))
+            self.bbox = np.empty((n, 4), dtype=np.int32)
+            self.valid = np.empty(n, dtype=np.bool_)
+            self.n = n
+        return self.out, self.bbox, self.valid
+
+
+@njit(cache=True)
+def _block_order(ids, bbox, block_x, num_blocks):  # pragma: no cover
+    """Stable counting sort of the kept ids by the screen block of their box centre."""
+    m = ids.shape[0]
+    keys = np.empty(m, dtype=np.int64)
+    counts = np.zeros(num_blocks + 1, dtype=np.int64)
+    for r in range(m):
+        i = ids[r]
+        key = ((bbox[i, 2] + bbox[i, 3]) // (2 * BLOCK)) * block_x + (bbox[i, 0] + bbox[i, 1]) // (2 * BLOCK)
+        keys[r] = key
+        counts[key + 1] += 1
+    for b in range(num_blocks):
+        counts[b + 1] += counts[b]
+    ordered = np.empty(m, dtype=np.int64)
+    for r in range(m):
+        ordered[counts[keys[r]]] = ids[r]
+        counts[keys[r]] += 1
+    return ordered
+
+
+@njit(parallel=True, cache=True)
+def _gather(ids, out, bbox):  # pragma: no cover
+    m = ids.shape[0]
+    packed = np.empty((m, 8))
+    colors = np.empty((m, 3))
+    boxes = np.empty((m, 4), dtype=np.int32)
+    for r in prange(m):
+        i = ids[r]
+        for c in range(8):
+            packed[r, c] = out[i, c]
+        for c in range(3):
+            colors[r, c] = out[i, 8 + c]
+        for c in range(4):
+            boxes[r, c] = bbox[i, c]
+    return packed, colors, boxes
+
+
+@njit(cache=True)
+def _argsort_positive(values):  # pragma: no cover
+    """Stable argsort of positive float64 values: LSD radix sort (4 x 16 bits) of their IEEE bit
+    patterns, which order like the values for positive floats."""
+    m = values.shape[0]
+    keys = values.view(np.uint64)
+    order = np.arange(m).astype(np.int32)
+    tmp = np.empty(m, dtype=np.int32)
+    counts = np.empty(65537, dtype=np.int64)
+    for shift in range(0, 64, 16):
+        counts[:] = 0
+        for r in range(m):
+            counts[((keys[order[r]] >> np.uint64(shift)) & np.uint64(0xFFFF)) + 1] += 1
+        if counts[1 + ((keys[order[0]] >> np.uint64(shift)) & np.uint64(0xFFFF))] == m:
+            continue  # every key has the same digit: nothing to do
+        for b in range(65536):
+            counts[b + 1] += counts[b]
+        for r in range(m):
+            d = (keys[order[r]] >> np.uint64(shift)) & np.uint64(0xFFFF)
+            tmp[counts[d]] = order[r]
+            counts[d] += 1
+        order, tmp = tmp, order
+    return order
+
+
+def project(geometry: GaussianGeometry, camera: "Camera",
+            scratch: ProjectionScratch | None = None) -> ProjectedGaussians:
     """Project, cull (near plane, 3-sigma square outside the image, alpha never >= 1/255) and
     depth-sort the Gaussians for ``camera``; evaluate their view-dependent colours.
     """
-    n = geometry.num_gaussians
-    out = np.empty((n, 8))
-    out_bbox = np.empty((n, 4), dtype=np.int32)
-    out_valid = np.empty(n, dtype=np.bool_)
+    out, out_bbox, out_valid = (scratch or ProjectionScratch()).get(geometry.num_gaussians)
     world_to_cam = np.asarray(camera.world_to_cam, dtype=np.float64)
     k = np.asarray(camera.K, dtype=np.float64)
-    _project_kernel(geometry.means, geometry.cov3d, geometry.opacities, geometry.max_std,
+    _project_kernel(geometry.means, geometry.cov3d, geometry.opacities, geometry.max_std, geometry.base_rgb,
                     np.ascontiguousarray(world_to_cam[:3, :3]), np.ascontiguousarray(world_to_cam[:3, 3]),
                     float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
                     float(camera.width), float(camera.height),
                     out, out_bbox, out_valid)
-    ids = np.flatnonzero(out_valid)
     block_x = (int(camera.width) + BLOCK - 1) // BLOCK
-    bb = out_bbox[ids]
-    centre_block = ((bb[:, 2] + bb[:, 3]) // (2 * BLOCK)) * block_x + (bb[:, 0] + bb[:, 1]) // (2 * BLOCK)
-    ids = ids[np.argsort(centre_block, kind="stable")]
-    depth_order = np.argsort(out[ids, 7], kind="stable").astype(np.int32)
-    cam_pos = np.asarray(camera.position, dtype=np.float64)
-    colors = _colors(geometry, ids, cam_pos)
-    return ProjectedGaussians(ids=ids, depth_order=depth_order, packed=np.ascontiguousarray(out[ids]),
-                              bbox=out_bbox[ids], colors=colors)
+    block_y = (int(camera.height) + BLOCK - 1) // BLOCK
+    ids = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
+    packed, colors, bbox = _gather(ids, out, out_bbox)
+    depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(ids) else np.empty(0, np.int32)
+    if geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
+        colors = _view_colors(geometry, ids, np.asarray(camera.position, dtype=np.float64))
+    return ProjectedGaussians(ids=ids, depth_order=depth_order, packed=packed, bbox=bbox, colors=colors)
 
 
-def _colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
-    sh = geometry.sh[ids]
-    if sh.shape[1] == 1:
-        rgb = eval_sh(sh, None)
-    else:
-        dirs = geometry.means[ids] - cam_pos
-        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-        rgb = eval_sh(sh, dirs.astype(np.float32))
+def _view_colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
+    """(M, 3) max(0, SH(view direction) + 0.5) for SH degree >= 1."""
+    dirs = geometry.means[ids] - cam_pos
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    rgb = eval_sh(geometry.sh[ids], dirs.astype(np.float32))
     return np.ascontiguousarray(np.maximum(rgb + 0.5, 0.0), dtype=np.float64)
