@@ -102,6 +102,16 @@ def _load_columns(packed, lists, start, end, local):  # pragma: no cover
     return local
 
 
+@njit(inline="always")
+def _grow_scratch(n, kidx, kval, qbuf, hits):  # pragma: no cover
+    """Per-row compositing scratch sized for a tile list of length n (reallocated only to grow)."""
+    if n > kidx.shape[1]:
+        tile = kidx.shape[0]
+        return (np.empty((tile, n), dtype=np.int32), np.empty((tile, n)), np.empty(n),
+                np.empty(n, dtype=np.int32))
+    return kidx, kval, qbuf, hits
+
+
 @njit(cache=True)
 def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):  # pragma: no cover
     """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list (SPEC §3).
@@ -187,12 +197,9 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
             u1 = min(width, u0 + tile) - 1
             if n > 0:
                 local = _load_columns(packed, lists, start, end, local)
-            if n > kidx.shape[1]:
-                kidx = np.empty((tile, n), dtype=np.int32)
-                kval = np.empty((tile, n))
-                qbuf = np.empty(n)
-                hits = np.empty(n, dtype=np.int32)
+            if n > lacc.shape[1]:
                 lacc = np.empty((num_classes, n))
+            kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
             present[:] = False
             for v in range(ty * tile, min(height, ty * tile + tile)):
                 any_active = False
@@ -304,11 +311,7 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
             n = end - start
             lattr = _load_rows(attrs, lists, start, end, lattr)
             loaded = False
-            if n > kidx.shape[1]:
-                kidx = np.empty((tile, n), dtype=np.int32)
-                kval = np.empty((tile, n))
-                qbuf = np.empty(n)
-                hits = np.empty(n, dtype=np.int32)
+            kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
@@ -346,6 +349,8 @@ def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
     local = np.empty((_ROW, 256))
     qbuf = np.empty(256)
     hits = np.empty(256, dtype=np.int32)
+    kidx = np.empty((tile, 256), dtype=np.int32)
+    kval = np.empty((tile, 256))
     cnt = np.empty(tile, dtype=np.int32)
     trans = np.empty(tile)
     active = np.empty(tile, dtype=np.bool_)
@@ -353,11 +358,7 @@ def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
         start, end = offsets[t], offsets[t + 1]
         n = end - start
         local = _load_columns(packed, lists, start, end, local)
-        kidx = np.empty((tile, max(n, 1)), dtype=np.int32)
-        kval = np.empty((tile, max(n, 1)))
-        if n > qbuf.shape[0]:
-            qbuf = np.empty(n)
-            hits = np.empty(n, dtype=np.int32)
+        kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
         ty, tx = t // tiles_x, t % tiles_x
         u0 = tx * tile
         u1 = min(width, u0 + tile) - 1
