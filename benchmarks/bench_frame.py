@@ -95,9 +95,9 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         acc = accumulate_update(proj, bins, lab32, w32, C, store)
         add_increments(conc, proj.ids, acc)
         t.append(time.perf_counter())
-        attrs, var = dirichlet_attributes(conc, proj.ids, proj.colors)
+        attrs = dirichlet_attributes(conc, proj.ids, proj.colors)
         t.append(time.perf_counter())
-        buf = render_semantic(proj, bins, cam.width, cam.height, attrs, var, 1 / C, 0.0, 1.0,
+        buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0,
                               np.zeros(3), False, store)
         t.append(time.perf_counter())
         image_uncertainty(buf.expectation, buf.variance)

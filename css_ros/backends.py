@@ -63,9 +63,9 @@ class NumbaBackend:
         from .raster import dirichlet_attributes, render_semantic
 
         proj, bins, camera = frame
-        attrs, var = dirichlet_attributes(concentrations, proj.ids, proj.colors)
+        attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors)
         store = self._store if self._store.owner is frame else None
-        return render_semantic(proj, bins, camera.width, camera.height, attrs, var,
+        return render_semantic(proj, bins, camera.width, camera.height, attrs,
                                e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
 
 

@@ -247,7 +247,7 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
 
 
 @njit(inline="always")
-def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, var, lists, start, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
                  out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
     """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs."""
     num_classes = eacc.shape[0]
@@ -264,8 +264,9 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, var, lists, start, eacc, e_bg, v_
         g += kappa * lattr[k, 1]
         b += kappa * lattr[k, 2]
         evidence += kappa * lattr[k, 3]
+        k32 = np.float32(kappa)
         for c in range(num_classes):
-            eacc[c] += kappa * lattr[k, 4 + c]
+            eacc[c] += k32 * lattr[k, 4 + c]
     best = 0
     for c in range(1, num_classes):
         if eacc[c] > eacc[best]:
@@ -273,7 +274,7 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, var, lists, start, eacc, e_bg, v_
     vhat = tr * tr * v_bg
     for i in range(cnt):
         kappa = vs[i]
-        vhat += kappa * kappa * var[lists[start + ks[i]], best]
+        vhat += kappa * kappa * lattr[ks[i], 4 + num_classes + best]
     out_label[v, u] = best
     out_exp[v, u] = eacc[best] + tr * e_bg
     out_var[v, u] = vhat
@@ -288,13 +289,13 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, var, lists, start, eacc, e_bg, v_
 
 
 @njit(parallel=True, cache=True)
-def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb, width, height,
+def _render_kernel(offsets, lists, packed, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
-    """attrs rows: (r, g, b, S, E_0..E_{C-1}); var: (M, C) Var[theta_n^c]. With ``use_store``,
+    """attrs rows: (r, g, b, S, E_0..E_{C-1}, Var_0..Var_{C-1}). With ``use_store``,
     pixels recorded by the update pass (pix_cnt >= 0) replay their contributions."""
     num_tiles = offsets.shape[0] - 1
-    num_classes = attrs.shape[1] - 4
+    num_classes = (attrs.shape[1] - 4) // 2
     for ch in prange(nchunks):
         local = np.empty((_ROW, 256))
         qbuf = np.empty(256)
@@ -305,7 +306,7 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
         cnt = np.empty(tile, dtype=np.int32)
         trans = np.empty(tile)
         active = np.empty(tile, dtype=np.bool_)
-        eacc = np.empty(num_classes)
+        eacc = np.empty(num_classes, dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
@@ -332,11 +333,10 @@ def _render_kernel(offsets, lists, packed, attrs, var, e_bg, v_bg, s_bg, bg_rgb,
                     if use_store and pix_cnt[q] >= 0:
                         off = pix_off[q]
                         c = pix_cnt[q]
-                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, var,
-                                     lists, start, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
+                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
                                      out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs)
                     else:
-                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, var, lists, start, eacc,
+                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, eacc,
                                      e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
                                      out_evidence, out_rgb, out_probs)
 
@@ -477,18 +477,17 @@ def add_increments(concentrations, ids, acc):  # pragma: no cover
 
 @njit(parallel=True, cache=True)
 def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
-    """Per projected Gaussian j: attrs[j] = (r, g, b, S, E_0..E_{C-1}) and var[j, c] (SPEC §4 moments).
+    """Per projected Gaussian j: attrs[j] = (r, g, b, S, E_0..E_{C-1}, Var_0..Var_{C-1}) (SPEC §4 moments).
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours.
     Returns:
-        attrs (M, 4 + C) and var (M, C), float32 (halves the render's memory traffic; the
-        accumulations over contributions stay float64), with E = alpha / S, Var = E (1 - E) / (1 + S).
+        attrs (M, 4 + 2C) float32 (halves the render's memory traffic; the tile-local copies of
+        these rows are all the shading reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
-    attrs = np.empty((m, 4 + num_classes), dtype=np.float32)
-    var = np.empty((m, num_classes), dtype=np.float32)
+    attrs = np.empty((m, 4 + 2 * num_classes), dtype=np.float32)
     for j in prange(m):
         row = ids[j]
         total = 0.0
@@ -503,8 +502,8 @@ def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
         for c in range(num_classes):
             e = concentrations[row, c] * inv
             attrs[j, 4 + c] = np.float32(e)
-            var[j, c] = np.float32(e * (1.0 - e) * denom)
-    return attrs, var
+            attrs[j, 4 + num_classes + c] = np.float32(e * (1.0 - e) * denom)
+    return attrs
 
 
 def _store_arrays(store: ContributionStore) -> tuple[np.ndarray, ...]:
@@ -525,7 +524,7 @@ class RenderBuffers:
 
 
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
-                    attrs: np.ndarray, var: np.ndarray,
+                    attrs: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
                     want_probs: bool, store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
@@ -533,10 +532,10 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
         attrs: (M, 4 + C) float64 rows (r, g, b, S_n, E[theta_n^0..C-1]) of the projected
-            Gaussians (see :func:`dirichlet_attributes`); var: (M, C) float64 Var[theta_n^c].
+            Gaussians followed by Var[theta_n^0..C-1] (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
     """
-    num_classes = var.shape[1]
+    num_classes = (attrs.shape[1] - 4) // 2
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))
@@ -544,7 +543,7 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_ev = np.empty((height, width))
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
-    _render_kernel(bins.offsets, bins.lists, proj.packed, attrs, np.ascontiguousarray(var), e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.packed, attrs, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
                    want_probs, _num_chunks(bins), store is not None,
                    *(_NO_STORE if store is None else _store_arrays(store)), out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
