@@ -22,6 +22,7 @@ COV2D_DILATION = 0.3        # px^2 added to the screen covariance diagonal
 ALPHA_MIN = 1.0 / 255.0     # smaller per-pixel alphas are skipped
 ALPHA_MAX = 0.99            # per-pixel alpha clamp
 T_MIN = 1e-4                # compositing stops before transmittance would drop below this
+GROUP_SIZE = 128            # Gaussians per culling group (consecutive rows in Morton order)
 BLOCK = 32                  # px; screen blocks that order the projected rows for cache locality
 FOV_CLAMP = 0.3             # J is evaluated at the view ray clamped to 1.3 x the half field of view
 
@@ -30,7 +31,12 @@ FOV_CLAMP = 0.3             # J is evaluated at the view ray clamped to 1.3 x th
 class GaussianGeometry:
     """Per-model quantities that do not depend on the camera, computed once per model.
 
-    Attributes:
+    Rows are stored in Morton (Z-curve) order of the centres and cut into groups of
+    ``GROUP_SIZE`` consecutive, spatially close Gaussians; each group's bounding sphere lets the
+    projection skip whole groups outside the view. ``perm`` maps rows back to model indices.
+
+    Attributes (N = Gaussians, G = groups):
+        perm: (N,) int64 model index of each row.
         means: (N, 3) float64 centres [m, map frame].
         cov3d: (N, 6) float64 upper triangle (xx, xy, xz, yy, yz, zz) of R S S^T R^T [m^2].
         opacities: (N,) float64 activated opacities in (0, 1).
@@ -38,32 +44,62 @@ class GaussianGeometry:
         max_std: (N,) float64 largest axis standard deviation [m] (for conservative frustum culling).
         base_rgb: (N, 3) float64 max(0, SH_0 + 0.5): the colour when the SH degree is 0
             (view-independent, so computed once).
+        group_offsets: (G + 1,) int64 row ranges of the groups.
+        group_spheres: (G, 5) float64 (centre x, y, z, radius of the centres, largest std) [m].
     """
 
+    perm: np.ndarray
     means: np.ndarray
     cov3d: np.ndarray
     opacities: np.ndarray
     sh: np.ndarray
     max_std: np.ndarray
     base_rgb: np.ndarray
+    group_offsets: np.ndarray
+    group_spheres: np.ndarray
 
     @classmethod
     def from_model(cls, model: "GaussianModel") -> "GaussianGeometry":
-        cov = model.covariances()
+        means = np.asarray(model.means, dtype=np.float64)
+        perm = _morton_order(means)
+        cov = model.covariances()[perm]
         cov3d = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2],
                           cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
+        means = np.ascontiguousarray(means[perm])
+        max_std = np.ascontiguousarray(np.max(np.asarray(model.scales, dtype=np.float64), axis=1)[perm])
+        offsets = np.arange(0, len(perm) + GROUP_SIZE, GROUP_SIZE).clip(max=len(perm))
+        offsets = np.unique(offsets)
+        lo = np.minimum.reduceat(means, offsets[:-1], axis=0)
+        hi = np.maximum.reduceat(means, offsets[:-1], axis=0)
+        spheres = np.concatenate([(lo + hi) / 2, np.linalg.norm(hi - lo, axis=1, keepdims=True) / 2,
+                                  np.maximum.reduceat(max_std, offsets[:-1])[:, None]], axis=1)
+        sh = np.asarray(model.sh, dtype=np.float32)[perm]
         return cls(
-            means=np.ascontiguousarray(model.means, dtype=np.float64),
+            perm=perm.astype(np.int64),
+            means=means,
             cov3d=np.ascontiguousarray(cov3d),
-            opacities=np.ascontiguousarray(model.opacities, dtype=np.float64),
-            sh=np.ascontiguousarray(model.sh, dtype=np.float32),
-            max_std=np.ascontiguousarray(np.max(np.asarray(model.scales, dtype=np.float64), axis=1)),
-            base_rgb=np.ascontiguousarray(np.maximum(eval_sh(model.sh[:, :1].astype(np.float64), None) + 0.5, 0.0)),
+            opacities=np.ascontiguousarray(np.asarray(model.opacities, dtype=np.float64)[perm]),
+            sh=np.ascontiguousarray(sh),
+            max_std=max_std,
+            base_rgb=np.ascontiguousarray(np.maximum(eval_sh(sh[:, :1].astype(np.float64), None) + 0.5, 0.0)),
+            group_offsets=offsets.astype(np.int64),
+            group_spheres=np.ascontiguousarray(spheres),
         )
 
     @property
     def num_gaussians(self) -> int:
         return int(self.means.shape[0])
+
+
+def _morton_order(points: np.ndarray) -> np.ndarray:
+    """Permutation sorting (N, 3) points along a 3D Z-order curve (10 bits per axis)."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), dtype=np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
 
 
 @dataclass(frozen=True)
@@ -117,9 +153,8 @@ class ProjectedGaussians:
 
 
 @njit(parallel=True, cache=True)
-def _project_kernel(means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, cx, cy, width, height,
-                    out, out_bbox, out_valid):  # pragma: no cover
-    n = means.shape[0]
+def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_spheres,
+                    rot, trans, fx, fy, cx, cy, width, height, out, out_bbox, out_valid):  # pragma: no cover
     tan_x = width / (2.0 * fx)
     tan_y = height / (2.0 * fy)
     lo_x = -(cx + 0.5) / fx - FOV_CLAMP * tan_x
@@ -127,82 +162,117 @@ def _project_kernel(means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, c
     lo_y = -(cy + 0.5) / fy - FOV_CLAMP * tan_y
     hi_y = (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y
     jac_sq = fx * fx * (1.0 + max(lo_x * lo_x, hi_x * hi_x)) + fy * fy * (1.0 + max(lo_y * lo_y, hi_y * hi_y))
-    for i in prange(n):
-        out_valid[i] = False
-        o = opac[i]
-        if not (o >= ALPHA_MIN):
-            continue  # alpha <= opacity can never reach the 1/255 threshold
-        px, py, pz = means[i, 0], means[i, 1], means[i, 2]
-        x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
-        y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
-        z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
-        if not (z > NEAR_PLANE):
+    # Group test, implied by the per-Gaussian early cull below: that cull keeps a Gaussian only if
+    # its centre lies within `bound` px of the image, bound <= 3 sqrt(jac_sq) s / z + MARGIN_PX,
+    # i.e. x <= (t + MARGIN_PX / f) z + 3 sqrt(jac_sq) / f * s for the right edge slope t (likewise
+    # for the other edges). A group whose bounding sphere of centres violates one of these for its
+    # largest std s can be skipped as a whole; so can one entirely behind the near plane.
+    margin_px = 3.0 * math.sqrt(COV2D_DILATION) + 1.0
+    kx = 3.0 * math.sqrt(jac_sq) / fx
+    ky = 3.0 * math.sqrt(jac_sq) / fy
+    right = (width - 0.5 - cx) / fx + margin_px / fx
+    left = -(cx + 0.5) / fx - margin_px / fx
+    bottom = (height - 0.5 - cy) / fy + margin_px / fy
+    top = -(cy + 0.5) / fy - margin_px / fy
+    for g in prange(group_offsets.shape[0] - 1):
+        gx, gy, gz = group_spheres[g, 0], group_spheres[g, 1], group_spheres[g, 2]
+        rad, s_max = group_spheres[g, 3], group_spheres[g, 4]
+        x = rot[0, 0] * gx + rot[0, 1] * gy + rot[0, 2] * gz + trans[0]
+        y = rot[1, 0] * gx + rot[1, 1] * gy + rot[1, 2] * gz + trans[1]
+        z = rot[2, 0] * gx + rot[2, 1] * gy + rot[2, 2] * gz + trans[2]
+        if z + rad <= NEAR_PLANE:
             continue
-        u = fx * x / z + cx
-        v = fy * y / z + cy
-        # Conservative early frustum cull before the covariance maths: lambda_max(Sigma') <=
-        # ||J||_F^2 s_max^2 + 0.3 with |t| bounded by the clamp, so a centre farther outside the
-        # image than 3 sqrt(that) + 1 px cannot have its 3-sigma square touch the image.
-        bound = 3.0 * math.sqrt(jac_sq * max_std[i] * max_std[i] / (z * z) + COV2D_DILATION) + 1.0
-        if u < -0.5 - bound or u > width - 0.5 + bound or v < -0.5 - bound or v > height - 0.5 + bound:
+        if x - right * z - rad * math.sqrt(1.0 + right * right) > kx * s_max:
             continue
-        txz = min(max(x / z, lo_x), hi_x)
-        tyz = min(max(y / z, lo_y), hi_y)
-        # J = [[fx/z, 0, -fx*txz/z], [0, fy/z, -fy*tyz/z]];  M = J @ R_cam_map  (2 x 3)
-        j00, j02 = fx / z, -fx * txz / z
-        j11, j12 = fy / z, -fy * tyz / z
-        m00 = j00 * rot[0, 0] + j02 * rot[2, 0]
-        m01 = j00 * rot[0, 1] + j02 * rot[2, 1]
-        m02 = j00 * rot[0, 2] + j02 * rot[2, 2]
-        m10 = j11 * rot[1, 0] + j12 * rot[2, 0]
-        m11 = j11 * rot[1, 1] + j12 * rot[2, 1]
-        m12 = j11 * rot[1, 2] + j12 * rot[2, 2]
-        sxx, sxy, sxz = cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]
-        syy, syz, szz = cov3d[i, 3], cov3d[i, 4], cov3d[i, 5]
-        # rows of M @ Sigma
-        a0 = m00 * sxx + m01 * sxy + m02 * sxz
-        a1 = m00 * sxy + m01 * syy + m02 * syz
-        a2 = m00 * sxz + m01 * syz + m02 * szz
-        b0 = m10 * sxx + m11 * sxy + m12 * sxz
-        b1 = m10 * sxy + m11 * syy + m12 * syz
-        b2 = m10 * sxz + m11 * syz + m12 * szz
-        ca = a0 * m00 + a1 * m01 + a2 * m02 + COV2D_DILATION
-        cb = a0 * m10 + a1 * m11 + a2 * m12
-        cc = b0 * m10 + b1 * m11 + b2 * m12 + COV2D_DILATION
-        det = ca * cc - cb * cb
-        if not (det > 0.0):
+        if x - left * z + rad * math.sqrt(1.0 + left * left) < -kx * s_max:
             continue
-        mid = 0.5 * (ca + cc)
-        lam = mid + math.sqrt(max(0.0, mid * mid - det))
-        r = math.ceil(3.0 * math.sqrt(lam))
-        if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
+        if y - bottom * z - rad * math.sqrt(1.0 + bottom * bottom) > ky * s_max:
             continue
-        qmax = 2.0 * math.log(255.0 * o)
-        # Exact axis-aligned box of the ellipse d^T Sigma'^-1 d <= qmax (tiny margin for rounding).
-        hx = math.sqrt(qmax * ca) * (1.0 + 1e-9) + 1e-9
-        hy = math.sqrt(qmax * cc) * (1.0 + 1e-9) + 1e-9
-        umin = max(0.0, math.ceil(u - hx))
-        umax = min(width - 1.0, math.floor(u + hx))
-        vmin = max(0.0, math.ceil(v - hy))
-        vmax = min(height - 1.0, math.floor(v + hy))
-        if umin > umax or vmin > vmax:
+        if y - top * z + rad * math.sqrt(1.0 + top * top) < -ky * s_max:
             continue
-        out[i, 0] = u
-        out[i, 1] = v
-        out[i, 2] = cc / det
-        out[i, 3] = -cb / det
-        out[i, 4] = ca / det
-        out[i, 5] = o
-        out[i, 6] = qmax
-        out[i, 7] = z
-        out[i, 8] = base_rgb[i, 0]
-        out[i, 9] = base_rgb[i, 1]
-        out[i, 10] = base_rgb[i, 2]
-        out_bbox[i, 0] = np.int32(umin)
-        out_bbox[i, 1] = np.int32(umax)
-        out_bbox[i, 2] = np.int32(vmin)
-        out_bbox[i, 3] = np.int32(vmax)
-        out_valid[i] = True
+        for i in range(group_offsets[g], group_offsets[g + 1]):
+            _project_one(i, means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, cx, cy, width, height,
+                         lo_x, hi_x, lo_y, hi_y, jac_sq, out, out_bbox, out_valid)
+
+
+@njit(inline="always")
+def _project_one(i, means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, cx, cy, width, height,
+                 lo_x, hi_x, lo_y, hi_y, jac_sq, out, out_bbox, out_valid):  # pragma: no cover
+    """Project Gaussian row i; set out_valid[i] and its rows if it can touch the image."""
+    o = opac[i]
+    if not (o >= ALPHA_MIN):
+        return  # alpha <= opacity can never reach the 1/255 threshold
+    px, py, pz = means[i, 0], means[i, 1], means[i, 2]
+    x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
+    y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
+    z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
+    if not (z > NEAR_PLANE):
+        return
+    u = fx * x / z + cx
+    v = fy * y / z + cy
+    # Conservative early frustum cull before the covariance maths: lambda_max(Sigma') <=
+    # ||J||_F^2 s_max^2 + 0.3 with |t| bounded by the clamp, so a centre farther outside the
+    # image than 3 sqrt(that) + 1 px cannot have its 3-sigma square touch the image.
+    bound = 3.0 * math.sqrt(jac_sq * max_std[i] * max_std[i] / (z * z) + COV2D_DILATION) + 1.0
+    if u < -0.5 - bound or u > width - 0.5 + bound or v < -0.5 - bound or v > height - 0.5 + bound:
+        return
+    txz = min(max(x / z, lo_x), hi_x)
+    tyz = min(max(y / z, lo_y), hi_y)
+    # J = [[fx/z, 0, -fx*txz/z], [0, fy/z, -fy*tyz/z]];  M = J @ R_cam_map  (2 x 3)
+    j00, j02 = fx / z, -fx * txz / z
+    j11, j12 = fy / z, -fy * tyz / z
+    m00 = j00 * rot[0, 0] + j02 * rot[2, 0]
+    m01 = j00 * rot[0, 1] + j02 * rot[2, 1]
+    m02 = j00 * rot[0, 2] + j02 * rot[2, 2]
+    m10 = j11 * rot[1, 0] + j12 * rot[2, 0]
+    m11 = j11 * rot[1, 1] + j12 * rot[2, 1]
+    m12 = j11 * rot[1, 2] + j12 * rot[2, 2]
+    sxx, sxy, sxz = cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]
+    syy, syz, szz = cov3d[i, 3], cov3d[i, 4], cov3d[i, 5]
+    # rows of M @ Sigma
+    a0 = m00 * sxx + m01 * sxy + m02 * sxz
+    a1 = m00 * sxy + m01 * syy + m02 * syz
+    a2 = m00 * sxz + m01 * syz + m02 * szz
+    b0 = m10 * sxx + m11 * sxy + m12 * sxz
+    b1 = m10 * sxy + m11 * syy + m12 * syz
+    b2 = m10 * sxz + m11 * syz + m12 * szz
+    ca = a0 * m00 + a1 * m01 + a2 * m02 + COV2D_DILATION
+    cb = a0 * m10 + a1 * m11 + a2 * m12
+    cc = b0 * m10 + b1 * m11 + b2 * m12 + COV2D_DILATION
+    det = ca * cc - cb * cb
+    if not (det > 0.0):
+        return
+    mid = 0.5 * (ca + cc)
+    lam = mid + math.sqrt(max(0.0, mid * mid - det))
+    r = math.ceil(3.0 * math.sqrt(lam))
+    if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
+        return
+    qmax = 2.0 * math.log(255.0 * o)
+    # Exact axis-aligned box of the ellipse d^T Sigma'^-1 d <= qmax (tiny margin for rounding).
+    hx = math.sqrt(qmax * ca) * (1.0 + 1e-9) + 1e-9
+    hy = math.sqrt(qmax * cc) * (1.0 + 1e-9) + 1e-9
+    umin = max(0.0, math.ceil(u - hx))
+    umax = min(width - 1.0, math.floor(u + hx))
+    vmin = max(0.0, math.ceil(v - hy))
+    vmax = min(height - 1.0, math.floor(v + hy))
+    if umin > umax or vmin > vmax:
+        return
+    out[i, 0] = u
+    out[i, 1] = v
+    out[i, 2] = cc / det
+    out[i, 3] = -cb / det
+    out[i, 4] = ca / det
+    out[i, 5] = o
+    out[i, 6] = qmax
+    out[i, 7] = z
+    out[i, 8] = base_rgb[i, 0]
+    out[i, 9] = base_rgb[i, 1]
+    out[i, 10] = base_rgb[i, 2]
+    out_bbox[i, 0] = np.int32(umin)
+    out_bbox[i, 1] = np.int32(umax)
+    out_bbox[i, 2] = np.int32(vmin)
+    out_bbox[i, 3] = np.int32(vmax)
+    out_valid[i] = True
 
 
 class ProjectionScratch:
@@ -294,24 +364,26 @@ def project(geometry: GaussianGeometry, camera: "Camera",
     out, out_bbox, out_valid = (scratch or ProjectionScratch()).get(geometry.num_gaussians)
     world_to_cam = np.asarray(camera.world_to_cam, dtype=np.float64)
     k = np.asarray(camera.K, dtype=np.float64)
+    out_valid[:] = False
     _project_kernel(geometry.means, geometry.cov3d, geometry.opacities, geometry.max_std, geometry.base_rgb,
+                    geometry.group_offsets, geometry.group_spheres,
                     np.ascontiguousarray(world_to_cam[:3, :3]), np.ascontiguousarray(world_to_cam[:3, 3]),
                     float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
                     float(camera.width), float(camera.height),
                     out, out_bbox, out_valid)
     block_x = (int(camera.width) + BLOCK - 1) // BLOCK
     block_y = (int(camera.height) + BLOCK - 1) // BLOCK
-    ids = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
-    packed, colors, bbox = _gather(ids, out, out_bbox)
-    depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(ids) else np.empty(0, np.int32)
+    rows = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
+    packed, colors, bbox = _gather(rows, out, out_bbox)
+    depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(rows) else np.empty(0, np.int32)
     if geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
-        colors = _view_colors(geometry, ids, np.asarray(camera.position, dtype=np.float64))
-    return ProjectedGaussians(ids=ids, depth_order=depth_order, packed=packed, bbox=bbox, colors=colors)
+        colors = _view_colors(geometry, rows, np.asarray(camera.position, dtype=np.float64))
+    return ProjectedGaussians(ids=geometry.perm[rows], depth_order=depth_order, packed=packed, bbox=bbox, colors=colors)
 
 
-def _view_colors(geometry: GaussianGeometry, ids: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
-    """(M, 3) max(0, SH(view direction) + 0.5) for SH degree >= 1."""
-    dirs = geometry.means[ids] - cam_pos
+def _view_colors(geometry: GaussianGeometry, rows: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
+    """(M, 3) max(0, SH(view direction) + 0.5) for SH degree >= 1 (rows of the geometry)."""
+    dirs = geometry.means[rows] - cam_pos
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-    rgb = eval_sh(geometry.sh[ids], dirs.astype(np.float32))
+    rgb = eval_sh(geometry.sh[rows], dirs.astype(np.float32))
     return np.ascontiguousarray(np.maximum(rgb + 0.5, 0.0), dtype=np.float64)
