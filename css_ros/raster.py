@@ -43,26 +43,37 @@ class TileBins:
     tile_size: int
 
 
-@njit(cache=True)
-def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile):  # pragma: no cover
+@njit(parallel=True, cache=True)
+def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no cover
+    """Parallel counting sort of (tile, depth) pairs: the depth order is cut into ``parts``
+    consecutive ranges; each counts and then fills its own slice of every tile's list, part 0's
+    (nearest) entries first, so every list stays front to back."""
     m = bbox.shape[0]
     num_tiles = tiles_x * tiles_y
+    counts = np.zeros((parts, num_tiles), dtype=np.int64)
+    for p in prange(parts):
+        for r in range(p * m // parts, (p + 1) * m // parts):
+            j = depth_order[r]
+            for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
+                for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
+                    counts[p, ty * tiles_x + tx] += 1
     offsets = np.zeros(num_tiles + 1, dtype=np.int64)
-    for j in range(m):
-        for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
-            for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
-                offsets[ty * tiles_x + tx + 1] += 1
+    fill = np.empty((parts, num_tiles), dtype=np.int64)
     for t in range(num_tiles):
-        offsets[t + 1] += offsets[t]
-    fill = offsets[:-1].copy()
+        pos = offsets[t]
+        for p in range(parts):
+            fill[p, t] = pos
+            pos += counts[p, t]
+        offsets[t + 1] = pos
     lists = np.empty(offsets[-1], dtype=np.int32)
-    for r in range(m):  # front to back, so each tile list is depth-sorted
-        j = depth_order[r]
-        for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
-            for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
-                t = ty * tiles_x + tx
-                lists[fill[t]] = j
-                fill[t] += 1
+    for p in prange(parts):
+        for r in range(p * m // parts, (p + 1) * m // parts):
+            j = depth_order[r]
+            for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
+                for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
+                    t = ty * tiles_x + tx
+                    lists[fill[p, t]] = j
+                    fill[p, t] += 1
     return offsets, lists
 
 
@@ -70,7 +81,8 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
     """Counting-sort the depth-sorted Gaussians into the tiles their alpha >= 1/255 box overlaps."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    offsets, lists = _bin_kernel(proj.bbox, proj.depth_order, tiles_x, tiles_y, tile_size)
+    offsets, lists = _bin_kernel(proj.bbox, proj.depth_order, tiles_x, tiles_y, tile_size,
+                                 max(1, numba.get_num_threads()))
     return TileBins(offsets, lists, tiles_x, tiles_y, tile_size)
 
 
