@@ -23,6 +23,9 @@ from numba import njit, prange
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN, ProjectedGaussians
 
 TILE_SIZE = 8        # px
+# Floating-point reassociation and contraction (FMA) for the hot loops; no-NaN/no-Inf assumptions are
+# not made (inputs are sanitised, but comparisons against NaN must keep their meaning).
+_FAST = {"contract", "reassoc", "arcp"}
 _ROW = 7             # columns of the packed rows used by the kernels: u v a b c opacity qmax
 
 
@@ -124,7 +127,7 @@ def _grow_scratch(n, kidx, kval, qbuf, hits):  # pragma: no cover
     return kidx, kval, qbuf, hits
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FAST)
 def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):  # pragma: no cover
     """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list (SPEC §3).
 
@@ -174,7 +177,7 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
         trans[p] = t
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FAST)
 def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile, tiles_x, acc,
                    store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
     """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows).
@@ -258,7 +261,7 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
                         acc[ch, lists[start + k], c] += lacc[c, k]
 
 
-@njit(inline="always")
+@njit(inline="always", fastmath=_FAST)
 def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
                  out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
     """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs."""
@@ -300,7 +303,7 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, eacc, e_bg, v_bg, s_bg, bg_rgb, w
             out_probs[v, u, c] = eacc[c] + tr * e_bg
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FAST)
 def _render_kernel(offsets, lists, packed, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
