@@ -13,7 +13,6 @@ the render pass replays instead of walking and exponentiating again.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numba
@@ -122,9 +121,25 @@ def _grow_scratch(n, kidx, kval, qbuf, hits):  # pragma: no cover
     """Per-row compositing scratch sized for a tile list of length n (reallocated only to grow)."""
     if n > kidx.shape[1]:
         tile = kidx.shape[0]
-        return (np.empty((tile, n), dtype=np.int32), np.empty((tile, n)), np.empty(n),
+        return (np.empty((tile, n), dtype=np.int32), np.empty((tile, n)), np.empty((3, n)),
                 np.empty(n, dtype=np.int32))
     return kidx, kval, qbuf, hits
+
+
+@njit(inline="always", fastmath=_FAST)
+def _exp_nonpositive(x):  # pragma: no cover
+    """exp(x) for -6 <= x <= 0 (relative error < 2e-14): degree-10 Taylor polynomial of x/32, squared
+    five times. Plain arithmetic, so a loop of it vectorises (libm's exp is a scalar call); every
+    composited x = -q/2 with q <= qmax = 2 ln(255 o) <= 11.1 lies in range."""
+    y = x * 0.03125
+    p = 1.0 + y * (1.0 + y * (1.0 / 2.0 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (
+        1.0 / 120.0 + y * (1.0 / 720.0 + y * (1.0 / 5040.0 + y * (1.0 / 40320.0 + y * (
+            1.0 / 362880.0 + y * (1.0 / 3628800.0))))))))))
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
 
 
 @njit(cache=True, fastmath=_FAST)
@@ -132,19 +147,22 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
     """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list (SPEC §3).
 
     Per pixel, the Mahalanobis distances q of all n candidates are computed in a branch-free loop
-    (SIMD), the indices with q <= qmax (alpha >= 1/255) are compacted without branches, and only
-    those are composited in order with early termination.
+    (SIMD), the candidates with q <= qmax (alpha >= 1/255) are compacted without branches, their
+    alphas are computed in a second SIMD loop, and only then composited in order with early
+    termination.
 
     Args:
         g: (_ROW, >= n) columns (u, v, a, b, c, opacity, qmax) of the tile's list.
         active: (W_row,) bool; inactive pixels are skipped (cnt 0, T 1).
-        qbuf, hits: scratch of length >= n.
+        qbuf: (3, >= n) scratch (q of every candidate; q, then alpha, and opacity of the hits);
+        hits: (>= n,) scratch.
     Outputs:
         cnt[p]: number of contributions of pixel u0 + p; kidx[p, i] / kval[p, i]: their list
         index and kappa, front to back; trans[p]: final transmittance (kappa_b).
     """
     fv = float(v)
     gx, gy, ga, gb, gc, go, gq = g[0], g[1], g[2], g[3], g[4], g[5], g[6]
+    qall, hq, ho = qbuf[0], qbuf[1], qbuf[2]
     for p in range(u1 - u0 + 1):
         cnt[p] = 0
         trans[p] = 1.0
@@ -154,22 +172,25 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
         for k in range(n):
             dx = fu - gx[k]
             dy = fv - gy[k]
-            qbuf[k] = ga[k] * dx * dx + 2.0 * gb[k] * dx * dy + gc[k] * dy * dy
+            qall[k] = ga[k] * dx * dx + 2.0 * gb[k] * dx * dy + gc[k] * dy * dy
         m = 0
         for k in range(n):
             hits[m] = k
-            m += qbuf[k] <= gq[k]
+            hq[m] = qall[k]
+            ho[m] = go[k]
+            m += qall[k] <= gq[k]
+        for h in range(m):
+            hq[h] = min(ALPHA_MAX, ho[h] * _exp_nonpositive(-0.5 * hq[h]))
         t = 1.0
         i = 0
         for h in range(m):
-            k = hits[h]
-            alpha = min(ALPHA_MAX, go[k] * math.exp(-0.5 * qbuf[k]))
+            alpha = hq[h]
             if alpha < ALPHA_MIN:
                 continue
             test_t = t * (1.0 - alpha)
             if test_t < T_MIN:
                 break
-            kidx[p, i] = k
+            kidx[p, i] = hits[h]
             kval[p, i] = alpha * t
             i += 1
             t = test_t
@@ -191,7 +212,7 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
     cap = st_k.shape[1]
     for ch in prange(nchunks):
         local = np.empty((_ROW, 256))
-        qbuf = np.empty(256)
+        qbuf = np.empty((3, 256))
         hits = np.empty(256, dtype=np.int32)
         kidx = np.empty((tile, 256), dtype=np.int32)
         kval = np.empty((tile, 256))
@@ -313,7 +334,7 @@ def _render_kernel(offsets, lists, packed, attrs, e_bg, v_bg, s_bg, bg_rgb, widt
     num_classes = (attrs.shape[1] - 4) // 2
     for ch in prange(nchunks):
         local = np.empty((_ROW, 256))
-        qbuf = np.empty(256)
+        qbuf = np.empty((3, 256))
         hits = np.empty(256, dtype=np.int32)
         lattr = np.empty((256, attrs.shape[1]), dtype=attrs.dtype)
         kidx = np.empty((tile, 256), dtype=np.int32)
@@ -362,7 +383,7 @@ def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
     num_tiles = offsets.shape[0] - 1
     total = 0
     local = np.empty((_ROW, 256))
-    qbuf = np.empty(256)
+    qbuf = np.empty((3, 256))
     hits = np.empty(256, dtype=np.int32)
     kidx = np.empty((tile, 256), dtype=np.int32)
     kval = np.empty((tile, 256))
