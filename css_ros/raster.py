@@ -26,6 +26,7 @@ TILE_SIZE = 8        # px
 # not made (inputs are sanitised, but comparisons against NaN must keep their meaning).
 _FAST = {"contract", "reassoc", "arcp"}
 _ROW = 7             # columns of the packed rows used by the kernels: u v a b c opacity qmax
+_COLS = _ROW + 2     # tile-local columns: the _ROW ones, then the first and last pixel row of the alpha box
 
 
 @dataclass(frozen=True)
@@ -103,16 +104,19 @@ def _load_rows(src, lists, start, end, local):  # pragma: no cover
 
 
 @njit(inline="always")
-def _load_columns(packed, lists, start, end, local):  # pragma: no cover
-    """Copy the tile's packed rows transposed into ``local`` (_ROW, >= n): one contiguous array
-    per quantity, so the per-pixel candidate test vectorises. Returns ``local`` (grown if needed)."""
+def _load_columns(packed, bbox, lists, start, end, local):  # pragma: no cover
+    """Copy the tile's packed rows transposed into ``local`` (_COLS, >= n): one contiguous array
+    per quantity (u, v, a, b, c, opacity, qmax, first row, last row), so the per-pixel candidate
+    test vectorises. Returns ``local`` (grown if needed)."""
     n = end - start
     if n > local.shape[1]:
-        local = np.empty((_ROW, n))
+        local = np.empty((_COLS, n))
     for k in range(n):
         j = lists[start + k]
         for c in range(_ROW):
             local[c, k] = packed[j, c]
+        local[_ROW, k] = bbox[j, 2]
+        local[_ROW + 1, k] = bbox[j, 3]
     return local
 
 
@@ -121,8 +125,8 @@ def _grow_scratch(n, kidx, kval, qbuf, hits):  # pragma: no cover
     """Per-row compositing scratch sized for a tile list of length n (reallocated only to grow)."""
     if n > kidx.shape[1]:
         tile = kidx.shape[0]
-        return (np.empty((tile, n), dtype=np.int32), np.empty((tile, n)), np.empty((3, n)),
-                np.empty(n, dtype=np.int32))
+        return (np.empty((tile, n), dtype=np.int32), np.empty((tile, n)), np.empty((_ROW + 3, n)),
+                np.empty((2, n), dtype=np.int32))
     return kidx, kval, qbuf, hits
 
 
@@ -146,36 +150,45 @@ def _exp_nonpositive(x):  # pragma: no cover
 def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):  # pragma: no cover
     """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list (SPEC §3).
 
-    Per pixel, the Mahalanobis distances q of all n candidates are computed in a branch-free loop
-    (SIMD), the candidates with q <= qmax (alpha >= 1/255) are compacted without branches, their
-    alphas are computed in a second SIMD loop, and only then composited in order with early
-    termination.
+    The candidates whose alpha box spans row v are compacted (in order) into row-local columns
+    first. Per pixel, the Mahalanobis distances q of those are computed in a branch-free loop
+    (SIMD), the ones with q <= qmax (alpha >= 1/255) are compacted without branches, their alphas
+    computed in a second SIMD loop, and only then composited in order with early termination.
 
     Args:
-        g: (_ROW, >= n) columns (u, v, a, b, c, opacity, qmax) of the tile's list.
+        g: (_COLS, >= n) columns (u, v, a, b, c, opacity, qmax, first row, last row) of the tile's list.
         active: (W_row,) bool; inactive pixels are skipped (cnt 0, T 1).
-        qbuf: (3, >= n) scratch (q of every candidate; q, then alpha, and opacity of the hits);
-        hits: (>= n,) scratch.
+        qbuf: (_ROW + 3, >= n) float scratch; hits: (2, >= n) int32 scratch.
     Outputs:
         cnt[p]: number of contributions of pixel u0 + p; kidx[p, i] / kval[p, i]: their list
         index and kappa, front to back; trans[p]: final transmittance (kappa_b).
     """
     fv = float(v)
-    gx, gy, ga, gb, gc, go, gq = g[0], g[1], g[2], g[3], g[4], g[5], g[6]
-    qall, hq, ho = qbuf[0], qbuf[1], qbuf[2]
+    g_first, g_last = g[_ROW], g[_ROW + 1]
+    ridx, hit = hits[0], hits[1]
+    r = 0
+    for k in range(n):
+        ridx[r] = k
+        r += (g_first[k] <= fv) & (fv <= g_last[k])
+    for j in range(r):
+        k = ridx[j]
+        for c in range(_ROW):
+            qbuf[c, j] = g[c, k]
+    gx, gy, ga, gb, gc, go, gq = qbuf[0], qbuf[1], qbuf[2], qbuf[3], qbuf[4], qbuf[5], qbuf[6]
+    qall, hq, ho = qbuf[_ROW], qbuf[_ROW + 1], qbuf[_ROW + 2]
     for p in range(u1 - u0 + 1):
         cnt[p] = 0
         trans[p] = 1.0
         if not active[p]:
             continue
         fu = float(u0 + p)
-        for k in range(n):
+        for k in range(r):
             dx = fu - gx[k]
             dy = fv - gy[k]
             qall[k] = ga[k] * dx * dx + 2.0 * gb[k] * dx * dy + gc[k] * dy * dy
         m = 0
-        for k in range(n):
-            hits[m] = k
+        for k in range(r):
+            hit[m] = k
             hq[m] = qall[k]
             ho[m] = go[k]
             m += qall[k] <= gq[k]
@@ -184,22 +197,23 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
         t = 1.0
         i = 0
         for h in range(m):
+            # branch-free skip of alpha < 1/255 (only possible by rounding at the box edge)
             alpha = hq[h]
-            if alpha < ALPHA_MIN:
-                continue
+            ok = alpha >= ALPHA_MIN
+            alpha = alpha if ok else 0.0
             test_t = t * (1.0 - alpha)
             if test_t < T_MIN:
                 break
-            kidx[p, i] = hits[h]
+            kidx[p, i] = ridx[hit[h]]
             kval[p, i] = alpha * t
-            i += 1
+            i += ok
             t = test_t
         cnt[p] = i
         trans[p] = t
 
 
 @njit(parallel=True, cache=True, fastmath=_FAST)
-def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile, tiles_x, acc,
+def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height, tile, tiles_x, acc,
                    store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
     """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows).
 
@@ -211,9 +225,9 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
     num_tiles = offsets.shape[0] - 1
     cap = st_k.shape[1]
     for ch in prange(nchunks):
-        local = np.empty((_ROW, 256))
-        qbuf = np.empty((3, 256))
-        hits = np.empty(256, dtype=np.int32)
+        local = np.empty((_COLS, 256))
+        qbuf = np.empty((_ROW + 3, 256))
+        hits = np.empty((2, 256), dtype=np.int32)
         kidx = np.empty((tile, 256), dtype=np.int32)
         kval = np.empty((tile, 256))
         cnt = np.empty(tile, dtype=np.int32)
@@ -232,7 +246,7 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
             if n > 0:
-                local = _load_columns(packed, lists, start, end, local)
+                local = _load_columns(packed, bbox, lists, start, end, local)
             if n > lacc.shape[1]:
                 lacc = np.empty((num_classes, n))
             kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
@@ -283,66 +297,78 @@ def _update_kernel(offsets, lists, packed, labels, weights, width, height, tile,
 
 
 @njit(inline="always", fastmath=_FAST)
-def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
                  out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
-    """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs."""
-    num_classes = eacc.shape[0]
-    for c in range(num_classes):
-        eacc[c] = 0.0
-    r = 0.0
-    g = 0.0
-    b = 0.0
-    evidence = 0.0
-    for i in range(cnt):
-        k = ks[i]
-        kappa = vs[i]
-        r += kappa * lattr[k, 0]
-        g += kappa * lattr[k, 1]
-        b += kappa * lattr[k, 2]
-        evidence += kappa * lattr[k, 3]
-        k32 = np.float32(kappa)
-        for c in range(num_classes):
-            eacc[c] += k32 * lattr[k, 4 + c]
+    """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs.
+
+    lattr rows are (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}) float32: one loop over the first
+    C + 4 columns accumulates expectation, colour and evidence. Contributions are taken four at a
+    time, so the accumulator round trip through memory (the loop over C + 4 columns is too short
+    for LLVM's wide vector body) is paid once per four.
+    """
+    num_classes = (lattr.shape[1] - 4) // 2
+    lin = num_classes + 4
+    for c in range(lin):
+        acc[c] = 0.0
+    i = 0
+    while i + 4 <= cnt:
+        k0 = ks[i]
+        k1 = ks[i + 1]
+        k2 = ks[i + 2]
+        k3 = ks[i + 3]
+        w0 = np.float32(vs[i])
+        w1 = np.float32(vs[i + 1])
+        w2 = np.float32(vs[i + 2])
+        w3 = np.float32(vs[i + 3])
+        for c in range(lin):
+            acc[c] += (w0 * lattr[k0, c] + w1 * lattr[k1, c]) + (w2 * lattr[k2, c] + w3 * lattr[k3, c])
+        i += 4
+    while i < cnt:
+        k0 = ks[i]
+        w0 = np.float32(vs[i])
+        for c in range(lin):
+            acc[c] += w0 * lattr[k0, c]
+        i += 1
     best = 0
     for c in range(1, num_classes):
-        if eacc[c] > eacc[best]:
+        if acc[c] > acc[best]:
             best = c
     vhat = tr * tr * v_bg
     for i in range(cnt):
         kappa = vs[i]
-        vhat += kappa * kappa * lattr[ks[i], 4 + num_classes + best]
+        vhat += kappa * kappa * lattr[ks[i], lin + best]
     out_label[v, u] = best
-    out_exp[v, u] = eacc[best] + tr * e_bg
+    out_exp[v, u] = acc[best] + tr * e_bg
     out_var[v, u] = vhat
     out_bg[v, u] = tr
-    out_evidence[v, u] = evidence + tr * s_bg
-    out_rgb[v, u, 0] = r + tr * bg_rgb[0]
-    out_rgb[v, u, 1] = g + tr * bg_rgb[1]
-    out_rgb[v, u, 2] = b + tr * bg_rgb[2]
+    out_evidence[v, u] = acc[num_classes + 3] + tr * s_bg
+    out_rgb[v, u, 0] = acc[num_classes] + tr * bg_rgb[0]
+    out_rgb[v, u, 1] = acc[num_classes + 1] + tr * bg_rgb[1]
+    out_rgb[v, u, 2] = acc[num_classes + 2] + tr * bg_rgb[2]
     if want_probs:
         for c in range(num_classes):
-            out_probs[v, u, c] = eacc[c] + tr * e_bg
+            out_probs[v, u, c] = acc[c] + tr * e_bg
 
 
 @njit(parallel=True, cache=True, fastmath=_FAST)
-def _render_kernel(offsets, lists, packed, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
+def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
-    """attrs rows: (r, g, b, S, E_0..E_{C-1}, Var_0..Var_{C-1}). With ``use_store``,
+    """attrs rows: (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}). With ``use_store``,
     pixels recorded by the update pass (pix_cnt >= 0) replay their contributions."""
     num_tiles = offsets.shape[0] - 1
     num_classes = (attrs.shape[1] - 4) // 2
     for ch in prange(nchunks):
-        local = np.empty((_ROW, 256))
-        qbuf = np.empty((3, 256))
-        hits = np.empty(256, dtype=np.int32)
+        local = np.empty((_COLS, 256))
+        qbuf = np.empty((_ROW + 3, 256))
+        hits = np.empty((2, 256), dtype=np.int32)
         lattr = np.empty((256, attrs.shape[1]), dtype=attrs.dtype)
         kidx = np.empty((tile, 256), dtype=np.int32)
         kval = np.empty((tile, 256))
         cnt = np.empty(tile, dtype=np.int32)
         trans = np.empty(tile)
         active = np.empty(tile, dtype=np.bool_)
-        eacc = np.empty(num_classes, dtype=np.float32)
+        eacc = np.empty(num_classes + 4, dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
@@ -360,7 +386,7 @@ def _render_kernel(offsets, lists, packed, attrs, e_bg, v_bg, s_bg, bg_rgb, widt
                     need = need or a
                 if need:
                     if not loaded:
-                        local = _load_columns(packed, lists, start, end, local)
+                        local = _load_columns(packed, bbox, lists, start, end, local)
                         loaded = True
                     _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
                 for u in range(u0, u1 + 1):
@@ -378,13 +404,13 @@ def _render_kernel(offsets, lists, packed, attrs, e_bg, v_bg, s_bg, bg_rgb, widt
 
 
 @njit(cache=True)
-def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
+def _kappa_kernel(offsets, lists, packed, bbox, width, height, tile, tiles_x,
                   count_only, pix, gid, kap, bg):  # pragma: no cover
     num_tiles = offsets.shape[0] - 1
     total = 0
-    local = np.empty((_ROW, 256))
-    qbuf = np.empty((3, 256))
-    hits = np.empty(256, dtype=np.int32)
+    local = np.empty((_COLS, 256))
+    qbuf = np.empty((_ROW + 3, 256))
+    hits = np.empty((2, 256), dtype=np.int32)
     kidx = np.empty((tile, 256), dtype=np.int32)
     kval = np.empty((tile, 256))
     cnt = np.empty(tile, dtype=np.int32)
@@ -393,7 +419,7 @@ def _kappa_kernel(offsets, lists, packed, width, height, tile, tiles_x,
     for t in range(num_tiles):
         start, end = offsets[t], offsets[t + 1]
         n = end - start
-        local = _load_columns(packed, lists, start, end, local)
+        local = _load_columns(packed, bbox, lists, start, end, local)
         kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
         ty, tx = t // tiles_x, t % tiles_x
         u0 = tx * tile
@@ -426,7 +452,7 @@ class KappaLists:
 
 def kappa_lists(proj: ProjectedGaussians, bins: TileBins, width: int, height: int) -> KappaLists:
     """All non-zero kappa_in of a view as sparse lists (for analysis and tests; O(contributions))."""
-    args = (bins.offsets, bins.lists, proj.packed, width, height, bins.tile_size, bins.tiles_x)
+    args = (bins.offsets, bins.lists, proj.packed, proj.bbox, width, height, bins.tile_size, bins.tiles_x)
     n = _kappa_kernel(*args, True, np.empty(0, np.int64), np.empty(0, np.int32), np.empty(0), np.empty(0))
     pix = np.empty(n, dtype=np.int64)
     gid = np.empty(n, dtype=np.int32)
@@ -493,7 +519,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarr
     nchunks = _num_chunks(bins)
     acc = np.zeros((nchunks, proj.count, num_classes))
     arrays = _NO_STORE if store is None else (*_store_arrays(store.reserve(width * height, nchunks)),)
-    _update_kernel(bins.offsets, bins.lists, proj.packed, labels, weights, width, height,
+    _update_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, labels, weights, width, height,
                    bins.tile_size, bins.tiles_x, acc, store is not None, *arrays)
     return acc
 
@@ -513,12 +539,12 @@ def add_increments(concentrations, ids, acc):  # pragma: no cover
 
 @njit(parallel=True, cache=True)
 def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
-    """Per projected Gaussian j: attrs[j] = (r, g, b, S, E_0..E_{C-1}, Var_0..Var_{C-1}) (SPEC §4 moments).
+    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}) (SPEC §4 moments).
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours.
     Returns:
-        attrs (M, 4 + 2C) float32 (halves the render's memory traffic; the tile-local copies of
+        attrs (M, 2C + 4) float32 (halves the render's memory traffic; the tile-local copies of
         these rows are all the shading reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     m = ids.shape[0]
@@ -531,13 +557,13 @@ def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
             total += concentrations[row, c]
         inv = 1.0 / total
         denom = 1.0 / (1.0 + total)
-        attrs[j, 0] = np.float32(colors[j, 0])
-        attrs[j, 1] = np.float32(colors[j, 1])
-        attrs[j, 2] = np.float32(colors[j, 2])
-        attrs[j, 3] = np.float32(total)
+        attrs[j, num_classes] = np.float32(colors[j, 0])
+        attrs[j, num_classes + 1] = np.float32(colors[j, 1])
+        attrs[j, num_classes + 2] = np.float32(colors[j, 2])
+        attrs[j, num_classes + 3] = np.float32(total)
         for c in range(num_classes):
             e = concentrations[row, c] * inv
-            attrs[j, 4 + c] = np.float32(e)
+            attrs[j, c] = np.float32(e)
             attrs[j, 4 + num_classes + c] = np.float32(e * (1.0 - e) * denom)
     return attrs
 
@@ -567,8 +593,8 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
 
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
-        attrs: (M, 4 + C) float64 rows (r, g, b, S_n, E[theta_n^0..C-1]) of the projected
-            Gaussians followed by Var[theta_n^0..C-1] (see :func:`dirichlet_attributes`).
+        attrs: (M, 2C + 4) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, Var[theta_n^0..C-1]) of the
+            projected Gaussians (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
     """
     num_classes = (attrs.shape[1] - 4) // 2
@@ -579,7 +605,7 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_ev = np.empty((height, width))
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
-    _render_kernel(bins.offsets, bins.lists, proj.packed, attrs, e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, attrs, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
                    want_probs, _num_chunks(bins), store is not None,
                    *(_NO_STORE if store is None else _store_arrays(store)), out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
