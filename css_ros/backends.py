@@ -1,7 +1,7 @@
 """Rasteriser backends behind one small protocol; adding a backend is adding a registry entry."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -25,6 +25,11 @@ class RasterBackend(Protocol):
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
         """Composite colour, E, Var (argmax class), kappa_b and evidence from the current concentrations."""
+
+    def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """(expectation, variance) images of several query views of one map state, in order: the
+        inputs of U_var and U_exp. Exactly what ``render`` gives for them, possibly computed faster."""
 
 
 class NumbaBackend:
@@ -67,6 +72,32 @@ class NumbaBackend:
         store = self._store if self._store.owner is frame else None
         return render_semantic(proj, bins, camera.width, camera.height, attrs,
                                e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
+
+    def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Views are projected SCORE_CHUNK at a time; the Dirichlet moments of the union of their
+        visible Gaussians are computed once per chunk (one table, rows looked up per view) instead
+        of once per view. Colour is not rendered."""
+        from .raster import dirichlet_attributes, render_semantic
+
+        n = concentrations.shape[0]
+        no_rgb = np.zeros(3)
+        for first in range(0, len(cameras), SCORE_CHUNK):
+            frames = [self.prepare(cam) for cam in cameras[first:first + SCORE_CHUNK]]
+            seen = np.zeros(n, dtype=np.bool_)
+            for proj, _, _ in frames:
+                seen[proj.ids] = True
+            union = np.flatnonzero(seen)
+            table_row = np.empty(n, dtype=np.int32)
+            table_row[union] = np.arange(len(union), dtype=np.int32)
+            table = dirichlet_attributes(concentrations, union, np.empty((0, 3)))
+            for proj, bins, cam in frames:
+                buf = render_semantic(proj, bins, cam.width, cam.height, table, e_bg, v_bg, s_bg, no_rgb, False,
+                                      None, attr_rows=table_row[proj.ids])
+                yield buf.expectation, buf.variance
+
+
+SCORE_CHUNK = 16  # candidate views projected (and held in memory) together by NumbaBackend.score_images
 
 
 def _torch_backend(model: "GaussianModel") -> RasterBackend:

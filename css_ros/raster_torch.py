@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -205,3 +205,10 @@ class TorchBackend:
         exp_img = np.take_along_axis(probs_np, labels[:, :, None], axis=2)[:, :, 0]
         return RenderBuffers(labels, exp_img, out_v.cpu().numpy(), out_bg.cpu().numpy(), out_ev.cpu().numpy(),
                              out_rgb.cpu().numpy(), probs_np if want_probs else None)
+
+    def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """One ``render`` per view (the reference path has no batch shortcut)."""
+        for cam in cameras:
+            buf = self.render(self.prepare(cam), concentrations, e_bg, v_bg, s_bg, np.zeros(3), False)
+            yield buf.expectation, buf.variance

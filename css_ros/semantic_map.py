@@ -7,7 +7,7 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Sequence
 
 import numpy as np
 
@@ -204,6 +204,21 @@ class SemanticMap:
     def render(self, camera: "Camera", probabilities: bool = False) -> RenderedView:
         """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view)."""
         return self._render_frame(self._backend.prepare(camera), probabilities)
+
+    def score_views(self, cameras: Sequence["Camera"]) -> np.ndarray:
+        """U_var and U_exp (SPEC §6) of many query views, e.g. the candidates of an active-perception
+        planner: the same numbers as ``render(cam).u_var`` / ``.u_exp``, without building the
+        images, with the Dirichlet moments computed once per batch of views.
+
+        Returns:
+            (len(cameras), 2) float64, columns (U_var, U_exp), in the order of ``cameras``.
+        """
+        e_b, v_b, s_b = self._background_moments()
+        scores = np.empty((len(cameras), 2))
+        images = self._backend.score_images(list(cameras), self.concentrations, e_b, v_b, s_b)
+        for i, (expectation, variance) in enumerate(images):
+            scores[i] = image_uncertainty(expectation, variance)
+        return scores
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike[str]) -> Path:
