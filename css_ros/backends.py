@@ -75,29 +75,21 @@ class NumbaBackend:
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """Views are projected SCORE_CHUNK at a time; the Dirichlet moments of the union of their
-        visible Gaussians are computed once per chunk (one table, rows looked up per view) instead
-        of once per view. Colour is not rendered."""
-        from .raster import dirichlet_attributes, render_semantic
+        """Per view: project (no SH colour), bin, moments of the visible Gaussians, render.
 
-        n = concentrations.shape[0]
-        no_rgb = np.zeros(3)
-        for first in range(0, len(cameras), SCORE_CHUNK):
-            frames = [self.prepare(cam) for cam in cameras[first:first + SCORE_CHUNK]]
-            seen = np.zeros(n, dtype=np.bool_)
-            for proj, _, _ in frames:
-                seen[proj.ids] = True
-            union = np.flatnonzero(seen)
-            table_row = np.empty(n, dtype=np.int32)
-            table_row[union] = np.arange(len(union), dtype=np.int32)
-            table = dirichlet_attributes(concentrations, union, np.empty((0, 3)))
-            for proj, bins, cam in frames:
-                buf = render_semantic(proj, bins, cam.width, cam.height, table, e_bg, v_bg, s_bg, no_rgb, False,
-                                      None, attr_rows=table_row[proj.ids])
-                yield buf.expectation, buf.variance
+        Measured alternatives that were not faster on 2 cores (benchmarks/README.md): one moments
+        table for the union of a batch's visible Gaussians (its rows are scattered over a table
+        much larger than the cache) and one view per thread with serial kernels."""
+        from .projection import project
+        from .raster import bin_tiles, dirichlet_attributes, render_semantic
 
-
-SCORE_CHUNK = 16  # candidate views projected (and held in memory) together by NumbaBackend.score_images
+        no_colors = np.empty((0, 3))
+        for cam in cameras:
+            proj = project(self.geometry, cam, self._scratch, view_colors=False)
+            bins = bin_tiles(proj, cam.width, cam.height)
+            attrs = dirichlet_attributes(concentrations, proj.ids, no_colors)
+            buf = render_semantic(proj, bins, cam.width, cam.height, attrs, e_bg, v_bg, s_bg, np.zeros(3), False)
+            yield buf.expectation, buf.variance
 
 
 def _torch_backend(model: "GaussianModel") -> RasterBackend:

@@ -898,6 +898,7 @@ def _make_node_class() -> type:
             u_var = np.full(m, np.nan)
             u_exp = np.full(m, np.nan)
             base = None
+            cams, scored = [], []
             for i in range(m):
                 if not np.all(np.isfinite(job.quats_optical[i])):
                     continue
@@ -905,13 +906,14 @@ def _make_node_class() -> type:
                     cam = Camera.from_pose(job.K, job.width, job.height, job.positions[i], job.quats_optical[i])
                     if base is None:
                         base = cam.scaled(self.p.candidate_scale)
-                    cam = Camera(K=base.K, width=base.width, height=base.height, T_map_cam=cam.T_map_cam)
+                    cams.append(Camera(K=base.K, width=base.width, height=base.height, T_map_cam=cam.T_map_cam))
+                    scored.append(i)
                 except CameraError as exc:
                     self.warn("candidates", "invalid candidate pose", f"{exc}; scored NaN", dropped=False)
-                    continue
+            if cams:
                 with self._map_lock:
-                    view = self.smap.render(cam)
-                u_var[i], u_exp[i] = view.u_var, view.u_exp
+                    scores = self.smap.score_views(cams)
+                u_var[scored], u_exp[scored] = scores[:, 0], scores[:, 1]
             self.pubs["candidate_scores"].publish(
                 rc.view_points_msg(job.header, job.positions, job.quats_in, u_var, u_exp))
             with self._stats_lock:

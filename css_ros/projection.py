@@ -333,33 +333,48 @@ def _gather(ids, out, bbox):  # pragma: no cover
 
 @njit(cache=True)
 def _argsort_positive(values):  # pragma: no cover
-    """Stable argsort of positive float64 values: LSD radix sort (4 x 16 bits) of their IEEE bit
-    patterns, which order like the values for positive floats."""
+    """Stable argsort of positive float64 values. LSD radix sort (2 x 16 bits) of the IEEE bits of
+    their float32 roundings, which order like the values for positive floats; rounding to float32
+    is monotone, so only runs of equal float32 keys can be out of order, and a final stable
+    insertion pass over the float64 values puts those right (O(m) when such runs are short)."""
     m = values.shape[0]
-    keys = values.view(np.uint64)
+    keys = values.astype(np.float32).view(np.uint32)
     order = np.arange(m).astype(np.int32)
     tmp = np.empty(m, dtype=np.int32)
     counts = np.empty(65537, dtype=np.int64)
-    for shift in range(0, 64, 16):
+    for shift in range(0, 32, 16):
         counts[:] = 0
         for r in range(m):
-            counts[((keys[order[r]] >> np.uint64(shift)) & np.uint64(0xFFFF)) + 1] += 1
-        if counts[1 + ((keys[order[0]] >> np.uint64(shift)) & np.uint64(0xFFFF))] == m:
+            counts[((keys[r] >> np.uint32(shift)) & np.uint32(0xFFFF)) + 1] += 1
+        if counts[1 + ((keys[0] >> np.uint32(shift)) & np.uint32(0xFFFF))] == m:
             continue  # every key has the same digit: nothing to do
         for b in range(65536):
             counts[b + 1] += counts[b]
         for r in range(m):
-            d = (keys[order[r]] >> np.uint64(shift)) & np.uint64(0xFFFF)
+            d = (keys[order[r]] >> np.uint32(shift)) & np.uint32(0xFFFF)
             tmp[counts[d]] = order[r]
             counts[d] += 1
         order, tmp = tmp, order
+    for r in range(1, m):
+        j = order[r]
+        x = values[j]
+        s = r
+        while s > 0 and values[order[s - 1]] > x:
+            order[s] = order[s - 1]
+            s -= 1
+        order[s] = j
     return order
 
 
-def project(geometry: GaussianGeometry, camera: "Camera",
-            scratch: ProjectionScratch | None = None) -> ProjectedGaussians:
+def project(geometry: GaussianGeometry, camera: "Camera", scratch: ProjectionScratch | None = None,
+            view_colors: bool = True) -> ProjectedGaussians:
     """Project, cull (near plane, 3-sigma square outside the image, alpha never >= 1/255) and
     depth-sort the Gaussians for ``camera``; evaluate their view-dependent colours.
+
+    Args:
+        scratch: per-Gaussian buffers reused across calls (one per thread).
+        view_colors: False skips the SH degree >= 1 evaluation (colours are then the degree-0
+            term), for views whose colour is not rendered.
     """
     out, out_bbox, out_valid = (scratch or ProjectionScratch()).get(geometry.num_gaussians)
     world_to_cam = np.asarray(camera.world_to_cam, dtype=np.float64)
@@ -376,7 +391,7 @@ def project(geometry: GaussianGeometry, camera: "Camera",
     rows = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
     packed, colors, bbox = _gather(rows, out, out_bbox)
     depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(rows) else np.empty(0, np.int32)
-    if geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
+    if view_colors and geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
         colors = _view_colors(geometry, rows, np.asarray(camera.position, dtype=np.float64))
     return ProjectedGaussians(ids=geometry.perm[rows], depth_order=depth_order, packed=packed, bbox=bbox, colors=colors)
 

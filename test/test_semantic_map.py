@@ -228,3 +228,25 @@ def test_fast_and_torch_paths_agree_on_a_large_scene():
     assert vf.u_var == pytest.approx(vs.u_var, rel=1e-4)
     assert vf.u_exp == pytest.approx(vs.u_exp, rel=1e-4)
     assert cam.width == 160
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_score_views_match_reference_and_render(backend):
+    """The batch scores equal the brute-force U_var/U_exp of each view and render()'s own scores."""
+    rng = np.random.default_rng(7)
+    model = random_scene(3)
+    smap = SemanticMap(model, C, backend=backend)
+    smap.concentrations += rng.uniform(0.0, 5.0, smap.concentrations.shape)
+    poses = [dict(), dict(position=(0.2, 0.1, -0.2), quat=(0.02, 0.05, 0.0, 0.998)),
+             dict(position=(-0.3, 0.0, 0.1), quat=(0.0, -0.08, 0.01, 0.997)), dict(width=32, height=24, f=25.0)]
+    cams = [camera(**p) for p in poses]
+    scores = smap.score_views(cams)
+    assert scores.shape == (len(cams), 2)
+    for cam, (u_var, u_exp) in zip(cams, scores):
+        kap, bg = ref_kappa(model, cam)
+        *_, ref_var, ref_exp = render_reference(kap, bg, smap.concentrations, 1e-3)
+        assert u_var == pytest.approx(ref_var, rel=1e-5)
+        assert u_exp == pytest.approx(ref_exp, rel=1e-5, abs=1e-7)
+        view = smap.render(cam)
+        assert (u_var, u_exp) == (view.u_var, view.u_exp)
+    assert smap.score_views([]).shape == (0, 2)
