@@ -1,6 +1,7 @@
 """Rasteriser backends behind one small protocol; adding a backend is adding a registry entry."""
 from __future__ import annotations
 
+import queue
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Protocol, Sequence
 
 import numpy as np
@@ -46,6 +47,7 @@ class NumbaBackend:
         self.geometry = GaussianGeometry.from_model(model)
         self._scratch = ProjectionScratch()
         self._store = ContributionStore()
+        self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
         from .projection import project
@@ -77,19 +79,49 @@ class NumbaBackend:
                      s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """Per view: project (no SH colour), bin, moments of the visible Gaussians, render.
 
-        Measured alternatives that were not faster on 2 cores (benchmarks/README.md): one moments
-        table for the union of a batch's visible Gaussians (its rows are scattered over a table
-        much larger than the cache) and one view per thread with serial kernels."""
-        from .projection import project
+        Small views split badly over the cores (short parallel regions, serial sorting), so views
+        after the first are spread over a pool of worker threads, one whole view per thread at a
+        time, each running the kernels single-threaded (numba's thread count is per thread; the
+        kernels release the GIL). This needs a thread-safe numba threading layer (OpenMP or TBB);
+        with the workqueue layer views are scored one after another. Each worker keeps its own
+        projection buffers (N x 11 float64) between calls.
+        """
+        import numba
+        from concurrent.futures import ThreadPoolExecutor
+
+        from .projection import ProjectionScratch, project
         from .raster import bin_tiles, dirichlet_attributes, render_semantic
 
         no_colors = np.empty((0, 3))
-        for cam in cameras:
-            proj = project(self.geometry, cam, self._scratch, view_colors=False)
+
+        def score(cam: "Camera", scratch: "ProjectionScratch") -> tuple[np.ndarray, np.ndarray]:
+            proj = project(self.geometry, cam, scratch, view_colors=False)
             bins = bin_tiles(proj, cam.width, cam.height)
             attrs = dirichlet_attributes(concentrations, proj.ids, no_colors)
             buf = render_semantic(proj, bins, cam.width, cam.height, attrs, e_bg, v_bg, s_bg, np.zeros(3), False)
-            yield buf.expectation, buf.variance
+            return buf.expectation, buf.variance
+
+        if not cameras:
+            return
+        yield score(cameras[0], self._scratch)  # also initialises numba's threading layer
+        workers = min(numba.get_num_threads(), len(cameras) - 1)
+        if workers < 2 or numba.threading_layer() not in ("omp", "tbb"):
+            for cam in cameras[1:]:
+                yield score(cam, self._scratch)
+            return
+        while self._score_scratch.qsize() < workers:
+            self._score_scratch.put(ProjectionScratch())
+
+        def work(cam: "Camera") -> tuple[np.ndarray, np.ndarray]:
+            numba.set_num_threads(1)
+            scratch = self._score_scratch.get()
+            try:
+                return score(cam, scratch)
+            finally:
+                self._score_scratch.put(scratch)
+
+        with ThreadPoolExecutor(workers, thread_name_prefix="css-score") as pool:
+            yield from pool.map(work, cameras[1:])
 
 
 def _torch_backend(model: "GaussianModel") -> RasterBackend:

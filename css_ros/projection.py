@@ -152,7 +152,7 @@ class ProjectedGaussians:
         return self.packed[:, 7]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_spheres,
                     rot, trans, fx, fy, cx, cy, width, height, out, out_bbox, out_valid):  # pragma: no cover
     tan_x = width / (2.0 * fx)
@@ -294,7 +294,7 @@ class ProjectionScratch:
         return self.out, self.bbox, self.valid
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _block_order(ids, bbox, block_x, num_blocks):  # pragma: no cover
     """Stable counting sort of the kept ids by the screen block of their box centre."""
     m = ids.shape[0]
@@ -314,7 +314,7 @@ def _block_order(ids, bbox, block_x, num_blocks):  # pragma: no cover
     return ordered
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _gather(ids, out, bbox):  # pragma: no cover
     m = ids.shape[0]
     packed = np.empty((m, 8))
@@ -331,7 +331,7 @@ def _gather(ids, out, bbox):  # pragma: no cover
     return packed, colors, boxes
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _argsort_positive(values):  # pragma: no cover
     """Stable argsort of positive float64 values. LSD radix sort (2 x 16 bits) of the IEEE bits of
     their float32 roundings, which order like the values for positive floats; rounding to float32

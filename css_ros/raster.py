@@ -46,7 +46,7 @@ class TileBins:
     tile_size: int
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no cover
     """Parallel counting sort of (tile, depth) pairs: the depth order is cut into ``parts``
     consecutive ranges; each counts and then fills its own slice of every tile's list, part 0's
@@ -90,16 +90,14 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
 
 
 @njit(inline="always")
-def _load_rows(src, rows, lists, start, end, local):  # pragma: no cover
-    """Copy rows ``src[rows[lists[start:end]]]`` (``src[lists[...]]`` if rows is empty) into
-    ``local`` (grown if needed); return it."""
+def _load_rows(src, lists, start, end, local):  # pragma: no cover
+    """Copy rows ``src[lists[start:end]]`` into ``local`` (grown if needed); return it."""
     n = end - start
     cols = src.shape[1]
     if n > local.shape[0]:
         local = np.empty((n, cols), dtype=src.dtype)
-    direct = rows.shape[0] == 0
     for k in range(n):
-        j = lists[start + k] if direct else rows[lists[start + k]]
+        j = lists[start + k]
         for c in range(cols):
             local[k, c] = src[j, c]
     return local
@@ -352,8 +350,8 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, wa
             out_probs[v, u, c] = acc[c] + tr * e_bg
 
 
-@njit(parallel=True, cache=True, fastmath=_FAST)
-def _render_kernel(offsets, lists, packed, bbox, attrs, attr_rows, e_bg, v_bg, s_bg, bg_rgb, width, height,
+@njit(parallel=True, cache=True, nogil=True, fastmath=_FAST)
+def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
     """attrs rows: (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}). With ``use_store``,
@@ -374,7 +372,7 @@ def _render_kernel(offsets, lists, packed, bbox, attrs, attr_rows, e_bg, v_bg, s
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
-            lattr = _load_rows(attrs, attr_rows, lists, start, end, lattr)
+            lattr = _load_rows(attrs, lists, start, end, lattr)
             loaded = False
             kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
             ty, tx = t // tiles_x, t % tiles_x
@@ -501,7 +499,6 @@ class ContributionStore:
 
 
 STORE_SLOTS_PER_PIXEL = 40
-_NO_ROWS = np.empty(0, np.int32)
 _NO_STORE = (np.empty((1, 0), np.int32), np.empty((1, 0)), np.empty(0, np.int64), np.empty(0, np.int32),
              np.empty(0))
 
@@ -540,13 +537,13 @@ def add_increments(concentrations, ids, acc):  # pragma: no cover
             concentrations[row, c] += total
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
     """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}) (SPEC §4 moments).
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
-            (0, 3) for zero colour (a table shared by several views that are only scored).
+            (0, 3) for zero colour (views that are only scored).
     Returns:
         attrs (M, 2C + 4) float32 (halves the render's memory traffic; the tile-local copies of
         these rows are all the shading reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
@@ -591,8 +588,7 @@ class RenderBuffers:
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
                     attrs: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-                    want_probs: bool, store: ContributionStore | None = None,
-                    attr_rows: np.ndarray | None = None) -> RenderBuffers:
+                    want_probs: bool, store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
@@ -600,8 +596,6 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
         attrs: (M, 2C + 4) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, Var[theta_n^0..C-1]) of the
             projected Gaussians (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
-        attr_rows: (M,) int rows of ``attrs`` for the projected Gaussians when ``attrs`` is a table
-            shared by several views (see :func:`dirichlet_attributes`); None if attrs[j] is row j.
     """
     num_classes = (attrs.shape[1] - 4) // 2
     out_label = np.empty((height, width), dtype=np.int32)
@@ -611,10 +605,10 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_ev = np.empty((height, width))
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
-    _render_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, attrs,
-                   _NO_ROWS if attr_rows is None else np.asarray(attr_rows, dtype=np.int32), e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, attrs, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
                    want_probs, _num_chunks(bins), store is not None,
-                   *(_NO_STORE if store is None else _store_arrays(store)), out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
+                   *(_NO_STORE if store is None else _store_arrays(store)),
+                   out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
                          out_probs if want_probs else None)

@@ -1,6 +1,7 @@
 """SemanticMap: update and probabilistic render vs the brute-force reference, closed forms, persistence."""
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -250,3 +251,10 @@ def test_score_views_match_reference_and_render(backend):
         view = smap.render(cam)
         assert (u_var, u_exp) == (view.u_var, view.u_exp)
     assert smap.score_views([]).shape == (0, 2)
+    # one view after another (single thread) gives the same numbers as the worker pool
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        np.testing.assert_array_equal(smap.score_views(cams), scores)
+    finally:
+        numba.set_num_threads(threads)
