@@ -50,15 +50,20 @@ class TileBins:
 def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no cover
     """Parallel counting sort of (tile, depth) pairs: the depth order is cut into ``parts``
     consecutive ranges; each counts and then fills its own slice of every tile's list, part 0's
-    (nearest) entries first, so every list stays front to back."""
+    (nearest) entries first, so every list stays front to back. Each Gaussian's tile range is
+    computed once, in depth order, so both passes read it sequentially."""
     m = bbox.shape[0]
     num_tiles = tiles_x * tiles_y
+    span = np.empty((m, 4), dtype=np.int32)
+    for r in prange(m):
+        j = depth_order[r]
+        for c in range(4):
+            span[r, c] = bbox[j, c] // tile
     counts = np.zeros((parts, num_tiles), dtype=np.int64)
     for p in prange(parts):
         for r in range(p * m // parts, (p + 1) * m // parts):
-            j = depth_order[r]
-            for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
-                for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
+            for ty in range(span[r, 2], span[r, 3] + 1):
+                for tx in range(span[r, 0], span[r, 1] + 1):
                     counts[p, ty * tiles_x + tx] += 1
     offsets = np.zeros(num_tiles + 1, dtype=np.int64)
     fill = np.empty((parts, num_tiles), dtype=np.int64)
@@ -72,8 +77,8 @@ def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no
     for p in prange(parts):
         for r in range(p * m // parts, (p + 1) * m // parts):
             j = depth_order[r]
-            for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
-                for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
+            for ty in range(span[r, 2], span[r, 3] + 1):
+                for tx in range(span[r, 0], span[r, 1] + 1):
                     t = ty * tiles_x + tx
                     lists[fill[p, t]] = j
                     fill[p, t] += 1
