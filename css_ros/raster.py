@@ -126,6 +126,15 @@ def _load_columns(packed, bbox, lists, start, end, local):  # pragma: no cover
 
 
 @njit(inline="always")
+def _new_scratch(tile):  # pragma: no cover
+    """Per-thread compositing scratch (grown per tile by _load_columns / _grow_scratch):
+    tile columns, q/alpha buffers, hit indices, per-pixel contribution lists, counts, T, active."""
+    return (np.empty((_COLS, 256)), np.empty((_ROW + 3, 256)), np.empty((2, 256), dtype=np.int32),
+            np.empty((tile, 256), dtype=np.int32), np.empty((tile, 256)), np.empty(tile, dtype=np.int32),
+            np.empty(tile), np.empty(tile, dtype=np.bool_))
+
+
+@njit(inline="always")
 def _grow_scratch(n, kidx, kval, qbuf, hits):  # pragma: no cover
     """Per-row compositing scratch sized for a tile list of length n (reallocated only to grow)."""
     if n > kidx.shape[1]:
@@ -230,14 +239,7 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
     num_tiles = offsets.shape[0] - 1
     cap = st_k.shape[1]
     for ch in prange(nchunks):
-        local = np.empty((_COLS, 256))
-        qbuf = np.empty((_ROW + 3, 256))
-        hits = np.empty((2, 256), dtype=np.int32)
-        kidx = np.empty((tile, 256), dtype=np.int32)
-        kval = np.empty((tile, 256))
-        cnt = np.empty(tile, dtype=np.int32)
-        trans = np.empty(tile)
-        active = np.empty(tile, dtype=np.bool_)
+        local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
         num_classes = acc.shape[2]
         # Tile-local accumulator (class, list position): the per-contribution scatter stays in
         # cache; only the classes present in the tile are zeroed and flushed to the chunk's rows.
@@ -364,15 +366,8 @@ def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb
     num_tiles = offsets.shape[0] - 1
     num_classes = (attrs.shape[1] - 4) // 2
     for ch in prange(nchunks):
-        local = np.empty((_COLS, 256))
-        qbuf = np.empty((_ROW + 3, 256))
-        hits = np.empty((2, 256), dtype=np.int32)
+        local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
         lattr = np.empty((256, attrs.shape[1]), dtype=attrs.dtype)
-        kidx = np.empty((tile, 256), dtype=np.int32)
-        kval = np.empty((tile, 256))
-        cnt = np.empty(tile, dtype=np.int32)
-        trans = np.empty(tile)
-        active = np.empty(tile, dtype=np.bool_)
         eacc = np.empty(num_classes + 4, dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
@@ -413,14 +408,7 @@ def _kappa_kernel(offsets, lists, packed, bbox, width, height, tile, tiles_x,
                   count_only, pix, gid, kap, bg):  # pragma: no cover
     num_tiles = offsets.shape[0] - 1
     total = 0
-    local = np.empty((_COLS, 256))
-    qbuf = np.empty((_ROW + 3, 256))
-    hits = np.empty((2, 256), dtype=np.int32)
-    kidx = np.empty((tile, 256), dtype=np.int32)
-    kval = np.empty((tile, 256))
-    cnt = np.empty(tile, dtype=np.int32)
-    trans = np.empty(tile)
-    active = np.empty(tile, dtype=np.bool_)
+    local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
     for t in range(num_tiles):
         start, end = offsets[t], offsets[t + 1]
         n = end - start
