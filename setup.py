@@ -60,11 +60,11 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "css_node = css_ros.node:main",
-            "css_replay = css_ros.replay:main",
-            "css_make_demo = css_ros.make_demo:main",
-            "css_demo = css_ros.demo_player:main",
-            "css_nbv_client = css_ros.nbv_client:main",
+            "css_node = css_ros.ros.node:main",
+            "css_replay = css_ros.evaluation.replay:main",
+            "css_make_demo = css_ros.demo.make_demo:main",
+            "css_demo = css_ros.demo.player:main",
+            "css_nbv_client = css_ros.clients.nbv_client:main",
         ],
     },
 )

@@ -1,6 +1,6 @@
 """Benchmark of the per-frame CSS cycle (SemanticMap.observe) and of query views.
 
-Scenes are the procedural indoor room of css_ros.demo_scene (Gaussians on surfaces at realistic
+Scenes are the procedural indoor room of css_ros.demo.scene (Gaussians on surfaces at realistic
 sizes), viewed along the demo robot trajectory. Each scene runs in its own subprocess so the peak
 resident memory reported is that scene's alone (model + map + buffers + interpreter).
 
@@ -64,12 +64,12 @@ def with_view_dependent_colour(model, degree: int):
 def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int, cand_h: int,
               torch_frames: int) -> dict:
     from css_ros import Camera, SemanticMap
-    from css_ros.demo_scene import build_indoor_scene
-    from css_ros.projection import project
-    from css_ros.raster import (ContributionStore, accumulate_update, add_increments, bin_tiles,
+    from css_ros.demo.scene import build_indoor_scene
+    from css_ros.engine.cpu.projection import project
+    from css_ros.engine.cpu.raster import (ContributionStore, accumulate_update, add_increments, bin_tiles,
                                 dirichlet_attributes, render_semantic)
-    from css_ros.semantic_map import image_uncertainty
-    from css_ros.trajectory import robot_trajectory
+    from css_ros.engine.semantic_map import image_uncertainty
+    from css_ros.demo.trajectory import robot_trajectory
 
     t0 = time.perf_counter()
     model, gt = build_indoor_scene(cfg["gaussians"], seed=0)

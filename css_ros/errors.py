@@ -20,3 +20,11 @@ class MapError(CssError):
 
 class InputError(CssError):
     """An input frame (image, segmentation, confidence) is malformed."""
+
+
+class BagError(CssError):
+    """A rosbag2 bag is missing, unreadable, lacks a topic or holds the wrong message type."""
+
+
+class ConfigError(CssError):
+    """A parameter, command-line option or configuration file holds an invalid value."""

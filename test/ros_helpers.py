@@ -31,7 +31,7 @@ def next_domain_id() -> int:
 
 def write_wall_model(path: Path, seed: int = 0, depth: float = 3.0) -> Path:
     """Write a PLY with a 20 x 16 grid of opaque Gaussians on the plane z = depth (map frame, metres)."""
-    from css_ros.gaussians import GaussianModel
+    from css_ros.engine.gaussians import GaussianModel
 
     rng = np.random.default_rng(seed)
     xs, ys = np.meshgrid(np.linspace(-2.2, 2.2, 20), np.linspace(-1.7, 1.7, 16))
@@ -233,7 +233,7 @@ class RosClient:
 
     def wait_stamp(self, name: str, stamp_ns: int, timeout: float = 20.0) -> Any:
         """The first message on output ``name`` whose header stamp equals ``stamp_ns`` (or None)."""
-        from css_ros.messages import stamp_to_ns
+        from css_ros.io.messages import stamp_to_ns
 
         def find() -> Any:
             for m in self.messages(name):
@@ -273,20 +273,20 @@ class RosClient:
     # ---------------------------------------------------------------- sending
     def send_camera_info(self, stamp_ns: int = 0, K_: np.ndarray = K, width: int = WIDTH,
                          height: int = HEIGHT) -> None:
-        from css_ros.ros_conversions import camera_info_msg, header_msg
+        from css_ros.ros.conversions import camera_info_msg, header_msg
 
         self.pub["camera_info"].publish(camera_info_msg(K_, width, height, header_msg(stamp_ns, "camera")))
 
     def send_pose(self, stamp_ns: int, position: Any = (0.0, 0.0, 0.0), quat: Any = IDENTITY,
                   frame_id: str = "map") -> None:
-        from css_ros.ros_conversions import header_msg, pose_stamped_msg
+        from css_ros.ros.conversions import header_msg, pose_stamped_msg
 
         self.pub["pose"].publish(pose_stamped_msg(position, quat, header_msg(stamp_ns, frame_id)))
 
     def send_image(self, topic: str, stamp_ns: int, array: np.ndarray, encoding: str,
                    overrides: dict[str, Any] | None = None) -> None:
         """Publish ``array`` as an Image; ``overrides`` sets raw message fields afterwards (bad input)."""
-        from css_ros.ros_conversions import header_msg, image_msg
+        from css_ros.ros.conversions import header_msg, image_msg
 
         msg = image_msg(array, encoding, header_msg(stamp_ns, "camera"))
         for key, value in (overrides or {}).items():
@@ -307,7 +307,7 @@ class RosClient:
 
     def send_candidates(self, stamp_ns: int, positions: np.ndarray, quats: np.ndarray,
                         frame_id: str = "map") -> None:
-        from css_ros.ros_conversions import header_msg, pose_array_msg
+        from css_ros.ros.conversions import header_msg, pose_array_msg
 
         self.pub["candidates"].publish(pose_array_msg(positions, quats, header_msg(stamp_ns, frame_id)))
 

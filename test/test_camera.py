@@ -1,4 +1,4 @@
-"""Tests for css_ros.camera: quaternion helpers, pose conventions, projection, resizing and validation."""
+"""Tests for css_ros.engine.camera: quaternion helpers, pose conventions, projection, resizing and validation."""
 from __future__ import annotations
 
 import math
@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from css_ros.camera import (Camera, body_to_optical_rotation, intrinsics_from_fov, matrix_to_quaternion_xyzw,
+from css_ros.engine.camera import (Camera, body_to_optical_rotation, intrinsics_from_fov, matrix_to_quaternion_xyzw,
                             quaternion_xyzw_to_matrix)
 from css_ros.errors import CameraError
 

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from css_ros.camera import Camera, intrinsics_from_fov, quaternion_xyzw_to_matrix
-from css_ros.classes import ClassSet
-from css_ros.demo_scene import (CLASS_NAMES, ROOM_MAX, ROOM_MIN, build_indoor_scene, build_scene_arrays,
+from css_ros.engine.camera import Camera, intrinsics_from_fov, quaternion_xyzw_to_matrix
+from css_ros.engine.classes import ClassSet
+from css_ros.demo.scene import (CLASS_NAMES, ROOM_MAX, ROOM_MIN, build_indoor_scene, build_scene_arrays,
                                 demo_class_set, obstacle_footprints)
-from css_ros.segmentation_noise import SegmentationNoise, confusion_matrix
-from css_ros.trajectory import robot_trajectory
+from css_ros.demo.segmentation_noise import SegmentationNoise, confusion_matrix
+from css_ros.demo.trajectory import robot_trajectory
 
 REPO = Path(__file__).resolve().parents[1]
 CID = {n: i for i, n in enumerate(CLASS_NAMES)}
@@ -127,7 +127,7 @@ def test_class_file_matches_scene():
 
 # ------------------------------------------------------------------------------------------------ rendering
 def _renderer(num_gaussians: int = 30_000):
-    from css_ros.make_demo import DemoRenderer
+    from css_ros.demo.make_demo import DemoRenderer
 
     s = build_scene_arrays(num_gaussians, seed=0)
     model, _ = build_indoor_scene(num_gaussians, seed=0)
@@ -176,8 +176,8 @@ def test_gt_labels_match_the_visible_surface_looking_down_at_the_rug_corner(rend
 
 
 def test_systematic_rules_relabel_only_their_objects():
-    from css_ros.make_demo import DemoRenderer, systematic_rule_masks
-    from css_ros.segmentation_noise import DEFAULT_SYSTEMATIC
+    from css_ros.demo.make_demo import DemoRenderer, systematic_rule_masks
+    from css_ros.demo.segmentation_noise import DEFAULT_SYSTEMATIC
 
     s = build_scene_arrays(30_000, seed=0)
     model, _ = build_indoor_scene(30_000, seed=0)
@@ -323,7 +323,7 @@ def test_noise_ignores_unknown_class_names():
 # ------------------------------------------------------------------------------------------------ bag
 @pytest.fixture(scope="module")
 def tiny_demo(tmp_path_factory):
-    from css_ros.make_demo import make_demo
+    from css_ros.demo.make_demo import make_demo
 
     out = tmp_path_factory.mktemp("demo")
     stats = make_demo(out, num_gaussians=3000, frames=4, width=64, height=48, seed=0, progress=False)
@@ -333,8 +333,8 @@ def tiny_demo(tmp_path_factory):
 def test_tiny_bag_reads_back_with_all_topics(tiny_demo):
     from rosbags.highlevel import AnyReader
 
-    from css_ros.gaussians import GaussianModel
-    from css_ros.messages import image_to_array, stamp_to_ns
+    from css_ros.engine.gaussians import GaussianModel
+    from css_ros.io.messages import image_to_array, stamp_to_ns
 
     out, stats = tiny_demo
     assert (out / "bag" / "metadata.yaml").is_file() and list((out / "bag").glob("*.mcap"))
@@ -394,7 +394,7 @@ def test_tiny_bag_reads_back_with_all_topics(tiny_demo):
 
 
 def test_generator_output_is_byte_identical(tiny_demo, tmp_path):
-    from css_ros.make_demo import make_demo
+    from css_ros.demo.make_demo import make_demo
 
     out, _ = tiny_demo
     again = tmp_path / out.name
@@ -406,7 +406,7 @@ def test_generator_output_is_byte_identical(tiny_demo, tmp_path):
 def test_cli_refuses_to_overwrite_and_writes_sqlite3(tiny_demo, tmp_path, capsys):
     from rosbags.highlevel import AnyReader
 
-    from css_ros.make_demo import main
+    from css_ros.demo.make_demo import main
 
     out, _ = tiny_demo
     assert main(["--out", str(out), "--num-gaussians", "3000", "--frames", "2", "--quiet"]) == 2

@@ -1,4 +1,4 @@
-"""Tests for css_ros.gaussians: INRIA PLY loading, validation, round-trips and activations."""
+"""Tests for css_ros.engine.gaussians: INRIA PLY loading, validation, round-trips and activations."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,7 +9,7 @@ from numpy.lib.recfunctions import repack_fields
 from plyfile import PlyData, PlyElement
 
 from css_ros.errors import ModelError
-from css_ros.gaussians import SH_C0, GaussianModel
+from css_ros.engine.gaussians import SH_C0, GaussianModel
 
 DATA = Path(__file__).resolve().parent / "data"
 REAL_PLY = DATA / "pc_short.ply"

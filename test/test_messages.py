@@ -6,7 +6,7 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from css_ros.errors import InputError
-from css_ros.messages import (array_to_image_fields, camera_info_to_intrinsics, image_to_array,
+from css_ros.io.messages import (array_to_image_fields, camera_info_to_intrinsics, image_to_array,
                               ns_to_sec_nanosec, pack_view_points, stamp_to_ns, unpack_view_points)
 
 TS = get_typestore(Stores.ROS2_JAZZY)

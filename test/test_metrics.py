@@ -1,4 +1,4 @@
-"""Tests of css_ros.metrics against hand-computed values, brute force and scipy."""
+"""Tests of css_ros.evaluation.metrics against hand-computed values, brute force and scipy."""
 from __future__ import annotations
 
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from css_ros.metrics import (
+from css_ros.evaluation.metrics import (
     DEFAULT_FRACTIONS,
     ConfusionMatrix,
     PixelSampler,

@@ -11,7 +11,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 import ros_helpers as rh  # noqa: E402
-from css_ros.messages import image_to_array, stamp_to_ns, unpack_view_points  # noqa: E402
+from css_ros.io.messages import image_to_array, stamp_to_ns, unpack_view_points  # noqa: E402
 
 C = rh.NUM_CLASSES
 ALPHA_B = 1e-3
@@ -155,8 +155,8 @@ def test_reset_map_returns_to_prior(live: Live) -> None:
 
 
 def test_save_map_service_writes_loadable_checkpoint(live: Live, tmp_path_factory: Any) -> None:
-    from css_ros.gaussians import GaussianModel
-    from css_ros.semantic_map import SemanticMap
+    from css_ros.engine.gaussians import GaussianModel
+    from css_ros.engine.semantic_map import SemanticMap
 
     live.frame()
     res = live.client.call(live.client.save_client)
@@ -277,7 +277,7 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
 
     from geometry_msgs.msg import PoseStamped
 
-    from css_ros.messages import pose_to_arrays
+    from css_ros.io.messages import pose_to_arrays
 
     nbv: list[Any] = []
     live.client.node.create_subscription(PoseStamped, "next_best_view", nbv.append, 10)
@@ -293,7 +293,7 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
     th = threading.Thread(target=keep_publishing_pose, daemon=True)
     th.start()
     try:
-        proc = subprocess.run([sys.executable, "-m", "css_ros.nbv_client", "--once", "--num-candidates", "7",
+        proc = subprocess.run([sys.executable, "-m", "css_ros.clients.nbv_client", "--once", "--num-candidates", "7",
                                "--yaw-range", "150", "--timeout", "20"], env=rh.node_env(live.domain),
                               capture_output=True, text=True, timeout=60)
     finally:
@@ -316,7 +316,7 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
 
 def test_clock_reset_accepted_after_consecutive_old_stamps(live: Live) -> None:
     """A replay restarted with older stamps: a few frames are dropped as out of order, then accepted."""
-    from css_ros.node import STAMP_RESET_COUNT
+    from css_ros.ros.node import STAMP_RESET_COUNT
 
     live.frame()
     old = [live.last_frame // 2 + 12_345_678 + k * 10**8 for k in range(STAMP_RESET_COUNT)]  # unused stamps

@@ -16,11 +16,11 @@ pytestmark = pytest.mark.slow
 
 def test_css_demo_start_node_prints_every_frame(tmp_path):
     demo = tmp_path / "demo"
-    made = subprocess.run([sys.executable, "-m", "css_ros.make_demo", "--out", str(demo), "--num-gaussians", "3000",
+    made = subprocess.run([sys.executable, "-m", "css_ros.demo.make_demo", "--out", str(demo), "--num-gaussians", "3000",
                            "--frames", "5", "--width", "48", "--height", "36", "--quiet"],
                           env=rh.node_env(0), capture_output=True, text=True, timeout=300)
     assert made.returncode == 0, made.stderr
-    res = subprocess.run([sys.executable, "-m", "css_ros.demo_player", str(demo / "bag"), "--start-node",
+    res = subprocess.run([sys.executable, "-m", "css_ros.demo.player", str(demo / "bag"), "--start-node",
                           "--rate", "8", "--node-param", "warmup:=false"],
                          env=rh.node_env(rh.next_domain_id()), capture_output=True, text=True, timeout=300)
     out = res.stdout + res.stderr

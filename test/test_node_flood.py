@@ -9,7 +9,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 import ros_helpers as rh  # noqa: E402
-from css_ros.messages import unpack_view_points  # noqa: E402
+from css_ros.io.messages import unpack_view_points  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
@@ -43,7 +43,7 @@ def test_flood_bounded_memory_counted_drops_responsive(tmp_path):
         assert (sem.width, sem.height) == (FLOOD_W // 2, FLOOD_H // 2)
         rss_before = node.rss_mb()
 
-        from css_ros.ros_conversions import camera_info_msg, header_msg, image_msg, pose_stamped_msg
+        from css_ros.ros.conversions import camera_info_msg, header_msg, image_msg, pose_stamped_msg
 
         t0 = time.monotonic()
         request_stamp = None

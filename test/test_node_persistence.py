@@ -11,9 +11,9 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 import ros_helpers as rh  # noqa: E402
-from css_ros.gaussians import GaussianModel  # noqa: E402
-from css_ros.messages import unpack_view_points  # noqa: E402
-from css_ros.semantic_map import SemanticMap  # noqa: E402
+from css_ros.engine.gaussians import GaussianModel  # noqa: E402
+from css_ros.io.messages import unpack_view_points  # noqa: E402
+from css_ros.engine.semantic_map import SemanticMap  # noqa: E402
 
 pytestmark = pytest.mark.slow
 PRIOR = 1e-3

@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from css_ros.camera import body_to_optical_rotation, quaternion_xyzw_to_matrix
+from css_ros.engine.camera import body_to_optical_rotation, quaternion_xyzw_to_matrix
 from css_ros.errors import CssError
-from css_ros.node import (BODY_TO_OPTICAL_XYZW, FrameJob, NodeParams, WarnLimiter, WorkQueue, body_to_optical,
-                          check_params, check_quaternion, resolve_data_path)
+from css_ros.io.paths import resolve_data_path
+from css_ros.ros.node import (BODY_TO_OPTICAL_XYZW, FrameJob, NodeParams, WarnLimiter, WorkQueue, body_to_optical,
+                          check_params, check_quaternion)
 
 
 def _frame(i: int) -> FrameJob:

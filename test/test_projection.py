@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from css_ros.projection import _argsort_positive
+from css_ros.engine.cpu.projection import _argsort_positive
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

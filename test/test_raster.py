@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from css_ros.backends import NumbaBackend
-from css_ros.projection import GaussianGeometry, project
-from css_ros.raster import bin_tiles, kappa_lists
-from css_ros.sh import eval_sh
+from css_ros.engine.cpu.backend import NumbaBackend
+from css_ros.engine.cpu.projection import GaussianGeometry, project
+from css_ros.engine.cpu.raster import bin_tiles, kappa_lists
+from css_ros.engine.sh import eval_sh
 from css_reference import kappa_reference
 from scenes import camera, edge_case_scene, random_scene
 
@@ -122,7 +122,7 @@ def test_no_dense_pixel_by_gaussian_storage():
 def test_group_culling_keeps_exactly_the_visible_gaussians(seed):
     """Whole Morton groups are skipped by a bounding-sphere test: the kept set must equal the set an
     independent per-Gaussian projection (the PyTorch twin) keeps, on a scene all around the camera."""
-    from css_ros.raster_torch import TorchBackend
+    from css_ros.engine.torch.raster import TorchBackend
 
     rng = np.random.default_rng(seed)
     from css_ros import GaussianModel

@@ -10,11 +10,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from css_ros.camera import Camera
-from css_ros.classes import ClassSet
-from css_ros.gaussians import GaussianModel
-from css_ros.messages import unpack_view_points
-from css_ros.replay import main
+from css_ros.engine.camera import Camera
+from css_ros.engine.classes import ClassSet
+from css_ros.engine.gaussians import GaussianModel
+from css_ros.io.messages import unpack_view_points
+from css_ros.evaluation.replay import main
 
 W, H = 64, 48
 FX = 50.0

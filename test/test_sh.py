@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from css_ros.sh import SH_C0, eval_sh
+from css_ros.engine.sh import SH_C0, eval_sh
 
 
 def basis(dirs):

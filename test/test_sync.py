@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from css_ros.sync import FrameSynchronizer
+from css_ros.io.sync import FrameSynchronizer
 
 MS = 1_000_000
 

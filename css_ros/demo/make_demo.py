@@ -26,8 +26,8 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
-from .errors import CssError
-from .messages import array_to_image_fields, ns_to_sec_nanosec
+from ..errors import CssError
+from ..io.messages import array_to_image_fields, ns_to_sec_nanosec
 
 __all__ = ["DemoRenderer", "DemoStats", "TOPICS", "main", "make_demo", "systematic_rule_masks"]
 
@@ -72,7 +72,7 @@ class DemoStats:
 
 
 def _camera_k(width: int, height: int) -> np.ndarray:
-    from .camera import intrinsics_from_fov
+    from ..engine.camera import intrinsics_from_fov
 
     return intrinsics_from_fov(width, height, FOV_X_DEG)
 
@@ -98,7 +98,7 @@ class DemoRenderer:
     def __init__(self, model: Any, class_ids: np.ndarray, num_classes: int,
                  rule_masks: Sequence[np.ndarray] = (), rule_targets: Sequence[int] = (),
                  backend: str = "numba") -> None:
-        from .semantic_map import SemanticMap
+        from ..engine.semantic_map import SemanticMap
 
         class_ids = np.asarray(class_ids, dtype=np.int64)
         C = int(num_classes)
@@ -258,9 +258,9 @@ def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], f
     Raises:
         CssError: ``out/bag`` exists and ``overwrite`` is False, or invalid arguments.
     """
-    from .camera import Camera
-    from .demo_scene import CLASS_NAMES, build_scene_arrays, demo_class_set
-    from .gaussians import GaussianModel
+    from ..engine.camera import Camera
+    from .scene import CLASS_NAMES, build_scene_arrays, demo_class_set
+    from ..engine.gaussians import GaussianModel
     from .segmentation_noise import DEFAULT_SYSTEMATIC, SegmentationNoise
     from .trajectory import LATE_PHASE_START, robot_trajectory
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .errors import CssError
+from ..errors import CssError
 
 
 @dataclass(frozen=True)

@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING, Iterator, Sequence
 import numpy as np
 import torch
 
-from .projection import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN
-from .raster import TILE_SIZE, RenderBuffers
-from .sh import eval_sh
+from ..buffers import RenderBuffers
+from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, TILE_SIZE
+from ..sh import eval_sh
 
 if TYPE_CHECKING:
-    from .camera import Camera
-    from .gaussians import GaussianModel
+    from ..camera import Camera
+    from ..gaussians import GaussianModel
 
 
 @dataclass

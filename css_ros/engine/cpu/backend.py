@@ -1,36 +1,19 @@
-"""Rasteriser backends behind one small protocol; adding a backend is adding a registry entry."""
+"""The compiled CPU backend: numba projection, tile binning and per-pixel kernels behind the
+:class:`~css_ros.engine.backends.RasterBackend` protocol."""
 from __future__ import annotations
 
 import queue
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from .errors import CssError
+from .projection import GaussianGeometry, ProjectionScratch, project
+from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
 
 if TYPE_CHECKING:
-    from .camera import Camera
-    from .gaussians import GaussianModel
-    from .raster import RenderBuffers
-
-
-class RasterBackend(Protocol):
-    """What SemanticMap needs from a rasteriser. ``frame`` is the backend's own per-view state
-    (projection + tile bins), computed once by :meth:`prepare` and reused by update and render."""
-
-    def prepare(self, camera: "Camera") -> Any: ...
-
-    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
-        """concentrations[n, c] += sum_i kappa_in y_i^c (labels (H, W) int32, -1 = none; weights (H, W))."""
-
-    def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
-               bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
-        """Composite colour, E, Var (argmax class), kappa_b and evidence from the current concentrations."""
-
-    def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
-                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(expectation, variance) images of several query views of one map state, in order: the
-        inputs of U_var and U_exp. Exactly what ``render`` gives for them, possibly computed faster."""
+    from ..buffers import RenderBuffers
+    from ..camera import Camera
+    from ..gaussians import GaussianModel
 
 
 class NumbaBackend:
@@ -41,24 +24,16 @@ class NumbaBackend:
     """
 
     def __init__(self, model: "GaussianModel") -> None:
-        from .projection import GaussianGeometry, ProjectionScratch
-        from .raster import ContributionStore
-
         self.geometry = GaussianGeometry.from_model(model)
         self._scratch = ProjectionScratch()
         self._store = ContributionStore()
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
-        from .projection import project
-        from .raster import bin_tiles
-
         proj = project(self.geometry, camera, self._scratch)
         return proj, bin_tiles(proj, camera.width, camera.height), camera
 
     def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
-        from .raster import accumulate_update, add_increments
-
         proj, bins, _ = frame
         self._store.owner = None
         acc = accumulate_update(proj, bins, labels, weights, concentrations.shape[1], self._store)
@@ -66,9 +41,7 @@ class NumbaBackend:
         add_increments(concentrations, proj.ids, acc)
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
-               bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
-        from .raster import dirichlet_attributes, render_semantic
-
+               bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
         attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors)
         store = self._store if self._store.owner is frame else None
@@ -89,8 +62,6 @@ class NumbaBackend:
         import numba
         from concurrent.futures import ThreadPoolExecutor
 
-        from .projection import ProjectionScratch, project
-        from .raster import bin_tiles, dirichlet_attributes, render_semantic
 
         no_colors = np.empty((0, 3))
 
@@ -122,24 +93,3 @@ class NumbaBackend:
 
         with ThreadPoolExecutor(workers, thread_name_prefix="css-score") as pool:
             yield from pool.map(work, cameras[1:])
-
-
-def _torch_backend(model: "GaussianModel") -> RasterBackend:
-    from .raster_torch import TorchBackend
-
-    return TorchBackend(model)
-
-
-BACKENDS: dict[str, Callable[["GaussianModel"], RasterBackend]] = {
-    "numba": NumbaBackend,
-    "torch": _torch_backend,
-}
-
-
-def make_backend(name: str, model: "GaussianModel") -> RasterBackend:
-    """Instantiate the backend registered under ``name`` for ``model``."""
-    try:
-        factory = BACKENDS[name]
-    except KeyError:
-        raise CssError(f"unknown backend '{name}' (choose from {', '.join(BACKENDS)})") from None
-    return factory(model)

@@ -10,7 +10,7 @@ from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from .messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points, stamp_to_ns
+from ..io.messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points, stamp_to_ns
 
 __all__ = [
     "time_msg", "header_msg", "image_msg", "view_points_msg", "camera_info_msg", "pose_msg",

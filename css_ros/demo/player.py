@@ -13,8 +13,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .errors import CssError
-from .messages import image_to_array, ns_to_sec_nanosec, stamp_to_ns, unpack_view_points
+from ..errors import CssError
+from ..io.paths import resolve_data_path
+from ..io.messages import image_to_array, ns_to_sec_nanosec, stamp_to_ns, unpack_view_points
 
 DEFAULT_BAG = "bags/demo/bag"
 #: Input topics of css_node (SPEC §8) replayed from the bag; the ground truth is only used for the accuracy print.
@@ -67,10 +68,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _resolve(path: str) -> Path:
-    from .node import resolve_data_path
-
-    return resolve_data_path(path)
 
 
 def start_node(args: argparse.Namespace, bag: Path) -> subprocess.Popen:
@@ -171,8 +168,8 @@ class DemoPlayer:
     # ---------------------------------------------------------------- playing
     def create_publishers(self, bag_path: Path) -> None:
         """One publisher per played topic of the bag, created before playing so discovery completes first."""
-        from .bag_io import InputBag
-        from .ros_conversions import _rclpy_class
+        from ..io.bag import InputBag
+        from ..ros.conversions import _rclpy_class
 
         with InputBag(bag_path) as bag:
             topics = bag.topics()
@@ -194,8 +191,8 @@ class DemoPlayer:
         return False
 
     def play(self, bag_path: Path) -> int:
-        from .bag_io import InputBag
-        from .ros_conversions import to_rclpy
+        from ..io.bag import InputBag
+        from ..ros.conversions import to_rclpy
 
         args = self.args
         played = 0
@@ -304,7 +301,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     cut = raw.index("--ros-args") if "--ros-args" in raw else len(raw)
     args = build_parser().parse_args(raw[:cut])
     ros_args = raw[cut:]
-    bag = _resolve(args.bag)
+    bag = resolve_data_path(args.bag)
     if not bag.exists():
         print(f"css_demo: bag not found: {bag} (generate the demo with css_make_demo, or pass a bag)",
               file=sys.stderr)

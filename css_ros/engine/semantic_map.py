@@ -11,17 +11,18 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 
 import numpy as np
 
+from ..errors import InputError, MapError
 from .backends import make_backend
-from .errors import InputError, MapError
+from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD,
+                   VAR_FLOOR)
 
 if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
 
 MAP_FORMAT_VERSION = 1
-VAR_FLOOR = 1e-30  # variances are floored here before the log of U_var (a perfectly certain pixel)
 
-BackendName = Literal["numba", "torch"]
+BackendName = Literal["numba", "torch", "cuda"]
 
 
 @dataclass
@@ -90,8 +91,9 @@ class SemanticMap:
         background_rgb: colour behind all Gaussians, RGB in [0, 1].
     """
 
-    def __init__(self, model: "GaussianModel", num_classes: int, prior: float = 1e-3,
-                 background: float = 1e-3, ignore_label: int = 255, unknown_threshold: float = 0.5,
+    def __init__(self, model: "GaussianModel", num_classes: int, prior: float = DEFAULT_PRIOR,
+                 background: float = DEFAULT_BACKGROUND, ignore_label: int = DEFAULT_IGNORE_LABEL,
+                 unknown_threshold: float = DEFAULT_UNKNOWN_THRESHOLD,
                  backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
         if int(num_classes) < 1:
             raise MapError(f"num_classes must be >= 1, got {num_classes}")

@@ -19,9 +19,10 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN, ProjectedGaussians
+from ..buffers import RenderBuffers
+from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+from .projection import ProjectedGaussians
 
-TILE_SIZE = 8        # px
 # Floating-point reassociation and contraction (FMA) for the hot loops; no-NaN/no-Inf assumptions are
 # not made (inputs are sanitised, but comparisons against NaN must keep their meaning).
 _FAST = {"contract", "reassoc", "arcp"}
@@ -563,19 +564,6 @@ def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
 
 def _store_arrays(store: ContributionStore) -> tuple[np.ndarray, ...]:
     return store.k, store.v, store.off, store.cnt, store.t
-
-
-@dataclass
-class RenderBuffers:
-    """Raw per-pixel outputs of the render kernel (see SemanticMap.render for meaning)."""
-
-    labels: np.ndarray        # (H, W) int32
-    expectation: np.ndarray   # (H, W) float64
-    variance: np.ndarray      # (H, W) float64
-    background: np.ndarray    # (H, W) float64
-    evidence: np.ndarray      # (H, W) float64
-    rgb: np.ndarray           # (H, W, 3) float64 in [0, inf)
-    probabilities: np.ndarray | None  # (H, W, C) float64
 
 
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,

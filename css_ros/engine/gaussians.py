@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from css_ros.errors import ModelError
-from css_ros.sh import SH_C0, num_sh_coeffs
+from ..errors import ModelError
+from .sh import SH_C0, num_sh_coeffs
 
 __all__ = ["GaussianModel", "SH_C0", "num_sh_coeffs", "sh_degree_from_rest_count"]
 

@@ -13,7 +13,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, ReaderError, Sto
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
-from .errors import CssError
+from ..errors import BagError, CssError
 from .messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points
 
 if TYPE_CHECKING:
@@ -27,10 +27,6 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
 POINTCLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
-
-
-class BagError(CssError):
-    """A bag cannot be opened, lacks a topic, has a topic of the wrong type, or is corrupt."""
 
 
 def typestore() -> "Typestore":

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 if TYPE_CHECKING:
-    from .classes import ClassSet
+    from ..engine.classes import ClassSet
 
 #: plot style per sparsification signal
 _STYLE = {

@@ -21,10 +21,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .classes import ClassSet
+from ..engine.classes import ClassSet
 
 if TYPE_CHECKING:
-    from .gaussians import GaussianModel
+    from ..engine.gaussians import GaussianModel
 
 __all__ = [
     "CLASS_NAMES",
@@ -637,7 +637,7 @@ def _shade(colors: np.ndarray, pos: np.ndarray, normal: np.ndarray) -> np.ndarra
 # ----------------------------------------------------------------------------------------------- assembly
 def _frames_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     """Quaternions (n, 4) (w, x, y, z) of rotation matrices (n, 3, 3) (Shepperd, vectorised)."""
-    from .camera import matrix_to_quaternion_xyzw
+    from ..engine.camera import matrix_to_quaternion_xyzw
 
     q = matrix_to_quaternion_xyzw(R)
     return np.concatenate([q[:, 3:4], q[:, :3]], axis=1)
@@ -739,7 +739,7 @@ def build_indoor_scene(num_gaussians: int, seed: int = 0) -> tuple["GaussianMode
         (model, class_ids): an SH-degree-0 :class:`GaussianModel` in the map frame (metres) and the ground-truth
         class id (N,) int64 of every Gaussian (ids index :data:`CLASS_NAMES`).
     """
-    from .gaussians import GaussianModel
+    from ..engine.gaussians import GaussianModel
 
     s = build_scene_arrays(num_gaussians, seed)
     model = GaussianModel.from_activated(s.means, s.scales, s.quats_wxyz, s.opacities, s.colors)

@@ -10,8 +10,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
-from .messages import pose_to_arrays, stamp_to_ns, unpack_view_points
+from ..engine.camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from ..io.messages import pose_to_arrays, stamp_to_ns, unpack_view_points
 
 
 def yaw_about_map_z(angle: float) -> np.ndarray:
@@ -106,7 +106,7 @@ class NbvClient:
         import rclpy
         from geometry_msgs.msg import PoseStamped
 
-        from .ros_conversions import header_msg, pose_array_msg, pose_msg
+        from ..ros.conversions import header_msg, pose_array_msg, pose_msg
 
         with self.lock:
             pose = self.pose

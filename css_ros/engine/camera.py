@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from css_ros.errors import CameraError
+from ..errors import CameraError
 
 __all__ = [
     "Camera",

@@ -132,7 +132,7 @@ def robot_trajectory(num_frames: int, seed: int = 0, sway: bool = True) -> Traje
     T = np.tile(np.eye(4), (num_frames, 1, 1))
     T[:, :3, :3] = R
     T[:, :3, 3] = np.stack([x, y, z], 1)
-    from .camera import matrix_to_quaternion_xyzw
+    from ..engine.camera import matrix_to_quaternion_xyzw
 
     phase = np.where(times < t_wp[9], 1, np.where(times < t_wp[LATE_PHASE_START], 2, 3))
     return Trajectory(times=times, T_map_cam=T, positions=T[:, :3, 3].copy(),

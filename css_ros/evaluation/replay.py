@@ -15,19 +15,18 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from .bag_io import CAMERA_INFO_TYPE, IMAGE_TYPE, POSE_STAMPED_TYPE, BagError, InputBag, OutputBag
-from .camera import Camera
-from .classes import ClassSet
-from .errors import CameraError, CssError, InputError
-from .gaussians import GaussianModel
-from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
+from ..io.paths import find_demo_bag
+from ..io.bag import CAMERA_INFO_TYPE, IMAGE_TYPE, POSE_STAMPED_TYPE, BagError, InputBag, OutputBag
+from ..engine.camera import Camera
+from ..engine.classes import ClassSet
+from ..errors import CameraError, CssError, InputError
+from ..engine.gaussians import GaussianModel
+from ..io.messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
                        image_to_array, pose_to_arrays, stamp_to_ns)
 from .metrics import ConfusionMatrix, PixelSampler, psnr, sparsification_report, spearman
-from .semantic_map import RenderedView, SemanticMap
-from .sync import FrameSynchronizer
+from ..engine.semantic_map import RenderedView, SemanticMap
+from ..io.sync import FrameSynchronizer
 
-PACKAGE = "css_ros"
-DEFAULT_DEMO = Path("bags") / "demo" / "bag"
 
 #: kind -> default topic (SPEC §8 names, absolute).
 DEFAULT_TOPICS = {
@@ -75,22 +74,6 @@ class ReplayConfig:
             if isinstance(v, Path):
                 d[k] = str(v)
         return d
-
-
-def find_demo_bag() -> Path | None:
-    """Locate the shipped demo bag ``bags/demo/bag``.
-
-    Looked up, in order: relative to the current directory; in every parent directory of this
-    package file (a source checkout or an editable install finds the repository's ``bags/demo``);
-    in ``<prefix>/share/css_ros/bags/demo`` of the Python prefix (a colcon / pip install).
-    """
-    candidates = [Path.cwd() / DEFAULT_DEMO]
-    candidates += [parent / DEFAULT_DEMO for parent in Path(__file__).resolve().parents]
-    candidates.append(Path(sys.prefix) / "share" / PACKAGE / DEFAULT_DEMO)
-    for c in candidates:
-        if c.is_dir():
-            return c
-    return None
 
 
 def default_out_dir(bag: Path) -> Path:

@@ -11,20 +11,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit, prange
 
-from .sh import SH_C0, SH_C1, SH_C2, SH_C3, eval_sh
+from ..sh import SH_C0, SH_C1, SH_C2, SH_C3, eval_sh
+from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN
 
 if TYPE_CHECKING:
-    from .camera import Camera
-    from .gaussians import GaussianModel
+    from ..camera import Camera
+    from ..gaussians import GaussianModel
 
-NEAR_PLANE = 0.01           # m; Gaussians with camera depth z <= this are culled
-COV2D_DILATION = 0.3        # px^2 added to the screen covariance diagonal
-ALPHA_MIN = 1.0 / 255.0     # smaller per-pixel alphas are skipped
-ALPHA_MAX = 0.99            # per-pixel alpha clamp
-T_MIN = 1e-4                # compositing stops before transmittance would drop below this
 GROUP_SIZE = 128            # Gaussians per culling group (consecutive rows in Morton order)
 BLOCK = 32                  # px; screen blocks that order the projected rows for cache locality
-FOV_CLAMP = 0.3             # J is evaluated at the view ray clamped to 1.3 x the half field of view
 
 
 @dataclass(frozen=True)

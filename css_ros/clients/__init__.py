@@ -1,0 +1,1 @@
+"""Topic clients of a running `css_node` (next-best-view loop)."""

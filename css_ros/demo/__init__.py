@@ -1,0 +1,1 @@
+"""The demo: procedural scene, trajectory, segmentation noise, bag generator and live player."""

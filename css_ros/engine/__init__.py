@@ -1,0 +1,14 @@
+"""The ROS-free CSS engine: splat model, cameras, Dirichlet semantic map and its backends.
+
+Nothing here imports rclpy; numba is imported when the CPU backend is first used and torch only
+when the torch backend is asked for.
+"""
+from __future__ import annotations
+
+from .camera import Camera, body_to_optical_rotation, intrinsics_from_fov
+from .classes import ClassSet
+from .gaussians import GaussianModel
+from .semantic_map import RenderedView, SemanticMap, UpdateStats, image_uncertainty
+
+__all__ = ["Camera", "ClassSet", "GaussianModel", "RenderedView", "SemanticMap", "UpdateStats",
+           "body_to_optical_rotation", "image_uncertainty", "intrinsics_from_fov"]

@@ -1,0 +1,1 @@
+"""Offline evaluation: metrics, bag replay (`css_replay`) and its report."""

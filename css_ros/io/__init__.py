@@ -1,0 +1,1 @@
+"""ROS-free input/output: message <-> array conversion, frame decoding, synchronisation, topics, bags."""
