@@ -61,7 +61,7 @@ setup(
     entry_points={
         "console_scripts": [
             "css_node = css_ros.ros.node:main",
-            "css_replay = css_ros.evaluation.replay:main",
+            "css_replay = css_ros.evaluation.cli:main",
             "css_make_demo = css_ros.demo.make_demo:main",
             "css_demo = css_ros.demo.player:main",
             "css_nbv_client = css_ros.clients.nbv_client:main",

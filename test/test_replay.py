@@ -14,7 +14,7 @@ from css_ros.engine.camera import Camera
 from css_ros.engine.classes import ClassSet
 from css_ros.engine.gaussians import GaussianModel
 from css_ros.io.messages import unpack_view_points
-from css_ros.evaluation.replay import main
+from css_ros.evaluation.cli import main
 
 W, H = 64, 48
 FX = 50.0

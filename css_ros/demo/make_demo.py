@@ -15,7 +15,6 @@ mono8 (255 = no label), ``/camera_info`` sensor_msgs/CameraInfo, ``/pose`` geome
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import shutil
 import sys
@@ -27,19 +26,11 @@ from typing import Any, Literal, Sequence
 import numpy as np
 
 from ..errors import CssError
-from ..io.messages import array_to_image_fields, ns_to_sec_nanosec
+from ..io.bag import BagWriter
+from ..io.topics import BAG_TOPICS
 
-__all__ = ["DemoRenderer", "DemoStats", "TOPICS", "main", "make_demo", "systematic_rule_masks"]
+__all__ = ["DemoRenderer", "DemoStats", "main", "make_demo", "systematic_rule_masks"]
 
-#: Topic names written to the bag (SPEC section 8 inputs plus the ground truth).
-TOPICS = {
-    "image": "/image",
-    "segmentation": "/segmentation",
-    "confidence": "/segmentation_confidence",
-    "gt": "/segmentation_gt",
-    "camera_info": "/camera_info",
-    "pose": "/pose",
-}
 CAMERA_FRAME = "camera_optical"
 MAP_FRAME = "map"
 START_NS = 1_700_000_000_000_000_000  #: stamp of frame 0 (fixed: no wall clock in the output)
@@ -47,10 +38,6 @@ GT_CONCENTRATION = 1e4  #: one-hot concentration used to render ground-truth lab
 FOV_X_DEG = 64.0  #: horizontal field of view of the demo camera
 #: Defaults of the shipped demo (sized so bags/demo stays well under 15 MB and replays in well under 2 min).
 DEFAULTS = {"num_gaussians": 50_000, "frames": 120, "width": 256, "height": 192}
-
-_IMAGE = "sensor_msgs/msg/Image"
-_INFO = "sensor_msgs/msg/CameraInfo"
-_POSE = "geometry_msgs/msg/PoseStamped"
 
 
 @dataclass
@@ -170,81 +157,6 @@ def systematic_rule_masks(scene: Any, class_names: Sequence[str], rules: Sequenc
     return masks, targets
 
 
-class _BagWriter:
-    """Thin rosbags writer for the demo topics (Jazzy typestore, CDR)."""
-
-    def __init__(self, path: Path, storage: Literal["mcap", "sqlite3"]) -> None:
-        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-        from rosbags.typesys import Stores, get_typestore
-
-        self.store = get_typestore(Stores.ROS2_JAZZY)
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        self.writer = Writer(path, version=9, storage_plugin=plugin)
-        self.mcap = storage == "mcap"
-        if self.mcap:  # zstd-compressed MCAP chunks: readable by ros2 bag and every MCAP reader
-            self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self.conns: dict[str, Any] = {}
-        self.T = self.store.types
-
-    def open(self) -> None:
-        self.writer.open()
-        storage = getattr(self.writer, "storage", None)
-        if self.mcap and callable(getattr(storage, "compressor", None)):
-            # rosbags compresses MCAP chunks with zstd's default level; level 19 makes the shipped demo ~20 %
-            # smaller (still standard zstd chunks). Skipped silently if a rosbags version lacks the hook.
-            try:
-                from compression import zstd  # Python >= 3.14
-            except ImportError:
-                try:
-                    from backports import zstd
-                except ImportError:
-                    zstd = None
-            if zstd is not None:
-                storage.compressor = functools.partial(zstd.compress, level=19)
-        for key, msgtype in (("camera_info", _INFO), ("pose", _POSE), ("image", _IMAGE), ("segmentation", _IMAGE),
-                             ("confidence", _IMAGE), ("gt", _IMAGE)):
-            self.conns[key] = self.writer.add_connection(TOPICS[key], msgtype, typestore=self.store)
-
-    def close(self) -> None:
-        self.writer.close()
-
-    def set_custom_data(self, key: str, value: str) -> None:
-        self.writer.set_custom_data(key, value)
-
-    def header(self, stamp_ns: int, frame_id: str) -> Any:
-        sec, nanosec = ns_to_sec_nanosec(stamp_ns)
-        return self.T["std_msgs/msg/Header"](stamp=self.T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
-                                             frame_id=frame_id)
-
-    def _write(self, key: str, msg: Any, msgtype: str, stamp_ns: int) -> None:
-        self.writer.write(self.conns[key], stamp_ns, self.store.serialize_cdr(msg, msgtype))
-
-    def image(self, key: str, array: np.ndarray, encoding: str, stamp_ns: int) -> None:
-        f = array_to_image_fields(array, encoding)
-        msg = self.T[_IMAGE](header=self.header(stamp_ns, CAMERA_FRAME), height=f["height"], width=f["width"],
-                             encoding=f["encoding"], is_bigendian=int(f["is_bigendian"]), step=f["step"],
-                             data=f["data"])
-        self._write(key, msg, _IMAGE, stamp_ns)
-
-    def camera_info(self, K: np.ndarray, width: int, height: int, stamp_ns: int) -> None:
-        P = np.zeros((3, 4))
-        P[:, :3] = K
-        roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        msg = self.T[_INFO](header=self.header(stamp_ns, CAMERA_FRAME), height=height, width=width,
-                            distortion_model="plumb_bob", d=np.zeros(5), k=K.reshape(-1).astype(np.float64),
-                            r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi)
-        self._write("camera_info", msg, _INFO, stamp_ns)
-
-    def pose(self, position: np.ndarray, quat_xyzw: np.ndarray, stamp_ns: int) -> None:
-        T = self.T
-        pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2])),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=float(quat_xyzw[0]), y=float(quat_xyzw[1]),
-                                                          z=float(quat_xyzw[2]), w=float(quat_xyzw[3])))
-        msg = T[_POSE](header=self.header(stamp_ns, MAP_FRAME), pose=pose)
-        self._write("pose", msg, _POSE, stamp_ns)
-
-
 def _dir_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
@@ -293,7 +205,7 @@ def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], f
         shutil.rmtree(scratch)
     scratch.mkdir()
     tmp_dir = scratch / bag_dir.name
-    writer = _BagWriter(tmp_dir, storage)
+    writer = BagWriter(tmp_dir, storage, zstd_level=19)
     writer.set_custom_data("css_ros.demo", json.dumps(
         {"generator": "css_make_demo", "num_gaussians": num_gaussians, "frames": frames, "width": width,
          "height": height, "seed": seed}, sort_keys=True))
@@ -301,33 +213,32 @@ def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], f
     renderer = DemoRenderer(model, scene.class_ids, classes.num_classes, masks, targets, backend=backend)
     errors: list[float] = []
     unlabelled = 0
-    writer.open()
     try:
-        frame_iter: Any = range(frames)
-        if progress:
-            from tqdm import tqdm
+        with writer:
+            frame_iter: Any = range(frames)
+            if progress:
+                from tqdm import tqdm
 
-            frame_iter = tqdm(frame_iter, desc="css_make_demo", unit="frame", file=sys.stderr)
-        for i in frame_iter:
-            cam = Camera(K, width, height, traj.T_map_cam[i])
-            active = [noise.systematic_active(i, r, rule.probability) for r, rule in enumerate(DEFAULT_SYSTEMATIC)]
-            rgb, gt, biased = renderer.render(cam, active)
-            seg, conf = noise.apply(biased, i)
-            stamp = int(stamps[i])
-            writer.camera_info(K, width, height, stamp)
-            writer.pose(traj.positions[i], traj.quaternions_xyzw[i], stamp)
-            writer.image("image", rgb, "rgb8", stamp)
-            writer.image("segmentation", seg, "mono8", stamp)
-            writer.image("confidence", conf, "32FC1", stamp)
-            writer.image("gt", gt, "mono8", stamp)
-            valid = gt != 255
-            unlabelled += int(np.count_nonzero(~valid))
-            errors.append(float(np.count_nonzero((seg != gt) & valid)) / max(1, int(np.count_nonzero(valid))))
+                frame_iter = tqdm(frame_iter, desc="css_make_demo", unit="frame", file=sys.stderr)
+            for i in frame_iter:
+                cam = Camera(K, width, height, traj.T_map_cam[i])
+                active = [noise.systematic_active(i, r, rule.probability)
+                          for r, rule in enumerate(DEFAULT_SYSTEMATIC)]
+                rgb, gt, biased = renderer.render(cam, active)
+                seg, conf = noise.apply(biased, i)
+                stamp = int(stamps[i])
+                writer.write_camera_info(BAG_TOPICS["camera_info"], K, width, height, stamp, CAMERA_FRAME)
+                writer.write_pose(BAG_TOPICS["pose"], traj.positions[i], traj.quaternions_xyzw[i], stamp, MAP_FRAME)
+                writer.write_image(BAG_TOPICS["image"], rgb, "rgb8", stamp, CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["segmentation"], seg, "mono8", stamp, CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["confidence"], conf, "32FC1", stamp, CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["gt"], gt, "mono8", stamp, CAMERA_FRAME)
+                valid = gt != 255
+                unlabelled += int(np.count_nonzero(~valid))
+                errors.append(float(np.count_nonzero((seg != gt) & valid)) / max(1, int(np.count_nonzero(valid))))
     except BaseException:
-        writer.writer.abort()
         shutil.rmtree(scratch, ignore_errors=True)
         raise
-    writer.close()
     if bag_dir.exists():
         shutil.rmtree(bag_dir)
     tmp_dir.rename(bag_dir)

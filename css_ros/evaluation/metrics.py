@@ -84,15 +84,15 @@ class ConfusionMatrix:
         names = list(class_names) if class_names is not None else [f"class_{i}" for i in range(self.num_classes)]
         iou = self.iou()
         return {
-            "pixel_accuracy": _num(self.pixel_accuracy()),
-            "miou": _num(self.miou()),
-            "per_class_iou": {names[i]: _num(iou[i]) for i in range(self.num_classes)},
+            "pixel_accuracy": finite_or_none(self.pixel_accuracy()),
+            "miou": finite_or_none(self.miou()),
+            "per_class_iou": {names[i]: finite_or_none(iou[i]) for i in range(self.num_classes)},
             "classes_in_miou": int(np.count_nonzero(~np.isnan(iou))),
             "num_pixels": self.num_pixels,
         }
 
 
-def _num(x: float) -> float | None:
+def finite_or_none(x: float) -> float | None:
     """float for JSON, None for NaN / inf."""
     x = float(x)
     return x if np.isfinite(x) else None
@@ -211,8 +211,8 @@ def sparsification_report(
     return {
         "fractions": [float(f) for f in fractions],
         "num_samples": int(error.size),
-        "curves": {k: [_num(v) for v in c] for k, c in curves.items()},
-        "ause": {k: _num(ause(c, oracle, fractions)) for k, c in curves.items()},
+        "curves": {k: [finite_or_none(v) for v in c] for k, c in curves.items()},
+        "ause": {k: finite_or_none(ause(c, oracle, fractions)) for k, c in curves.items()},
     }
 
 

@@ -1,11 +1,12 @@
-"""rosbag2 input/output for css_replay: read any bag (sqlite3 or MCAP) and write the node's output topics."""
+"""rosbag2 input/output, the one reader and writer of the package: read any bag (sqlite3 or MCAP), write MCAP/sqlite3 bags."""
 from __future__ import annotations
 
+import functools
 import shutil
 import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Literal, Sequence
 
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -15,6 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from ..errors import BagError, CssError
 from .messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points
+from .topics import CAMERA_INFO_TYPE, IMAGE_TYPE, POINTCLOUD2_TYPE, POSE_STAMPED_TYPE
 
 if TYPE_CHECKING:
     from rosbags.interfaces import Connection
@@ -22,11 +24,6 @@ if TYPE_CHECKING:
 
 #: Exceptions rosbags raises for unreadable bags (truncated, corrupt, wrong format); translated to BagError.
 ROSBAGS_ERRORS: tuple[type[BaseException], ...] = (AnyReaderError, ReaderError, SerdeError, WriterError, sqlite3.Error)
-
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
-POINTCLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
 
 
 def typestore() -> "Typestore":
@@ -140,76 +137,127 @@ def _msg(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
-class OutputBag:
-    """Writes the node's output topics (SPEC §8) into a new rosbag2 bag (MCAP storage, format version 9, zstd chunks).
+class BagWriter:
+    """Writes a new rosbag2 bag (format version 9): the one writer of the package (replay outputs, demo
+    generator, importers).
 
-    Every message's header stamp and the bag log time are the input frame's stamp. Use as a context
-    manager; an existing bag directory at ``path`` is replaced.
+    MCAP storage with zstd-compressed chunks (readable by ``ros2 bag`` and every MCAP reader) or
+    sqlite3. Connections are added on first use, so the connection order is the order of first
+    writes (a deterministic writer gives a byte-identical bag). Message header stamps equal the bag
+    log times. Use as a context manager: an existing directory at ``path`` is replaced; an exception
+    inside the ``with`` block aborts the bag (no half-written metadata).
+
+    Args:
+        path: bag directory to create.
+        storage: ``"mcap"`` or ``"sqlite3"``.
+        compress: zstd chunk compression (MCAP only).
+        zstd_level: zstd level of the MCAP chunks (None = the library default). Skipped silently when
+            the installed rosbags has no hook for it.
     """
 
-    def __init__(self, path: str | Path, namespace: str = "/css_node", compress: bool = True) -> None:
+    def __init__(self, path: str | Path, storage: Literal["mcap", "sqlite3"] = "mcap", compress: bool = True,
+                 zstd_level: int | None = None) -> None:
         self.path = Path(path)
-        self.compress = compress
-        self.namespace = namespace.rstrip("/")
+        self.storage = storage
+        self.compress = compress and storage == "mcap"
+        self.zstd_level = zstd_level
         self.store = typestore()
         self._writer: Writer | None = None
         self._conns: dict[str, Connection] = {}
+        self._custom: dict[str, str] = {}
         self.count = 0
 
-    def topic(self, name: str) -> str:
-        """Full output topic name, e.g. ``/css_node/semantic``."""
-        return f"{self.namespace}/{name}"
+    def set_custom_data(self, key: str, value: str) -> None:
+        """Store a string in the bag's metadata (``custom_data``)."""
+        self._custom[key] = value
+        if self._writer is not None:
+            self._writer.set_custom_data(key, value)
 
-    def __enter__(self) -> "OutputBag":
+    def __enter__(self) -> "BagWriter":
         if self.path.exists():
             shutil.rmtree(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
         try:
-            self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-            if self.compress:  # zstd-compressed MCAP chunks (readable by ros2 bag / any MCAP reader)
+            self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+            if self.compress:
                 self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             self._writer.open()
         except ROSBAGS_ERRORS as exc:
-            raise BagError(f"cannot create output bag {self.path}: {_msg(exc)}") from None
+            raise BagError(f"cannot create bag {self.path}: {_msg(exc)}") from None
+        if self.compress and self.zstd_level is not None:
+            _set_zstd_level(self._writer, self.zstd_level)
+        for key, value in self._custom.items():
+            self._writer.set_custom_data(key, value)
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if self._writer is None:
+            return
+        writer, self._writer = self._writer, None
+        if exc_type is not None and hasattr(writer, "abort"):
+            writer.abort()
+            shutil.rmtree(self.path, ignore_errors=True)
+        else:
+            writer.close()
 
-    def _conn(self, name: str, msgtype: str) -> "Connection":
-        topic = self.topic(name)
+    def _conn(self, topic: str, msgtype: str) -> "Connection":
         if topic not in self._conns:
             assert self._writer is not None
             self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.store)
         return self._conns[topic]
 
-    def _header(self, stamp_ns: int, frame_id: str) -> Any:
+    def header(self, stamp_ns: int, frame_id: str) -> Any:
+        """A std_msgs/Header (rosbags type) with the stamp [ns] and frame id."""
         sec, nanosec = ns_to_sec_nanosec(stamp_ns)
         types = self.store.types
         return types["std_msgs/msg/Header"](
             stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
         )
 
-    def _write(self, name: str, msgtype: str, msg: Any, stamp_ns: int) -> None:
+    def write(self, topic: str, msgtype: str, msg: Any, stamp_ns: int) -> None:
+        """Serialise a rosbags message of ``msgtype`` onto ``topic`` at log time ``stamp_ns``."""
         if self._writer is None:
-            raise BagError("output bag is not open")
+            raise BagError("bag is not open (use BagWriter as a context manager)")
         data = self.store.serialize_cdr(msg, msgtype)
-        self._writer.write(self._conn(name, msgtype), int(stamp_ns), data)
+        self._writer.write(self._conn(topic, msgtype), int(stamp_ns), data)
         self.count += 1
 
-    def write_image(self, name: str, array: np.ndarray, encoding: str, stamp_ns: int, frame_id: str) -> None:
-        """Write ``array`` as a sensor_msgs/Image on ``<namespace>/<name>``."""
+    def write_image(self, topic: str, array: np.ndarray, encoding: str, stamp_ns: int, frame_id: str) -> None:
+        """Write ``array`` as a sensor_msgs/Image."""
         f = array_to_image_fields(array, encoding)
         msg = self.store.types[IMAGE_TYPE](
-            header=self._header(stamp_ns, frame_id),
+            header=self.header(stamp_ns, frame_id),
             height=f["height"], width=f["width"], encoding=f["encoding"],
             is_bigendian=int(f["is_bigendian"]), step=f["step"], data=f["data"],
         )
-        self._write(name, IMAGE_TYPE, msg, stamp_ns)
+        self.write(topic, IMAGE_TYPE, msg, stamp_ns)
 
-    def write_view_points(self, name: str, positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray,
+    def write_camera_info(self, topic: str, K: np.ndarray, width: int, height: int, stamp_ns: int,
+                          frame_id: str) -> None:
+        """Write a rectified pinhole sensor_msgs/CameraInfo (K (3, 3) in pixels, no distortion)."""
+        T = self.store.types
+        P = np.zeros((3, 4))
+        P[:, :3] = K
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        msg = T[CAMERA_INFO_TYPE](header=self.header(stamp_ns, frame_id), height=int(height), width=int(width),
+                                  distortion_model="plumb_bob", d=np.zeros(5),
+                                  k=np.asarray(K, dtype=np.float64).reshape(-1), r=np.eye(3).reshape(-1),
+                                  p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi)
+        self.write(topic, CAMERA_INFO_TYPE, msg, stamp_ns)
+
+    def write_pose(self, topic: str, position: np.ndarray, quat_xyzw: np.ndarray, stamp_ns: int,
+                   frame_id: str) -> None:
+        """Write a geometry_msgs/PoseStamped (position [m], quaternion x, y, z, w)."""
+        T = self.store.types
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2])),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=float(quat_xyzw[0]), y=float(quat_xyzw[1]),
+                                                          z=float(quat_xyzw[2]), w=float(quat_xyzw[3])))
+        self.write(topic, POSE_STAMPED_TYPE, T[POSE_STAMPED_TYPE](header=self.header(stamp_ns, frame_id), pose=pose),
+                   stamp_ns)
+
+    def write_view_points(self, topic: str, positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray,
                           u_exp: np.ndarray, stamp_ns: int, frame_id: str) -> None:
         """Write a PointCloud2 with one point per scored view (SPEC §8 ``view_uncertainty`` layout)."""
         f = pack_view_points(positions, quats_xyzw, u_var, u_exp)
@@ -217,8 +265,23 @@ class OutputBag:
         fields = [types["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=d, count=c)
                   for (n, o, d, c) in f["fields"]]
         msg = types[POINTCLOUD2_TYPE](
-            header=self._header(stamp_ns, frame_id), height=f["height"], width=f["width"], fields=fields,
+            header=self.header(stamp_ns, frame_id), height=f["height"], width=f["width"], fields=fields,
             is_bigendian=bool(f["is_bigendian"]), point_step=f["point_step"], row_step=f["row_step"],
             data=f["data"], is_dense=bool(f["is_dense"]),
         )
-        self._write(name, POINTCLOUD2_TYPE, msg, stamp_ns)
+        self.write(topic, POINTCLOUD2_TYPE, msg, stamp_ns)
+
+
+def _set_zstd_level(writer: Any, level: int) -> None:
+    """Compress MCAP chunks at ``level`` (rosbags uses zstd's default level; 19 makes the demo ~20 % smaller)."""
+    storage = getattr(writer, "storage", None)
+    if not callable(getattr(storage, "compressor", None)):
+        return
+    try:
+        from compression import zstd  # Python >= 3.14
+    except ImportError:
+        try:
+            from backports import zstd
+        except ImportError:
+            return
+    storage.compressor = functools.partial(zstd.compress, level=level)

@@ -1,0 +1,147 @@
+"""``css_replay`` command line: arguments, path defaults, validation and the exit codes."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
+from ..errors import ConfigError, CssError
+from ..io.paths import find_demo_bag
+from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
+from .config import DEFAULT_SYNC_QUEUE, DEFAULT_SYNC_SLOP_S, ReplayConfig
+from .replay import default_out_dir, headline, run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="css_replay",
+        description="Replay a rosbag2 bag (sqlite3 or MCAP) through Continuous Semantic Splatting: fuse the "
+                    "segmentation into the splat model, write the node's output topics to a bag and evaluate "
+                    "against the ground-truth segmentation (metrics.json, plots, report.md).",
+    )
+    p.add_argument("bag", nargs="?", type=Path, default=None,
+                   help="bag directory (default: the shipped demo bags/demo/bag)")
+    p.add_argument("--model", type=Path, default=None, metavar="PLY",
+                   help="INRIA 3DGS PLY model (default: <bag parent>/model.ply)")
+    p.add_argument("--classes", type=Path, default=None, metavar="YAML",
+                   help="class file YAML (default: <bag parent>/classes.yaml)")
+    p.add_argument("--num-classes", type=int, default=None, metavar="N",
+                   help="number of classes when no class file exists (anonymous names, generated palette)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="output directory (default: out/replay_<bagname>)")
+    for kind, topic in BAG_TOPICS.items():
+        opt = "--confidence-topic" if kind == "confidence" else f"--{kind.replace('_', '-')}-topic"
+        p.add_argument(opt, dest=f"topic_{kind}", default=topic, metavar="TOPIC",
+                       help=f"{kind} topic (default {topic})" + ("" if kind in ("segmentation", "pose", "camera_info")
+                                                              else "; '' = do not use"))
+    p.add_argument("--train-frames", type=int, default=None, metavar="K",
+                   help="update the map with the first K frames only; all frames are evaluated (default: all)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after this many usable frames")
+    p.add_argument("--prior", type=float, default=DEFAULT_PRIOR,
+                   help=f"Dirichlet prior alpha_0 per class (default {DEFAULT_PRIOR:g})")
+    p.add_argument("--background", type=float, default=DEFAULT_BACKGROUND,
+                   help=f"background concentration alpha_b (default {DEFAULT_BACKGROUND:g})")
+    p.add_argument("--unknown-threshold", type=float, default=None,
+                   help="label a rendered pixel 'no label' when its background weight kappa_b exceeds this "
+                        f"(default {DEFAULT_UNKNOWN_THRESHOLD:g}; 1.0 = never)")
+    p.add_argument("--ignore-label", type=int, default=DEFAULT_IGNORE_LABEL,
+                   help=f"'no label' value of label images (default {DEFAULT_IGNORE_LABEL})")
+    p.add_argument("--backend", choices=("numba", "torch"), default="numba", help="rasteriser backend")
+    p.add_argument("--sync-slop", type=float, default=DEFAULT_SYNC_SLOP_S, metavar="S",
+                   help="max stamp difference [s] between a segmentation and its pose/image/GT "
+                        f"(default {DEFAULT_SYNC_SLOP_S:g}, as css_node's sync_slop)")
+    p.add_argument("--sync-queue", type=int, default=DEFAULT_SYNC_QUEUE, help="pending messages kept per topic while syncing")
+    p.add_argument("--namespace", default=ReplayConfig.namespace,
+                   help=f"namespace of the output topics (default {ReplayConfig.namespace})")
+    p.add_argument("--max-pixels", type=int, default=4_000_000,
+                   help="pixels kept (uniform random subsample, fixed seed) for pixel sparsification")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pixel subsample and the random baseline")
+    p.add_argument("--examples", type=int, default=4, help="example frames in the report strip")
+    p.add_argument("--no-output-bag", action="store_true", help="do not write the output bag")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, only errors and the final line")
+    return p
+
+
+def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
+    """Turn parsed CLI arguments into a :class:`ReplayConfig` (default paths resolved, values validated)."""
+    bag = args.bag
+    if bag is None:
+        bag = find_demo_bag()
+        if bag is None:
+            raise ConfigError("no bag given and the demo bag bags/demo/bag was not found; "
+                           "pass a bag directory (or generate the demo with css_make_demo)")
+    bag = Path(bag)
+    if not bag.exists():
+        raise ConfigError(f"bag not found: {bag}")
+    base = bag.resolve().parent if bag.is_dir() else bag.resolve().parent
+    model = args.model if args.model is not None else base / "model.ply"
+    if not Path(model).is_file():
+        raise ConfigError(f"model not found: {model}" + ("" if args.model else " (pass --model)"))
+    classes = args.classes
+    if classes is None:
+        classes = base / "classes.yaml"
+        if not classes.is_file():
+            if args.num_classes is None:
+                raise ConfigError(f"class file not found: {classes} (pass --classes FILE or --num-classes N)")
+            classes = None
+    elif not Path(classes).is_file():
+        raise ConfigError(f"class file not found: {classes}")
+    for name in ("train_frames", "max_frames"):
+        v = getattr(args, name)
+        if v is not None and v < 0:
+            raise ConfigError(f"--{name.replace('_', '-')} must be >= 0")
+    if args.num_classes is not None and args.num_classes < 1:
+        raise ConfigError("--num-classes must be >= 1")
+    if args.prior <= 0 or args.background <= 0:
+        raise ConfigError("--prior and --background must be > 0")
+    topics = {kind: getattr(args, f"topic_{kind}") for kind in BAG_TOPICS}
+    for kind in ("segmentation", "pose", "camera_info"):
+        if not topics[kind]:
+            raise ConfigError(f"the {kind} topic is required")
+    return ReplayConfig(
+        bag=bag, model=Path(model), classes=Path(classes) if classes else None,
+        out=args.out if args.out is not None else default_out_dir(bag), num_classes=args.num_classes,
+        topics=topics, train_frames=args.train_frames, max_frames=args.max_frames, prior=args.prior,
+        background=args.background, unknown_threshold=args.unknown_threshold, ignore_label=args.ignore_label,
+        backend=args.backend, output_bag=not args.no_output_bag, quiet=args.quiet, sync_slop=args.sync_slop,
+        sync_queue=max(1, args.sync_queue), namespace=args.namespace, max_pixels=max(1000, args.max_pixels),
+        seed=args.seed, examples=max(0, args.examples),
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point; returns the process exit code (0 ok, 1 runtime error, 2 usage error)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse already printed the usage message
+        return int(exc.code or 0)
+    try:
+        cfg = resolve_paths(args)
+        metrics = run(cfg)
+    except CssError as exc:
+        print(f"css_replay: error: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"css_replay: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("css_replay: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - last resort: one line for the user, traceback on request
+        if os.environ.get("CSS_REPLAY_DEBUG"):
+            raise
+        print(f"css_replay: error: unexpected {type(exc).__name__}: {exc} "
+              "(set CSS_REPLAY_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
+    print(headline(metrics))
+    report = (cfg.out / "report.md").resolve()
+    print(f"report: {report}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

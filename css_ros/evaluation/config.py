@@ -1,0 +1,50 @@
+"""css_replay's configuration: one record of every option, defaults from the engine's SPEC constants."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR
+from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
+from ..io.topics import BAG_TOPICS, NODE_NAME
+
+#: Default sync tolerance [s] between a segmentation and its pose/image/GT (the node's ``sync_slop``).
+DEFAULT_SYNC_SLOP_S = 0.05
+#: Default pending messages kept per topic while synchronising (the node's ``queue_size``).
+DEFAULT_SYNC_QUEUE = 100
+
+
+@dataclass
+class ReplayConfig:
+    """Everything css_replay needs; the defaults are the CLI defaults (paths resolved in :func:`resolve_paths`)."""
+
+    bag: Path
+    model: Path
+    classes: Path | None
+    out: Path
+    num_classes: int | None = None
+    topics: dict[str, str] = field(default_factory=lambda: dict(BAG_TOPICS))
+    train_frames: int | None = None
+    max_frames: int | None = None
+    prior: float = DEFAULT_PRIOR
+    background: float = DEFAULT_BACKGROUND
+    unknown_threshold: float | None = None  # None = engine default
+    ignore_label: int = DEFAULT_IGNORE_LABEL
+    backend: str = "numba"
+    output_bag: bool = True
+    quiet: bool = False
+    sync_slop: float = DEFAULT_SYNC_SLOP_S  # s
+    sync_queue: int = DEFAULT_SYNC_QUEUE
+    namespace: str = "/" + NODE_NAME
+    max_pixels: int = 4_000_000
+    seed: int = 0
+    examples: int = 4
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        for k, v in d.items():
+            if isinstance(v, Path):
+                d[k] = str(v)
+        return d

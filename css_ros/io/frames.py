@@ -1,0 +1,141 @@
+"""The one frame decoder of the package: message -> validated arrays, used by css_node and css_replay.
+
+Each ``decode_*`` function takes a message (rclpy or rosbags; duck-typed on field names) and returns
+plain arrays, or raises :class:`FrameRejected` whose ``reason`` is a short, stable drop reason (the
+key of the warnings and counters of the node and of ``frames.skipped`` in css_replay's metrics) and
+whose message says what was wrong. Node and replay therefore accept and refuse exactly the same
+frames.
+
+Policies (documented in the README's reliability section):
+
+- **Confidence**: non-finite confidence values (NaN, ±inf) count as 0 (that pixel adds nothing) and
+  the rest of the frame is used; values are clipped to [0, 1]. ``SemanticMap.update`` applies the
+  same rule, so feeding it directly gives the same result.
+- **camera_info**: an invalid one (K not 3x3, zero/non-finite/negative focal length, principal point
+  or focal length outside :data:`INTRINSICS_BOUND`, size 0 or above ``max_image_pixels``) is refused
+  and the previous valid one stays in use; frames before the first valid camera_info are dropped.
+- **Pose**: non-finite or out-of-bounds positions (|x| > :data:`POSITION_BOUND_M`) and quaternions
+  whose norm is outside ``QUATERNION_NORM_TOLERANCE`` are refused; others are normalised.
+- **Images** (segmentation, confidence, colour, GT): unsupported encodings, truncated data and a
+  size different from the camera_info's are refused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..engine.camera import QUATERNION_NORM_TOLERANCE
+from ..errors import InputError
+from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
+                       image_to_array, pose_to_arrays)
+
+#: Largest image accepted by default [pixels] (4096 x 4096); node parameter / replay option ``max_image_pixels``.
+DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
+#: Focal lengths and principal points beyond this [px] are refused as an upstream bug.
+INTRINSICS_BOUND = 1e7
+#: Positions beyond this [m] from the map origin are refused (a planet-sized map is an upstream bug).
+POSITION_BOUND_M = 1e6
+
+
+class FrameRejected(InputError):
+    """A message cannot be used. ``reason`` is the stable drop reason; ``str(exc)`` the detail."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """A validated rectified pinhole: K (3, 3) float64 [px], image width and height [px]."""
+
+    K: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height, width), the shape of every image of a frame."""
+        return self.height, self.width
+
+
+def decode_camera_info(msg: Any, max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> Intrinsics:
+    """Validate a sensor_msgs/CameraInfo (distortion is ignored: images are rectified)."""
+    try:
+        K, width, height = camera_info_to_intrinsics(msg)
+    except (InputError, AttributeError, TypeError, ValueError) as exc:
+        raise FrameRejected("invalid camera_info", f"cannot read K/width/height: {exc}") from None
+    if width <= 0 or height <= 0:
+        raise FrameRejected("invalid camera_info", f"image size {width}x{height}")
+    if width * height > max_image_pixels:
+        raise FrameRejected("image too large", f"{width}x{height} = {width * height} pixels > max_image_pixels "
+                                               f"{max_image_pixels}")
+    if not np.all(np.isfinite(K)):
+        raise FrameRejected("invalid camera_info", "K holds non-finite values")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (fx > 0 and fy > 0):
+        raise FrameRejected("invalid camera_info", f"focal lengths must be > 0 (fx={fx:g}, fy={fy:g})")
+    if max(fx, fy, abs(cx), abs(cy), abs(K[0, 1])) > INTRINSICS_BOUND:
+        raise FrameRejected("invalid camera_info", f"intrinsics beyond {INTRINSICS_BOUND:g} px: {K.ravel().tolist()}")
+    if np.any(K[2] != (0.0, 0.0, 1.0)) or K[1, 0] != 0.0:
+        raise FrameRejected("invalid camera_info", f"K is not an upper-triangular pinhole matrix: {K.ravel().tolist()}")
+    return Intrinsics(K, int(width), int(height))
+
+
+def _image(msg: Any, allowed: tuple[str, ...], reason: str) -> np.ndarray:
+    try:
+        return image_to_array(msg, allowed=allowed)
+    except (InputError, AttributeError, TypeError, ValueError) as exc:
+        raise FrameRejected(reason, str(exc)) from None
+
+
+def check_size(array: np.ndarray, intrinsics: Intrinsics, what: str) -> None:
+    """Refuse an image whose size differs from the camera_info's."""
+    if array.shape[:2] != intrinsics.shape:
+        raise FrameRejected("size mismatch with camera_info",
+                            f"{what} {array.shape[1]}x{array.shape[0]}, camera_info "
+                            f"{intrinsics.width}x{intrinsics.height}")
+
+
+def decode_labels(msg: Any, what: str = "segmentation") -> np.ndarray:
+    """Label image (mono8/8UC1/mono16/16UC1) -> (H, W) int32 class ids."""
+    return _image(msg, LABEL_ENCODINGS, f"bad {what}").astype(np.int32)
+
+
+def decode_confidence(msg: Any) -> tuple[np.ndarray, int]:
+    """32FC1 confidence -> ((H, W) float32 in [0, 1], number of non-finite values set to 0)."""
+    conf = _image(msg, CONFIDENCE_ENCODINGS, "bad confidence").astype(np.float32)
+    finite = np.isfinite(conf)
+    bad = int(conf.size - np.count_nonzero(finite))
+    if bad:
+        conf = np.where(finite, conf, np.float32(0.0))
+    return np.clip(conf, 0.0, 1.0), bad
+
+
+def decode_image(msg: Any) -> np.ndarray:
+    """Colour camera image -> (H, W, 3) uint8 RGB (mono8 repeated over the channels)."""
+    rgb = _image(msg, COLOR_ENCODINGS, "bad image")
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[:, :, None], 3, axis=2)
+    return rgb
+
+
+def decode_pose(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """geometry_msgs/PoseStamped -> (position (3,) [m], unit quaternion (4,) x, y, z, w)."""
+    try:
+        position, quat = pose_to_arrays(msg.pose)
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise FrameRejected("invalid pose", f"cannot read the pose: {exc}") from None
+    if not np.all(np.isfinite(position)):
+        raise FrameRejected("invalid pose", f"non-finite position {position.tolist()}")
+    if np.max(np.abs(position)) > POSITION_BOUND_M:
+        raise FrameRejected("invalid pose", f"position {position.tolist()} beyond {POSITION_BOUND_M:g} m")
+    if not np.all(np.isfinite(quat)):
+        raise FrameRejected("invalid pose", f"non-finite quaternion {quat.tolist()}")
+    norm = float(np.linalg.norm(quat))
+    lo, hi = QUATERNION_NORM_TOLERANCE
+    if not lo <= norm <= hi:
+        raise FrameRejected("invalid pose", f"quaternion {quat.tolist()} has norm {norm:.4g} outside [{lo}, {hi}]")
+    return position, quat / norm

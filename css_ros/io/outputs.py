@@ -1,0 +1,34 @@
+"""The per-frame output images of SPEC §8, built once for css_node (publishing) and css_replay (bag writing)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from ..engine.classes import ClassSet
+    from ..engine.semantic_map import RenderedView
+
+
+def label_encoding(num_classes: int, ignore_label: int) -> str:
+    """Image encoding of a label image: mono8 when every class id and the ignore label fit in 8 bits, else mono16."""
+    return "mono8" if max(num_classes - 1, ignore_label) <= 255 else "mono16"
+
+
+def mono_to_rgb(image: np.ndarray) -> np.ndarray:
+    """(H, W) grey image -> (H, W, 3) by repeating the channel; (H, W, 3) is returned unchanged."""
+    return np.repeat(image[:, :, None], 3, axis=2) if image.ndim == 2 else image
+
+
+def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label: int) -> dict[str, tuple[np.ndarray, str]]:
+    """Output name -> (array, encoding) of one rendered frame, in publishing order (SPEC §8):
+    ``semantic`` (label ids), ``semantic_color`` (class colours, rgb8), ``expectation`` and ``variance``
+    (32FC1, of the argmax class), ``rendered_image`` (rgb8)."""
+    labels = view.labels
+    return {
+        "semantic": (labels, label_encoding(classes.num_classes, ignore_label)),
+        "semantic_color": (classes.colorize(labels, ignore_label=ignore_label), "rgb8"),
+        "expectation": (view.expectation, "32FC1"),
+        "variance": (view.variance, "32FC1"),
+        "rendered_image": (view.rgb, "rgb8"),
+    }

@@ -1,0 +1,65 @@
+"""The topic table of SPEC §8, written once: input topics (relative, remappable), the node's outputs.
+
+Keys are the *kinds* used everywhere in the code (node, replay, demo generator, player, importers);
+values are the default names. A bag written by the demo generator or an importer uses the absolute
+input names (``/image`` ...); the node subscribes to the relative ones and publishes its outputs
+under its private namespace (``~/semantic`` = ``/css_node/semantic``).
+"""
+from __future__ import annotations
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
+POSE_ARRAY_TYPE = "geometry_msgs/msg/PoseArray"
+POINTCLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
+
+NODE_NAME = "css_node"
+
+#: kind -> relative topic name the node subscribes to (remap with ``--ros-args -r``).
+INPUT_TOPICS: dict[str, str] = {
+    "image": "image",
+    "segmentation": "segmentation",
+    "confidence": "segmentation_confidence",
+    "camera_info": "camera_info",
+    "pose": "pose",
+    "candidates": "candidates",
+}
+#: kind -> message type of each input.
+INPUT_TYPES: dict[str, str] = {
+    "image": IMAGE_TYPE,
+    "segmentation": IMAGE_TYPE,
+    "confidence": IMAGE_TYPE,
+    "camera_info": CAMERA_INFO_TYPE,
+    "pose": POSE_STAMPED_TYPE,
+    "candidates": POSE_ARRAY_TYPE,
+    "gt": IMAGE_TYPE,
+}
+#: The frame kinds a bag holds (absolute names): the node's inputs plus the evaluation-only GT labels.
+BAG_TOPICS: dict[str, str] = {
+    "image": "/image",
+    "segmentation": "/segmentation",
+    "confidence": "/segmentation_confidence",
+    "camera_info": "/camera_info",
+    "pose": "/pose",
+    "gt": "/segmentation_gt",
+}
+#: Kinds every usable bag must have; the others are optional.
+REQUIRED_BAG_KINDS = ("segmentation", "pose", "camera_info")
+
+#: name -> message type of the node's private outputs (``~/<name>``), in publishing order.
+OUTPUT_TOPICS: dict[str, str] = {
+    "semantic": IMAGE_TYPE,
+    "semantic_color": IMAGE_TYPE,
+    "expectation": IMAGE_TYPE,
+    "variance": IMAGE_TYPE,
+    "rendered_image": IMAGE_TYPE,
+    "view_uncertainty": POINTCLOUD2_TYPE,
+    "candidate_scores": POINTCLOUD2_TYPE,
+}
+#: Outputs published for every observed frame (``candidate_scores`` answers requests only).
+FRAME_OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rendered_image", "view_uncertainty")
+
+
+def output_topic(name: str, node_name: str = NODE_NAME) -> str:
+    """Absolute name of a node output, e.g. ``/css_node/semantic``."""
+    return f"/{node_name.strip('/')}/{name}"
