@@ -15,12 +15,15 @@ import numpy as np
 
 from ..errors import CssError
 from ..io.paths import resolve_data_path
+from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
 from ..io.messages import image_to_array, ns_to_sec_nanosec, stamp_to_ns, unpack_view_points
 
 DEFAULT_BAG = "bags/demo/bag"
 #: Input topics of css_node (SPEC §8) replayed from the bag; the ground truth is only used for the accuracy print.
-PLAYED_TOPICS = ("/camera_info", "/pose", "/image", "/segmentation_confidence", "/segmentation")
-GT_TOPIC = "/segmentation_gt"
+#: Bag topics played into the node, in the order a frame's messages are published (segmentation last:
+#: it completes the frame); the GT labels stay in the player to score the node's answers.
+PLAYED_TOPICS = tuple(BAG_TOPICS[k] for k in ("camera_info", "pose", "image", "confidence", "segmentation"))
+GT_TOPIC = BAG_TOPICS["gt"]
 
 
 @dataclass
@@ -173,7 +176,7 @@ class DemoPlayer:
 
         with InputBag(bag_path) as bag:
             topics = bag.topics()
-        missing = [t for t in ("/segmentation", "/pose", "/camera_info") if t not in topics]
+        missing = [BAG_TOPICS[k] for k in REQUIRED_BAG_KINDS if BAG_TOPICS[k] not in topics]
         if missing:
             raise CssError(f"bag {bag_path} lacks {', '.join(missing)} (has {', '.join(sorted(topics))})")
         for topic in PLAYED_TOPICS:
@@ -233,7 +236,7 @@ class DemoPlayer:
                         continue
                     out = to_rclpy(msg)
                     out.header.stamp.sec, out.header.stamp.nanosec = ns_to_sec_nanosec(stamp)
-                    if item.topic == "/segmentation":
+                    if item.topic == BAG_TOPICS["segmentation"]:
                         with self.lock:
                             self.frames[stamp] = FrameRecord(played, stamp, time.monotonic(),
                                                              gt=pending_gt.pop(stamp, None))

@@ -344,8 +344,3 @@ class Camera:
         K[1, 1] *= sy
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
         return Camera(K=K, width=w2, height=h2, T_map_cam=np.array(self.T_map_cam))
-
-    def with_pose(self, position_xyz: Sequence[float] | np.ndarray,
-                  quaternion_xyzw: Sequence[float] | np.ndarray) -> "Camera":
-        """Same intrinsics and size, new optical-frame pose (see :meth:`from_pose`)."""
-        return Camera.from_pose(np.array(self.K), self.width, self.height, position_xyz, quaternion_xyzw)

@@ -137,11 +137,6 @@ class GaussianModel:
         return q / np.linalg.norm(q, axis=1, keepdims=True)
 
     @property
-    def sh_dc(self) -> np.ndarray:
-        """(N, 3) float32 DC coefficients (f_dc_0..2)."""
-        return self.sh[:, 0, :]
-
-    @property
     def base_colors(self) -> np.ndarray:
         """(N, 3) float32 view-independent RGB in [0, 1]: max(0, C0 * f_dc + 0.5) clipped to 1 (degree-0 colour)."""
         return np.clip(SH_C0 * self.sh[:, 0, :] + 0.5, 0.0, 1.0).astype(np.float32)

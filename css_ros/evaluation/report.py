@@ -162,13 +162,6 @@ def _f(x: float | None, fmt: str = ".4f") -> str:
     return "n/a" if x is None else format(x, fmt)
 
 
-def write_report(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str, Any]], classes: "ClassSet",
-                 ignore_label: int = 255) -> Path:
-    """Write the PNG plots and ``report.md`` into ``out``; return the report path."""
-    plots = make_plots(out, metrics, examples, classes, ignore_label)
-    return write_markdown(out, metrics, plots)
-
-
 def make_plots(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str, Any]], classes: "ClassSet",
                ignore_label: int = 255) -> list[tuple[str, str]]:
     """Write the PNG plots into ``out``; return (title, file name) of each plot written."""

@@ -142,10 +142,6 @@ class ProjectedGaussians:
     def qmax(self) -> np.ndarray:
         return self.packed[:, 6]
 
-    @property
-    def depths(self) -> np.ndarray:
-        return self.packed[:, 7]
-
 
 @njit(parallel=True, cache=True, nogil=True)
 def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_spheres,
