@@ -322,7 +322,7 @@ plant, which is not seen before.
 
 ## Noise model of `/segmentation`
 
-Documented in `css_ros/segmentation_noise.py`; seeded and deterministic. Errors come in six kinds:
+Documented in `css_ros/demo/segmentation_noise.py`; seeded and deterministic. Errors come in six kinds:
 
 - view-consistent (systematic) confusions attached to surfaces during stretches of frames, rendered from the
   splat: the cabinet labelled shelf, the top band of the walls labelled ceiling, the books labelled shelf,
