@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from .clouds import message_bytes, pack_cloud, unpack_cloud
 
 #: encoding -> (numpy dtype, channels)
 IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
@@ -30,17 +31,7 @@ CONFIDENCE_ENCODINGS = ("32FC1",)
 
 #: PointCloud2 layout of ~/view_uncertainty and ~/candidate_scores (all float32).
 VIEW_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw", "u_var", "u_exp")
-POINTFIELD_FLOAT32 = 7
 VIEW_DTYPE = np.dtype([(name, "<f4") for name in VIEW_FIELDS])
-
-
-def _data_bytes(data: Any) -> np.ndarray:
-    if isinstance(data, np.ndarray):
-        return data.view(np.uint8).reshape(-1)
-    try:  # bytes, bytearray, array.array (rclpy): no copy
-        return np.frombuffer(memoryview(data).cast("B"), dtype=np.uint8)
-    except TypeError:  # e.g. a list of ints
-        return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
 def image_to_array(msg: Any, allowed: tuple[str, ...] | None = None) -> np.ndarray:
@@ -66,7 +57,7 @@ def image_to_array(msg: Any, allowed: tuple[str, ...] | None = None) -> np.ndarr
     step = int(msg.step)
     if step < row_bytes:
         raise InputError(f"step {step} smaller than width*channels*itemsize = {row_bytes}")
-    raw = _data_bytes(msg.data)
+    raw = message_bytes(msg.data)
     if raw.size < step * height:
         raise InputError(f"data holds {raw.size} bytes, expected step*height = {step * height}")
     rows = raw[: step * height].reshape(height, step)[:, :row_bytes]
@@ -136,51 +127,22 @@ def camera_info_to_intrinsics(msg: Any) -> tuple[np.ndarray, int, int]:
 
 def pack_view_points(positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray,
                      u_exp: np.ndarray) -> dict[str, Any]:
-    """Fields of a PointCloud2 with one point per scored view (SPEC §8 layout).
+    """PointCloud2 fields with one point per scored view (SPEC §8 ``view_uncertainty`` / ``candidate_scores``).
 
     Args:
         positions: (M, 3) view positions [m, map frame]; quats_xyzw: (M, 4) orientations of the optical
-        frame; u_var, u_exp: (M,) image-level uncertainties.
-    Returns:
-        dict(height=1, width=M, fields=[(name, offset, datatype, count)], is_bigendian, point_step,
-        row_step, data (1-D uint8), is_dense).
+        frame; u_var, u_exp: (M,) image-level uncertainties. Every field is float32 (:data:`VIEW_FIELDS`).
     """
     m = len(positions)
-    points = np.zeros(m, dtype=VIEW_DTYPE)
-    positions = np.asarray(positions, dtype=np.float64).reshape(m, 3)
+    pos = np.asarray(positions, dtype=np.float64).reshape(m, 3)
     quats = np.asarray(quats_xyzw, dtype=np.float64).reshape(m, 4)
-    for i, name in enumerate(("x", "y", "z")):
-        points[name] = positions[:, i]
-    for i, name in enumerate(("qx", "qy", "qz", "qw")):
-        points[name] = quats[:, i]
-    points["u_var"] = np.asarray(u_var, dtype=np.float64).reshape(m)
-    points["u_exp"] = np.asarray(u_exp, dtype=np.float64).reshape(m)
-    return {
-        "height": 1,
-        "width": m,
-        "fields": [(name, 4 * i, POINTFIELD_FLOAT32, 1) for i, name in enumerate(VIEW_FIELDS)],
-        "is_bigendian": False,
-        "point_step": VIEW_DTYPE.itemsize,
-        "row_step": VIEW_DTYPE.itemsize * m,
-        "data": points.view(np.uint8).reshape(-1),
-        "is_dense": True,
-    }
+    columns = {name: pos[:, i] for i, name in enumerate(("x", "y", "z"))}
+    columns.update({name: quats[:, i] for i, name in enumerate(("qx", "qy", "qz", "qw"))})
+    columns["u_var"] = np.asarray(u_var, dtype=np.float64).reshape(m)
+    columns["u_exp"] = np.asarray(u_exp, dtype=np.float64).reshape(m)
+    return pack_cloud({k: v.astype(np.float32) for k, v in columns.items()})
 
 
 def unpack_view_points(msg: Any) -> np.ndarray:
     """PointCloud2 of scored views -> structured (M,) array with :data:`VIEW_FIELDS` (float32)."""
-    offsets = {f.name: int(f.offset) for f in msg.fields}
-    missing = [n for n in VIEW_FIELDS if n not in offsets]
-    if missing:
-        raise InputError(f"point cloud lacks fields {missing}")
-    m = int(msg.width) * int(msg.height)
-    step = int(msg.point_step)
-    raw = _data_bytes(msg.data)
-    if raw.size < m * step:
-        raise InputError(f"point cloud data holds {raw.size} bytes, expected {m * step}")
-    rows = raw[: m * step].reshape(m, step)
-    out = np.zeros(m, dtype=VIEW_DTYPE)
-    for name in VIEW_FIELDS:
-        o = offsets[name]
-        out[name] = np.ascontiguousarray(rows[:, o:o + 4]).view("<f4").reshape(m)
-    return out
+    return unpack_cloud(msg, VIEW_FIELDS).astype(VIEW_DTYPE)
