@@ -1,0 +1,41 @@
+"""Point-query request parsing and answer columns (css_ros.io.point_queries)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from css_ros.errors import InputError
+from css_ros.io.clouds import pack_cloud
+from css_ros.io.point_queries import ANSWER_FIELDS, answer_columns, class_field_names, request_points
+from test_clouds import _msg
+
+
+def test_class_field_names_are_valid_unique_and_never_clash():
+    names = class_field_names(["Wall", "traffic light", "wall", "x", "", "3d-thing", "Road/Street"])
+    assert names == ["wall", "traffic_light", "class2_wall", "class3_x", "class4", "class5_3d_thing", "road_street"]
+    assert len(set(names) | set(ANSWER_FIELDS)) == len(names) + len(ANSWER_FIELDS)
+
+
+def test_request_points_reads_float32_and_float64_and_bounds_the_size():
+    xyz = np.array([[1.0, 2, 3], [4, 5, 6]])
+    for dt in (np.float32, np.float64):
+        msg = _msg(pack_cloud({"x": xyz[:, 0].astype(dt), "y": xyz[:, 1].astype(dt), "z": xyz[:, 2].astype(dt),
+                               "extra": np.zeros(2, np.uint8)}))
+        np.testing.assert_array_equal(request_points(msg, 10), xyz)
+    with pytest.raises(InputError, match="2 points > max_query_points 1"):
+        request_points(msg, 1)
+    bad = _msg(pack_cloud({"x": np.array([np.nan]), "y": np.zeros(1), "z": np.zeros(1)}))
+    with pytest.raises(InputError, match="non-finite"):
+        request_points(bad, 10)
+
+
+def test_answer_columns_in_request_order_with_the_argmax_moments():
+    xyz = np.array([[0.0, 0, 0], [1, 1, 1], [2, 2, 2]])
+    E = np.array([[0.2, 0.8], [0.6, 0.4], [0.5, 0.5]])
+    V = np.array([[0.01, 0.02], [0.03, 0.04], [0.05, 0.06]])
+    cols = answer_columns(xyz, np.array([1, 0, 255]), E, V, ["floor", "chair"])
+    assert list(cols) == [*ANSWER_FIELDS, "floor", "chair"]
+    assert cols["label"].tolist() == [1, 0, 255]
+    np.testing.assert_allclose(cols["expectation"], [0.8, 0.6, 0.5])
+    np.testing.assert_allclose(cols["variance"], [0.02, 0.03, 0.05])
+    np.testing.assert_allclose(cols["chair"], E[:, 1])
