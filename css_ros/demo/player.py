@@ -24,6 +24,8 @@ DEFAULT_BAG = "bags/demo/bag"
 #: it completes the frame); the GT labels stay in the player to score the node's answers.
 PLAYED_TOPICS = tuple(BAG_TOPICS[k] for k in ("camera_info", "pose", "image", "confidence", "segmentation"))
 GT_TOPIC = BAG_TOPICS["gt"]
+#: Node outputs written as PNG files by ``--save-frames``.
+SAVED_OUTPUTS = ("semantic_color", "rendered_image")
 
 
 @dataclass
@@ -50,7 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "demo model, so one command shows the live demo.")
     p.add_argument("bag", nargs="?", default=DEFAULT_BAG, help=f"rosbag2 directory (default {DEFAULT_BAG})")
     p.add_argument("--rate", type=float, default=1.0,
-                   help="playback speed factor (1 = real time; 0 = as fast as possible)")
+                   help="playback speed factor (1 = real time; 0 = as fast as possible: a node that is still "
+                        "busy with a frame then drops the older waiting frames, newest wins)")
     p.add_argument("--node", default="/css_node", help="css_node's name with namespace (default /css_node)")
     p.add_argument("--prefix", default="", help="namespace prepended to the played topics (default none)")
     p.add_argument("--keep-stamps", action="store_true",
@@ -64,9 +67,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start css_node (python -m css_ros.node) with the model next to the bag")
     p.add_argument("--model", default=None, help="model for --start-node (default: BAG/../model.ply)")
     p.add_argument("--classes", default=None, help="class file for --start-node (default: BAG/../classes.yaml)")
+    p.add_argument("--num-classes", type=int, default=None, metavar="N",
+                   help="--start-node on a bag without a class file: N anonymous classes")
     p.add_argument("--node-param", action="append", default=[], metavar="NAME:=VALUE",
                    help="extra css_node parameter for --start-node (repeatable)")
-    p.add_argument("--save", action="store_true", help="call ~/save_map at the end")
+    p.add_argument("--save", action="store_true",
+                   help="call ~/save_map at the end (with --start-node the map goes to --map)")
+    p.add_argument("--map", default="css_demo_map.npz", metavar="NPZ",
+                   help="checkpoint file of the node started by --start-node --save (default css_demo_map.npz)")
+    p.add_argument("--save-frames", default=None, metavar="DIR",
+                   help="write the node's answers as PNG files into DIR (frame_NNNN_semantic_color.png, "
+                        "frame_NNNN_rendered_image.png): a way to see the live outputs without RViz")
     p.add_argument("--quiet", action="store_true", help="print only the summary")
     return p
 
@@ -74,16 +85,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def start_node(args: argparse.Namespace, bag: Path) -> subprocess.Popen:
-    """Start css_node as a child process (same Python, same ROS_DOMAIN_ID) on the model next to the bag."""
+    """Start css_node as a child process (same Python, same ROS_DOMAIN_ID) on the model next to the bag.
+
+    Raises:
+        CssError: no model, or no class file and no ``--num-classes``.
+    """
     model = Path(args.model) if args.model else bag.parent / "model.ply"
     classes = Path(args.classes) if args.classes else bag.parent / "classes.yaml"
     if not model.is_file():
         raise CssError(f"--start-node: model not found: {model} (pass --model)")
+    if not classes.is_file() and args.num_classes is None:
+        raise CssError(f"--start-node: class file not found: {classes} (pass --classes FILE or --num-classes N)")
     node_name = args.node.rstrip("/").split("/")[-1]
     ns = "/".join(args.node.rstrip("/").split("/")[:-1]) or "/"
+    checkpoint = str(Path(args.map).resolve()) if args.save else "''"
     cmd = [sys.executable, "-m", "css_ros.node", "--ros-args", "-r", f"__node:={node_name}", "-r", f"__ns:={ns}",
-           "-p", f"model_path:={model.resolve()}", "-p", "checkpoint_path:=''", "-p", "resume:=false"]
-    cmd += ["-p", f"class_file:={classes.resolve()}"] if classes.is_file() else []
+           "-p", f"model_path:={model.resolve()}", "-p", f"checkpoint_path:={checkpoint}", "-p", "resume:=false"]
+    if classes.is_file():
+        cmd += ["-p", f"class_file:={classes.resolve()}"]
+    else:
+        cmd += ["-p", "class_file:=''", "-p", f"num_classes:={args.num_classes}"]
     if args.prefix:
         for topic in ("image", "segmentation", "segmentation_confidence", "camera_info", "pose"):
             cmd += ["-r", f"{topic}:={args.prefix.rstrip('/')}/{topic}"]
@@ -115,15 +136,22 @@ class DemoPlayer:
         # when the uncertainty line is printed.
         self.node.create_subscription(Image, f"{node}/semantic", self._on_semantic, 100)
         self.node.create_subscription(PointCloud2, f"{node}/view_uncertainty", self._on_uncertainty, 100)
+        if args.save_frames:
+            self.frames_dir = Path(args.save_frames)
+            self.frames_dir.mkdir(parents=True, exist_ok=True)
+            for name in SAVED_OUTPUTS:
+                self.node.create_subscription(Image, f"{node}/{name}",
+                                              lambda msg, name=name: self._on_image_output(name, msg), 100)
         self.save_client = self.node.create_client(Trigger, f"{node}/save_map")
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
+        self._stop = threading.Event()
         self._spin = threading.Thread(target=self._spin_loop, daemon=True)
         self._spin.start()
 
     def _spin_loop(self) -> None:
         try:
-            while self.executor.context.ok():
+            while not self._stop.is_set() and self.executor.context.ok():
                 self.executor.spin_once(timeout_sec=0.05)
         except Exception:  # noqa: BLE001 - context shut down while spinning
             pass
@@ -150,6 +178,19 @@ class DemoPlayer:
             acc = f"  acc {rec.accuracy * 100:5.1f} %" if np.isfinite(rec.accuracy) else ""
             print(f"frame {rec.index:4d}  stamp {stamp * 1e-9:.3f}  U_var {rec.u_var:.4e}  U_exp {rec.u_exp:.4f}"
                   f"{acc}  latency {rec.latency_ms:6.0f} ms", flush=True)
+
+    def _on_image_output(self, name: str, msg: Any) -> None:
+        """--save-frames: write one of the node's rgb8 answers as DIR/frame_NNNN_<name>.png."""
+        from matplotlib.image import imsave
+
+        with self.lock:
+            rec = self.frames.get(stamp_to_ns(msg.header.stamp))
+        if rec is None:
+            return
+        try:
+            imsave(self.frames_dir / f"frame_{rec.index:04d}_{name}.png", image_to_array(msg, allowed=("rgb8",)))
+        except CssError:
+            return
 
     def _on_semantic(self, msg: Any) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -182,6 +223,10 @@ class DemoPlayer:
         for topic in PLAYED_TOPICS:
             if topic in topics:
                 self.publisher(topic, _rclpy_class(topics[topic][0])())
+
+    def unsubscribed_topics(self) -> list[str]:
+        """Played topics that nobody subscribes to (full names, with --prefix)."""
+        return [pub.topic_name for pub in self.pubs.values() if pub.get_subscription_count() == 0]
 
     def wait_for_node(self, timeout: float) -> bool:
         """Wait until css_node subscribes to every played topic."""
@@ -268,8 +313,17 @@ class DemoPlayer:
         if not done:
             return f"css_demo: played {len(recs)} frames in {elapsed:.1f} s; no result from css_node"
         acc = [r.accuracy for r in done if np.isfinite(r.accuracy)]
-        dropped = f" ({len(recs) - len(done)} dropped by the node while busy)" if len(done) < len(recs) else ""
-        text = (f"css_demo: played {len(recs)} frames in {elapsed:.1f} s; css_node answered {len(done)}{dropped}; "
+        last_done = done[-1].index
+        skipped = sum(1 for r in recs if not r.done and r.index < last_done)
+        late = sum(1 for r in recs if not r.done and r.index > last_done)
+        unanswered = []
+        if skipped:
+            unanswered.append(f"{skipped} skipped by the node (busy with an earlier frame, or refused: see its "
+                              "log and /diagnostics)")
+        if late:
+            unanswered.append(f"{late} at the end without an answer before the wait ran out")
+        text = (f"css_demo: played {len(recs)} frames in {elapsed:.1f} s; css_node answered {len(done)}"
+                + (f" ({'; '.join(unanswered)})" if unanswered else "") + "; "
                 f"U_var {done[0].u_var:.4e} -> {done[-1].u_var:.4e}, "
                 f"U_exp {done[0].u_exp:.4f} -> {done[-1].u_exp:.4f}; median latency "
                 f"{np.median([r.latency_ms for r in done]):.0f} ms")
@@ -290,6 +344,9 @@ class DemoPlayer:
         return res.message if res is not None else "save_map timed out"
 
     def close(self) -> None:
+        """Stop the spin thread before tearing down (a thread left inside rcl aborts the interpreter at exit)."""
+        self._stop.set()
+        self._spin.join(timeout=5.0)
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
 
@@ -324,9 +381,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             if child is not None and child.poll() is not None:
                 print(f"css_demo: css_node exited with code {child.returncode}", file=sys.stderr)
             else:
-                print(f"css_demo: no css_node subscribed within {args.wait:g} s (start it with "
-                      "`css_node` or pass --start-node; same ROS_DOMAIN_ID?)", file=sys.stderr)
-            return 1
+                lonely = ", ".join(player.unsubscribed_topics())
+                print(f"css_demo: no subscriber on {lonely} within {args.wait:g} s: is css_node running (start it "
+                      "with `css_node` or pass --start-node) on the same ROS_DOMAIN_ID, with matching topic "
+                      "names (--prefix)?", file=sys.stderr)
+            code = 1
+            return code
         t0 = time.monotonic()
         print(f"css_demo: playing {bag} at rate {args.rate:g}", flush=True)
         player.play(bag)
