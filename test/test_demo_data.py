@@ -417,3 +417,12 @@ def test_cli_refuses_to_overwrite_and_writes_sqlite3(tiny_demo, tmp_path, capsys
     assert list((dst / "bag").glob("*.db3"))
     with AnyReader([dst / "bag"]) as reader:
         assert sum(c.msgcount for c in reader.connections) == 12
+
+
+def test_size_estimate_announces_raw_and_bag_size():
+    from css_ros.demo.make_demo import size_estimate
+
+    line = size_estimate(1000, 10, 100, 50)  # 10 x 100 x 50 px x (3 + 1 + 1 + 4) bytes = 450 kB
+    assert line == "css_make_demo: 10 frames of 100x50 from 1000 Gaussians: 0 MB of images, a bag of about 0 MB"
+    big = size_estimate(10**6, 10_000, 1000, 1000)  # 90 GB raw
+    assert "90000 MB of images, a bag of about 14400 MB (large" in big
