@@ -122,7 +122,8 @@ def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.Pat
     handles = [Patch(facecolor=classes.palette[i] / 255.0, edgecolor="black", label=classes.names[i])
                for i in order]
     if handles:
-        fig.legend(handles=handles, loc="upper right", fontsize=8, frameon=False)
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
+                  borderaxespad=0.0)
     with atomic_binary(path_png) as fh:
         fig.savefig(fh, format="png", dpi=dpi)
     return BirdseyeView(Path(path_png), camera, labels, rgb, extent)
