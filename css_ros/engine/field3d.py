@@ -145,16 +145,18 @@ class FieldIndex:
         """Build the index of ``model`` (O(N) time and memory)."""
         means = np.ascontiguousarray(model.means, dtype=np.float64)
         n = means.shape[0]
-        q = model.quats_wxyz
-        inv_scales = 1.0 / np.asarray(model.scales, dtype=np.float64)
-        R = _rotation_matrices(q)
-        M = R * inv_scales[:, None, :]                      # R S⁻¹
-        A = M @ np.swapaxes(M, 1, 2)                        # Σ⁻¹ = R S⁻² Rᵀ
-        inv_cov = np.ascontiguousarray(np.stack([A[:, 0, 0], A[:, 0, 1], A[:, 0, 2],
-                                                 A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]], axis=1))
-        S = R * np.asarray(model.scales, dtype=np.float64)[:, None, :]
-        cov_diag = np.einsum("nij,nij->ni", S, S)           # Σ_ii = Σ_k (R S)_ik²
-        half = cutoff * np.sqrt(cov_diag) * (1.0 + 1e-9)    # half widths of the 3σ boxes [m] (+ rounding pad)
+        inv_cov = np.empty((n, 6))
+        half = np.empty((n, 3))
+        all_scales = model.scales                           # (N, 3) float32 std devs, as the renderer uses
+        for a in range(0, n, 1 << 18):                      # bounded temporaries for large models
+            b = min(n, a + (1 << 18))
+            R = _rotation_matrices(_unit(model.rotations[a:b]))
+            scales = all_scales[a:b].astype(np.float64)
+            M = R / scales[:, None, :]                      # R S⁻¹
+            A = M @ np.swapaxes(M, 1, 2)                    # Σ⁻¹ = R S⁻² Rᵀ
+            inv_cov[a:b] = np.stack([A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]], 1)
+            cov_diag = np.einsum("nij,nij->ni", R * scales[:, None, :], R * scales[:, None, :])  # Σ_ii
+            half[a:b] = cutoff * np.sqrt(cov_diag) * (1.0 + 1e-9)  # half widths of the 3σ boxes [m] (+ pad)
         box_lo = means - half
         box_hi = means + half
         opac = np.ascontiguousarray(np.asarray(model.opacities, dtype=np.float64))
@@ -189,6 +191,12 @@ class FieldIndex:
         return cls(means=means, inv_cov=inv_cov, opacities=opac, origin=np.asarray(lo, dtype=np.float64),
                    cell_size=cell_size, dims=dims, level_offsets=level_offsets, cell_start=cell_start,
                    items=items, cutoff=float(cutoff))
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    """(N, 4) float64 unit quaternions from raw ones."""
+    q = q.astype(np.float64)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _rotation_matrices(q: np.ndarray) -> np.ndarray:
