@@ -258,7 +258,6 @@ def test_birdseye_looks_down_with_class_colours(tmp_path):
     assert w == 160 and 60 <= h <= 100                        # 4 m x 2 m scene
     left, right = view.labels[:, : w // 3], view.labels[:, -(w // 3):]
     assert np.mean(left == 0) > 0.8 and np.mean(right == 1) > 0.8
-    # the map's +y is the image top: a label image row order check with a y-asymmetric map
     png = tmp_path / "bev.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     img = np.rint(matplotlib.image.imread(png)[..., :3] * 255).astype(int).reshape(-1, 3)
