@@ -65,6 +65,7 @@ setup(
             "css_make_demo = css_ros.demo.make_demo:main",
             "css_demo = css_ros.demo.player:main",
             "css_nbv_client = css_ros.clients.nbv_client:main",
+            "css_export = css_ros.export.cli:main",
         ],
     },
 )

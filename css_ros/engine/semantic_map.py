@@ -13,8 +13,9 @@ import numpy as np
 
 from ..errors import InputError, MapError
 from .backends import make_backend
-from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD,
-                   VAR_FLOOR)
+from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
+from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
+                   DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD, VAR_FLOOR)
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -112,6 +113,7 @@ class SemanticMap:
         self._backend = make_backend(backend, model)
         self.concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.frames_observed = 0
+        self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -221,6 +223,32 @@ class SemanticMap:
         for i, (expectation, variance) in enumerate(images):
             scores[i] = image_uncertainty(expectation, variance)
         return scores
+
+    # ------------------------------------------------------------------ the map in 3D (SPEC §9)
+    def gaussian_semantics(self, min_evidence: float = DEFAULT_MIN_EVIDENCE) -> GaussianSemantics:
+        """Label, E and Var of the label, S_n and the observed flag of every Gaussian (SPEC §9).
+
+        Unobserved Gaussians (S_n - C α_0 < ``min_evidence``) get ``ignore_label``.
+        """
+        return gaussian_semantics(self.concentrations, self.prior, min_evidence, self.ignore_label)
+
+    def query_points(self, xyz: np.ndarray,
+                     background_weight: float = DEFAULT_QUERY_BACKGROUND_WEIGHT) -> FieldQuery:
+        """The continuous semantic field at points (SPEC §9), without changing the map.
+
+        Args:
+            xyz: (M, 3) points in the map frame, metres.
+            background_weight: w_b of the background Dirichlet.
+        Returns:
+            :class:`FieldQuery` (labels (M,) int32 with ``ignore_label`` where κ_b > ``unknown_threshold``,
+            expectation and variance (M, C) float32, background κ_b (M,) float32).
+            The spatial index of the model is built on the first call (O(N)) and reused.
+        """
+        if self._field_index is None:
+            self._field_index = FieldIndex.from_model(self.model)
+        e_b, v_b, _ = self._background_moments()
+        return query_field(self._field_index, self.concentrations, xyz, background_weight, (e_b, v_b),
+                           self.unknown_threshold, self.ignore_label)
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike[str]) -> Path:

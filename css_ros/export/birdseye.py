@@ -1,0 +1,129 @@
+"""A bird's-eye picture of the semantic map: the engine's label render from straight above, with a legend."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..engine.camera import Camera
+from ..engine.classes import ClassSet
+from ..engine.semantic_map import SemanticMap
+from ..engine.spec import DEFAULT_MIN_EVIDENCE
+from ..errors import MapError
+from .files import atomic_binary
+
+EMPTY_RGB = (255, 255, 255)     # pixels where the render is unknown (empty space from above)
+DISTANCE_FACTOR = 20.0          # camera height above the scene top, in scene widths (near-orthographic)
+
+
+@dataclass(frozen=True)
+class BirdseyeView:
+    """The rendered top-down view.
+
+    Attributes:
+        path: the PNG written (image + legend + axes in metres).
+        camera: the pinhole camera used: optical axis straight down (−z of the map), image right =
+            map +x, image up = map +y.
+        labels: (H, W) int32 rendered labels (``ignore_label`` where empty).
+        rgb: (H, W, 3) uint8 class colours, ``EMPTY_RGB`` where empty.
+        extent: (x_min, x_max, y_min, y_max) map-frame metres covered by the image at the scene top.
+    """
+
+    path: Path
+    camera: Camera
+    labels: np.ndarray
+    rgb: np.ndarray
+    extent: tuple[float, float, float, float]
+
+
+def _submap(smap: SemanticMap, keep: np.ndarray) -> SemanticMap:
+    if keep.all():
+        return smap
+    sub = SemanticMap(smap.model.select(keep), smap.num_classes, prior=smap.prior, background=smap.background,
+                      ignore_label=smap.ignore_label, unknown_threshold=smap.unknown_threshold,
+                      backend=smap.backend_name)
+    sub.concentrations[...] = smap.concentrations[keep]
+    return sub
+
+
+def birdseye_camera(means: np.ndarray, width: int, margin: float = 0.05) -> tuple[Camera, tuple[float, ...]]:
+    """A camera high above the box of ``means`` ((N, 3), map frame, m; 0.5–99.5 percentiles), looking
+    straight down, its focal length fitting the box (plus ``margin`` on each side) at the box top."""
+    lo = np.percentile(means, 0.5, axis=0)
+    hi = np.percentile(means, 99.5, axis=0)
+    ext = np.maximum(hi - lo, 1e-3)
+    span_x, span_y = ext[0] * (1 + 2 * margin), ext[1] * (1 + 2 * margin)
+    height = int(np.clip(round(width * span_y / span_x), 16, 4 * width))
+    span_x = max(span_x, span_y * width / height)
+    span_y = span_x * height / width
+    distance = DISTANCE_FACTOR * max(span_x, span_y)
+    f = width * distance / span_x
+    centre = (lo + hi) / 2.0
+    K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+    eye = np.array([centre[0], centre[1], hi[2] + distance])
+    cam = Camera.look_at(eye, [centre[0], centre[1], lo[2]], K, width, height, up=(0.0, 1.0, 0.0))
+    extent = (centre[0] - span_x / 2, centre[0] + span_x / 2, centre[1] - span_y / 2, centre[1] + span_y / 2)
+    return cam, tuple(float(v) for v in extent)
+
+
+def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.PathLike[str], width: int = 800,
+                    min_evidence: float = DEFAULT_MIN_EVIDENCE, observed_only: bool = True,
+                    max_height: float | None = None, title: str | None = None, dpi: int = 100) -> BirdseyeView:
+    """Render the map's labels from straight above and write a PNG with a legend of class names.
+
+    Args:
+        smap: the semantic map (map frame: z up, metres).
+        classes: names and colours (C must equal ``smap.num_classes``).
+        path_png: output PNG, written atomically.
+        width: image width in pixels; the height follows the scene's x/y aspect ratio.
+        min_evidence: threshold of SPEC §9 for ``observed_only``.
+        observed_only: render only observed Gaussians (unobserved ones, e.g. a never-seen ceiling,
+            would otherwise hide what was seen under them).
+        max_height: also leave out Gaussians whose centre z exceeds this (m), e.g. an indoor ceiling.
+        title: figure title.
+    Raises:
+        MapError: class count mismatch, or no Gaussian left to render.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    if classes.num_classes != smap.num_classes:
+        raise MapError(f"{classes.num_classes} classes given for a map of {smap.num_classes} classes")
+    keep = np.ones(smap.model.num_gaussians, dtype=bool)
+    if observed_only:
+        keep &= smap.gaussian_semantics(min_evidence).observed
+    if max_height is not None:
+        keep &= smap.model.means[:, 2] <= max_height
+    if not np.any(keep):
+        raise MapError("bird's-eye view: no Gaussian left to render (none observed / all above max_height)")
+    sub = _submap(smap, keep)
+    camera, extent = birdseye_camera(sub.model.means.astype(np.float64), int(width))
+    view = sub.render(camera)
+    labels = view.labels
+    rgb = np.empty(labels.shape + (3,), dtype=np.uint8)
+    rgb[...] = np.asarray(EMPTY_RGB, dtype=np.uint8)
+    valid = (labels >= 0) & (labels < classes.num_classes) & (labels != smap.ignore_label)
+    rgb[valid] = classes.palette[labels[valid]]
+
+    ids, counts = np.unique(labels[valid], return_counts=True)
+    order = ids[np.argsort(-counts, kind="stable")]
+    h, w = labels.shape
+    fig = Figure(figsize=(w / dpi + 2.6, h / dpi + 0.9), dpi=dpi)
+    ax = fig.add_axes((0.6 / (w / dpi + 2.6), 0.6 / (h / dpi + 0.9), (w / dpi) / (w / dpi + 2.6),
+                       (h / dpi) / (h / dpi + 0.9)))
+    ax.imshow(rgb, extent=extent, origin="upper", interpolation="nearest")
+    ax.set_xlabel("x [m] (map frame)", fontsize=8)
+    ax.set_ylabel("y [m]", fontsize=8)
+    ax.tick_params(labelsize=7)
+    if title:
+        ax.set_title(title, fontsize=9)
+    handles = [Patch(facecolor=classes.palette[i] / 255.0, edgecolor="black", label=classes.names[i])
+               for i in order]
+    if handles:
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
+                  borderaxespad=0.0)
+    with atomic_binary(path_png) as fh:
+        fig.savefig(fh, format="png", dpi=dpi)
+    return BirdseyeView(Path(path_png), camera, labels, rgb, extent)
