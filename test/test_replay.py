@@ -212,8 +212,9 @@ def test_replay_clean_metrics(clean_run):
     assert len(il["frames"]) == 6 and set(il["spearman"]) == {"u_var", "u_exp"}
     for f in il["frames"]:
         assert 0 <= f["error"] <= 1 and f["trained"]
-    for name in ("report.md", "map.npz", "semantic_model.ply", "sparsification.png", "image_uncertainty.png",
-                 "per_class_iou.png", "examples.png"):
+    for name in ("report.md", "map.npz", "map_semantic.ply", "map_uncertainty_variance.ply",
+                 "map_uncertainty_variance_colorbar.png", "birdseye.png", "sparsification.png",
+                 "image_uncertainty.png", "per_class_iou.png", "examples.png"):
         assert (out / name).is_file(), name
     report = (out / "report.md").read_text()
     assert "sparsification.png" in report and "examples.png" in report
@@ -223,14 +224,15 @@ def test_semantic_ply_has_class_fields(clean_run):
     from plyfile import PlyData
 
     _, out, _ = clean_run
-    v = PlyData.read(str(out / "semantic_model.ply"))["vertex"]
+    v = PlyData.read(str(out / "map_semantic.ply"))["vertex"]
     names = v.data.dtype.names
     assert {"class_id", "expectation", "variance", "x", "opacity"} <= set(names)
     alpha = np.load(out / "map.npz")
     key = next(k for k in alpha.files if alpha[k].ndim == 2)
     a = alpha[key]
-    np.testing.assert_array_equal(v["class_id"], np.argmax(a, axis=1))
     S = a.sum(axis=1)
+    seen = S - a.shape[1] * 1e-3 >= 0.5  # SPEC §9 observed flag (prior 1e-3, min_evidence 0.5)
+    np.testing.assert_array_equal(v["class_id"], np.where(seen, np.argmax(a, axis=1), 255))
     E = a.max(axis=1) / S
     np.testing.assert_allclose(v["expectation"], E, rtol=1e-5)
     np.testing.assert_allclose(v["variance"], E * (1 - E) / (1 + S), rtol=1e-4, atol=1e-9)

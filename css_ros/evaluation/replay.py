@@ -19,7 +19,9 @@ from tqdm import tqdm
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import RenderedView, SemanticMap
-from ..errors import CssError
+from ..errors import CssError, MapError
+from ..export.birdseye import render_birdseye
+from ..export.bundle import export_map
 from ..io.bag import BagWriter
 from ..io.outputs import frame_output_images
 from ..io.topics import output_topic
@@ -34,24 +36,6 @@ def default_out_dir(bag: Path) -> Path:
     bag = bag.resolve()
     name = bag.parent.name if bag.name == "bag" and bag.parent.name else bag.name
     return Path("out") / f"replay_{name}"
-
-
-def gaussian_semantics(concentrations: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-Gaussian top class and its Dirichlet moments.
-
-    Args:
-        concentrations: (N, C) alpha.
-    Returns:
-        class_id (N,) uint8 (int32 if C > 256), expectation (N,) float32 = alpha_top / S,
-        variance (N,) float32 = E (1 - E) / (1 + S), with S = sum_c alpha_c.
-    """
-    alpha = np.asarray(concentrations, dtype=np.float64)
-    S = alpha.sum(axis=1)
-    top = np.argmax(alpha, axis=1)
-    E = alpha[np.arange(alpha.shape[0]), top] / np.where(S > 0, S, 1.0)
-    var = E * (1.0 - E) / (1.0 + S)
-    dtype = np.uint8 if alpha.shape[1] <= 256 else np.int32
-    return {"class_id": top.astype(dtype), "expectation": E.astype(np.float32), "variance": var.astype(np.float32)}
 
 
 def _progress(total: int | None, desc: str, quiet: bool) -> tqdm:
@@ -146,10 +130,11 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     evaluator.images.sort(key=lambda r: r["index"])
     evaluator.examples.sort(key=lambda r: r["index"])
 
-    # Map + semantic PLY.
+    # Map, viewer files (semantic and uncertainty splats) and the bird's-eye picture.
     t3 = time.perf_counter()
     smap.save(cfg.out / "map.npz")
-    model.to_ply(cfg.out / "semantic_model.ply", extra_fields=gaussian_semantics(smap.concentrations))
+    export_map(smap, classes, cfg.out, "map", formats=("semantic", "uncertainty"))
+    birdseye = _birdseye(smap, classes, cfg.out / "birdseye.png")
 
     has_gt = input_cm.num_pixels > 0
     metrics: dict[str, Any] = {
@@ -183,11 +168,23 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         "evaluate_s": t_eval, "evaluate_fps": evaluated_train / t_eval if t_eval > 0 else None,
     }
     plots = make_plots(cfg.out, metrics, evaluator.examples, classes, cfg.ignore_label)
+    if birdseye:
+        plots.insert(0, ("The semantic map from above (observed Gaussians, rendered with the engine)", birdseye))
     metrics["timing"]["save_report_s"] = time.perf_counter() - t3
     metrics["timing"]["total_s"] = time.perf_counter() - t0
     write_markdown(cfg.out, metrics, plots)
     (cfg.out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=2))
     return metrics
+
+
+def _birdseye(smap: SemanticMap, classes: ClassSet, path: Path) -> str | None:
+    """Render the bird's-eye picture of the map; None (and a note on stderr) when nothing was observed."""
+    try:
+        render_birdseye(smap, classes, path, title="Semantic map, view from above")
+    except MapError as exc:
+        print(f"css_replay: note: no bird's-eye picture: {exc}", file=sys.stderr)
+        return None
+    return path.name
 
 
 def _jsonable(x: Any) -> Any:

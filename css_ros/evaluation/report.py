@@ -236,7 +236,8 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
     for title, fname in plots:
         lines += ["", f"## {title}", "", f"![{title}]({fname})"]
     lines += ["", "Raw numbers: `metrics.json`. Output bag: `bag/` (if written). Map: `map.npz`; "
-              "semantic PLY: `semantic_model.ply`.", ""]
+              "splats for 3DGS viewers: `map_semantic.ply` (class colours), `map_uncertainty_variance.ply` (variance "
+              "colour map, colour bar in `map_uncertainty_variance_colorbar.png`).", ""]
     path = out / "report.md"
     path.write_text("\n".join(lines))
     return path

@@ -11,10 +11,7 @@ from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
 from ..engine.spec import DEFAULT_MIN_EVIDENCE
 from ..errors import CssError
-from .colormap import class_colors, uncertainty_colors, write_colorbar
-from .plys import write_point_cloud, write_semantic_splat, write_uncertainty_splat
-
-FORMATS = ("semantic", "uncertainty", "points")
+from .bundle import FORMATS, export_map
 
 EXAMPLES = """\
 examples:
@@ -86,27 +83,9 @@ def export(args: argparse.Namespace) -> list[Path]:
     if classes.num_classes != smap.num_classes:
         raise CssError(f"the map has {smap.num_classes} classes but {classes.num_classes} were given "
                        f"({args.classes or '--num-classes'})")
-    sem = smap.gaussian_semantics(args.min_evidence)
     out = args.out if args.out is not None else args.map.parent
-    out.mkdir(parents=True, exist_ok=True)
-    stem = args.map.stem
-    drop = bool(args.drop_unobserved)
-    written: list[Path] = []
-    if "semantic" in formats or "points" in formats:
-        rgb = class_colors(sem.label, classes, smap.ignore_label)
-        if "semantic" in formats:
-            written.append(write_semantic_splat(out / f"{stem}_semantic.ply", model, sem, rgb, drop))
-        if "points" in formats:
-            written.append(write_point_cloud(out / f"{stem}_points.ply", model, sem, rgb, drop))
-    if "uncertainty" in formats:
-        values = sem.variance if args.uncertainty == "variance" else sem.evidence
-        colors = uncertainty_colors(values, args.uncertainty, mask=sem.observed, cmap=args.cmap)
-        base = out / f"{stem}_uncertainty_{args.uncertainty}"
-        written.append(write_uncertainty_splat(base.with_suffix(".ply"), model, sem, colors.rgb, drop))
-        bar = base.parent / f"{base.name}_colorbar.png"
-        write_colorbar(bar, colors)
-        written.append(bar)
-    return written
+    return export_map(smap, classes, out, args.map.stem, formats, args.uncertainty, args.cmap, args.min_evidence,
+                      bool(args.drop_unobserved))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
