@@ -97,7 +97,7 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
             log_info(f"removed {len(removed)} temporary file(s) of interrupted saves next to {ckpt}")
     if ckpt is not None and p.resume and ckpt.exists():
         try:
-            smap = SemanticMap.load(ckpt, model, **kwargs)
+            smap = SemanticMap.load(ckpt, model, expected_classes=C, **kwargs)
             if smap.num_classes != C:
                 raise MapError(f"it has {smap.num_classes} classes, the class setup has {C}")
             status = f"resumed from {ckpt} ({smap.frames_observed} frames observed)"
