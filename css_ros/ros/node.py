@@ -191,5 +191,6 @@ class CssNode(Node):
         if not stopped:
             self.get_logger().error("worker did not stop in time: no final checkpoint")
             return False
+        self.outputs.flush(1.0)  # answers published while stopping reach their clients
         self.worker.save_checkpoint("shutdown")
         return True

@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 
@@ -51,3 +52,10 @@ class OutputPublisher:
         """One point per candidate in request order; the header echoes the request header."""
         self.pubs["candidate_scores"].publish(
             rc.view_points_msg(rc.copy_header(header), positions, quats, u_var, u_exp))
+
+    def flush(self, timeout_s: float = 1.0) -> bool:
+        """Wait up to ``timeout_s`` [s] until reliable subscribers acknowledged every candidate answer."""
+        try:
+            return bool(self.pubs["candidate_scores"].wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9))))
+        except Exception:  # noqa: BLE001 - best effort at shutdown (middleware without the feature)
+            return False
