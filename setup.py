@@ -60,7 +60,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "css_node = css_ros.ros.node:main",
+            "css_node = css_ros.ros.main:main",
             "css_replay = css_ros.evaluation.cli:main",
             "css_make_demo = css_ros.demo.make_demo:main",
             "css_demo = css_ros.demo.player:main",

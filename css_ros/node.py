@@ -7,6 +7,6 @@ from __future__ import annotations
 if __name__ == "__main__":
     import sys
 
-    from css_ros.ros.node import main
+    from css_ros.ros.main import main
 
     sys.exit(main())

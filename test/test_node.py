@@ -187,13 +187,13 @@ BAD_INPUTS = {
         "segmentation: size mismatch with camera_info", "size mismatch with camera_info"),
     "nan position": (lambda lv, s: (lv.client.send_pose(s, position=(np.nan, 0, 0)),
                                     lv.client.send_image("segmentation", s, rh.wall_labels(), "mono8")),
-                     "pose: non-finite position", "[pose] non-finite position"),
+                     "pose: invalid pose", "[pose] invalid pose: non-finite position"),
     "nan quaternion": (lambda lv, s: lv.client.send_pose(s, quat=(np.nan, 0, 0, 1)),
-                       "pose: non-finite quaternion", "[pose] non-finite quaternion"),
+                       "pose: invalid pose", "[pose] invalid pose: non-finite quaternion"),
     "non-unit quaternion": (lambda lv, s: lv.client.send_pose(s, quat=(0, 0, 0, 2.0)),
-                            "pose: non-unit quaternion", "norm 2"),
+                            "pose: invalid pose", "has norm 2 outside"),
     "zero quaternion": (lambda lv, s: lv.client.send_pose(s, quat=(0, 0, 0, 0)),
-                        "pose: non-unit quaternion", "norm 0"),
+                        "pose: invalid pose", "has norm 0 outside"),
     "stamp out of order": (lambda lv, s: (lv.client.send_pose(lv.last_frame - 10**8), lv.client.send_image(
         "segmentation", lv.last_frame - 10**8, rh.wall_labels(), "mono8")),
         "segmentation: stamp out of order", "stamp out of order"),
@@ -252,7 +252,7 @@ def test_confidence_is_synchronised_and_weights_the_update(live: Live) -> None:
     _, pts = live.query(np.zeros((1, 3)), rh.IDENTITY[None])
     assert pts["u_exp"][0] == pytest.approx(1 - 1 / C, abs=1e-5)
     # A bad confidence image is warned about and its frame never completes.
-    key = "warn[segmentation_confidence: bad confidence image]"
+    key = "warn[segmentation_confidence: bad confidence]"
     stamp = live.stamp()
     live.client.send_image("segmentation_confidence", stamp, np.zeros((rh.HEIGHT, rh.WIDTH), np.uint8), "mono8")
     live.client.send_frame(stamp)
@@ -316,7 +316,7 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
 
 def test_clock_reset_accepted_after_consecutive_old_stamps(live: Live) -> None:
     """A replay restarted with older stamps: a few frames are dropped as out of order, then accepted."""
-    from css_ros.ros.node import STAMP_RESET_COUNT
+    from css_ros.ros.gate import STAMP_RESET_COUNT
 
     live.frame()
     old = [live.last_frame // 2 + 12_345_678 + k * 10**8 for k in range(STAMP_RESET_COUNT)]  # unused stamps

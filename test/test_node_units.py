@@ -11,8 +11,9 @@ import pytest
 from css_ros.engine.camera import body_to_optical_rotation, quaternion_xyzw_to_matrix
 from css_ros.errors import CssError
 from css_ros.io.paths import resolve_data_path
-from css_ros.ros.node import (BODY_TO_OPTICAL_XYZW, FrameJob, NodeParams, WarnLimiter, WorkQueue, body_to_optical,
-                          check_params, check_quaternion)
+from css_ros.ros.gate import body_to_optical, check_quaternion
+from css_ros.ros.params import BODY_TO_OPTICAL_XYZW, NodeParams, check_params
+from css_ros.ros.work import FrameJob, WarnLimiter, WorkQueue
 
 
 def _frame(i: int) -> FrameJob:

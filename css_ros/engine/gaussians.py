@@ -19,6 +19,8 @@ __all__ = ["GaussianModel", "SH_C0", "num_sh_coeffs", "sh_degree_from_rest_count
 
 _REST_COUNT_TO_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}
 _SCALE_FIELDS = ("scale_0", "scale_1", "scale_2")
+#: Largest log standard deviation accepted (e^20 m = 4.9e8 m; beyond, covariances overflow float32).
+LOG_SCALE_MAX = 20.0
 _ROT_FIELDS = ("rot_0", "rot_1", "rot_2", "rot_3")
 _POS_FIELDS = ("x", "y", "z")
 _NORMAL_FIELDS = ("nx", "ny", "nz")
@@ -97,6 +99,10 @@ class GaussianModel:
             bad = int(arr.size - np.count_nonzero(np.isfinite(arr)))
             if bad:
                 raise ModelError(f"GaussianModel.{name}: {bad} non-finite value(s)")
+        too_big = int(np.count_nonzero(log_scales > LOG_SCALE_MAX))
+        if too_big:
+            raise ModelError(f"GaussianModel.log_scales: {too_big} value(s) above {LOG_SCALE_MAX:g} (standard "
+                             f"deviation above {np.exp(LOG_SCALE_MAX):.3g} m; max {float(log_scales.max()):g})")
         qnorm = np.linalg.norm(rotations.astype(np.float64), axis=1)
         if np.any(qnorm == 0.0):
             raise ModelError(

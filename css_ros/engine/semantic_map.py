@@ -22,6 +22,72 @@ if TYPE_CHECKING:
     from .gaussians import GaussianModel
 
 MAP_FORMAT_VERSION = 1
+#: Largest concentration / prior / background accepted from a map file (beyond: a crafted or broken file).
+MAX_CONCENTRATION = 1e15
+#: Largest number of classes accepted from a map file.
+MAX_CLASSES = 65536
+#: npz members of a map file: name -> (dtype kinds accepted, shape; "G"/"C" = Gaussians / classes).
+_MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
+    "format_version": ("iu", ()),
+    "concentrations": ("f", ("G", "C")),
+    "prior": ("f", ()),
+    "background": ("f", ()),
+    "num_classes": ("iu", ()),
+    "num_gaussians": ("iu", ()),
+    "model_fingerprint": ("U", ()),
+    "frames_observed": ("iu", ()),
+}
+_OPTIONAL_MEMBERS = ("frames_observed",)
+
+
+def _check_map_headers(path: Path, num_gaussians: int, num_classes: int | None = None) -> None:
+    """Check every member's declared dtype, shape and size from the npy headers, before reading any data.
+
+    Refuses (MapError) a file that is not a zip, lacks members, declares other dtypes (complex, bool,
+    object, ...) or shapes, declares more than ``num_gaussians x MAX_CLASSES`` concentrations, or whose
+    members hold another number of bytes than their headers declare (a decompression bomb, or a header
+    declaring huge arrays over a little data); with ``num_classes`` given, a map of another class count.
+    """
+    from numpy.lib import format as npformat
+
+    if not zipfile.is_zipfile(path):
+        raise MapError(f"map file {path} is not an .npz archive")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = {i.filename[:-4]: i for i in zf.infolist() if i.filename.endswith(".npy")}
+            missing = [k for k in _MAP_MEMBERS if k not in infos and k not in _OPTIONAL_MEMBERS]
+            if missing:
+                raise MapError(f"map file {path} lacks {', '.join(missing)}")
+            for name, (kinds, shape) in _MAP_MEMBERS.items():
+                info = infos.get(name)
+                if info is None:
+                    continue
+                with zf.open(info) as fh:
+                    version = npformat.read_magic(fh)
+                    if version == (1, 0):
+                        dshape, fortran, dtype = npformat.read_array_header_1_0(fh)
+                    elif version in ((2, 0), (3, 0)):
+                        dshape, fortran, dtype = npformat.read_array_header_2_0(fh)
+                    else:
+                        raise MapError(f"map file {path}: {name} has npy format version {version}")
+                    header_len = fh.tell()
+                if dtype.kind not in kinds or dtype.hasobject:
+                    raise MapError(f"map file {path}: {name} has dtype {dtype}, expected kind {kinds}")
+                if len(dshape) != len(shape):
+                    raise MapError(f"map file {path}: {name} has shape {dshape}, expected {len(shape)} dimension(s)")
+                if shape == ("G", "C") and (dshape[0] != num_gaussians or not 1 <= dshape[1] <= MAX_CLASSES):
+                    raise MapError(f"map file {path}: concentrations have shape {dshape}, expected "
+                                   f"({num_gaussians}, 1..{MAX_CLASSES})")
+                declared = int(np.prod(dshape, dtype=np.int64)) * dtype.itemsize + header_len
+                if info.file_size != declared:
+                    raise MapError(f"map file {path}: {name} holds {info.file_size} bytes, its header declares "
+                                   f"{declared}")
+                if num_classes is not None and shape == ("G", "C") and dshape[1] != num_classes:
+                    raise MapError(f"map file {path} has {dshape[1]} classes, expected {num_classes}")
+    except MapError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError) as exc:
+        raise MapError(f"cannot read map file {path}: {exc}") from exc
 
 BackendName = Literal["numba", "torch", "cuda"]
 
@@ -290,45 +356,52 @@ class SemanticMap:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], model: "GaussianModel", **kwargs: Any) -> "SemanticMap":
+    def load(cls, path: str | os.PathLike[str], model: "GaussianModel", expected_classes: int | None = None,
+             **kwargs: Any) -> "SemanticMap":
         """Load a map saved by :meth:`save` onto ``model``.
 
-        Extra keyword arguments (ignore_label, unknown_threshold, backend, ...) go to the
-        constructor; prior, background and num_classes come from the file.
+        Every member's declared dtype, shape and size is checked from the npy headers before any data
+        is read (no pickles, no decompression bombs, no huge allocations). ``expected_classes``: refuse
+        a map with another number of classes before reading it. Extra keyword arguments
+        (ignore_label, unknown_threshold, backend, ...) go to the constructor; prior, background and
+        num_classes come from the file.
         Raises:
-            MapError: unreadable/corrupt file, unknown format version, or a map made for another
-                model (fingerprint or size mismatch), or invalid concentrations.
+            MapError: unreadable/corrupt/crafted file, unknown format version, or a map made for
+                another model (fingerprint or size mismatch), or invalid values.
         """
         path = Path(path)
-        required = ("format_version", "concentrations", "prior", "background", "num_classes",
-                    "num_gaussians", "model_fingerprint")
+        _check_map_headers(path, model.num_gaussians, expected_classes)
         try:
             with np.load(path, allow_pickle=False) as data:
-                missing = [k for k in required if k not in data.files]
-                if missing:
-                    raise MapError(f"map file {path} lacks {', '.join(missing)}")
                 version = int(data["format_version"])
                 if version != MAP_FORMAT_VERSION:
                     raise MapError(f"map file {path} has format version {version}, "
                                    f"this css_ros reads {MAP_FORMAT_VERSION}")
                 fingerprint = str(data["model_fingerprint"])
-                conc = np.array(data["concentrations"], dtype=np.float64)
-                prior = float(data["prior"])
-                background = float(data["background"])
                 num_classes = int(data["num_classes"])
                 num_gaussians = int(data["num_gaussians"])
+                prior = float(data["prior"])
+                background = float(data["background"])
                 frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
+                if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
+                    raise MapError(f"map file {path} was made for another model (fingerprint {fingerprint[:12]}…, "
+                                   f"{num_gaussians} Gaussians; this model: {model.fingerprint[:12]}…, "
+                                   f"{model.num_gaussians} Gaussians)")
+                conc = np.array(data["concentrations"], dtype=np.float64)
         except MapError:
             raise
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise MapError(f"cannot read map file {path}: {exc}") from exc
-        if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
-            raise MapError(f"map file {path} was made for another model (fingerprint {fingerprint[:12]}…, "
-                           f"{num_gaussians} Gaussians; this model: {model.fingerprint[:12]}…, "
-                           f"{model.num_gaussians} Gaussians)")
-        if conc.shape != (num_gaussians, num_classes) or not np.all(np.isfinite(conc)) or np.any(conc <= 0):
+        if conc.shape != (num_gaussians, num_classes) or not np.all(np.isfinite(conc)) or np.any(conc <= 0) \
+                or np.any(conc > MAX_CONCENTRATION):
             raise MapError(f"map file {path} holds invalid concentrations (shape {conc.shape}, "
-                           f"expected ({num_gaussians}, {num_classes}), all finite and > 0)")
+                           f"expected ({num_gaussians}, {num_classes}), all finite, > 0 and <= "
+                           f"{MAX_CONCENTRATION:g})")
+        for name, value in (("prior", prior), ("background", background)):
+            if not (np.isfinite(value) and 0 < value <= MAX_CONCENTRATION):
+                raise MapError(f"map file {path}: {name}={value!r} outside (0, {MAX_CONCENTRATION:g}]")
+        if frames < 0:
+            raise MapError(f"map file {path}: frames_observed={frames} < 0")
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
         smap.concentrations[...] = conc
         smap.frames_observed = frames

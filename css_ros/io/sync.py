@@ -50,12 +50,6 @@ class FrameSynchronizer:
         self._last_emitted_ns: int | None = None
         self.counts: Counter[str] = Counter()
 
-    def reset(self) -> None:
-        """Forget every pending message (counters are kept)."""
-        for q in self._queues.values():
-            q.clear()
-        self._last_emitted_ns = None
-
     def pending(self) -> dict[str, int]:
         """Number of pending messages per kind."""
         return {k: len(q) for k, q in self._queues.items()}

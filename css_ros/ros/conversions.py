@@ -10,11 +10,11 @@ from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from ..io.messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points, stamp_to_ns
+from ..io.messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points
 
 __all__ = [
     "time_msg", "header_msg", "image_msg", "view_points_msg", "camera_info_msg", "pose_msg",
-    "pose_stamped_msg", "pose_array_msg", "to_rclpy", "header_stamp_ns",
+    "pose_stamped_msg", "pose_array_msg", "to_rclpy",
 ]
 
 
@@ -27,11 +27,6 @@ def time_msg(stamp_ns: int) -> Time:
 def header_msg(stamp_ns: int, frame_id: str = "") -> Header:
     """std_msgs/Header with the stamp ``stamp_ns`` [ns] and ``frame_id``."""
     return Header(stamp=time_msg(stamp_ns), frame_id=str(frame_id))
-
-
-def header_stamp_ns(header: Any) -> int:
-    """Stamp of a std_msgs/Header in integer nanoseconds."""
-    return stamp_to_ns(header.stamp)
 
 
 def copy_header(header: Any) -> Header:

@@ -1,0 +1,87 @@
+"""``css_node`` entry point: argument handling, signals, executor loop and clean shutdown."""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from typing import Sequence
+
+from ..errors import CssError
+from ..io.topics import NODE_NAME
+from .params import format_default, param_table
+
+USAGE = f"""usage: css_node [-h] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ... --params-file FILE]
+
+{NODE_NAME}: Continuous Semantic Splatting. Maps segmentations onto a 3D Gaussian Splatting model and
+scores candidate views (SPEC §7-8). Stop it with SIGINT or SIGTERM: it finishes the current frame (or
+candidate slice) and writes a final checkpoint.
+
+parameters (name, default, unit, description):
+"""
+
+
+def help_text() -> str:
+    """Usage and the parameter table (``css_node --help``)."""
+    rows = []
+    for name, default, unit, desc in param_table():
+        rows.append(f"  {name} = {format_default(default)}{' [' + unit + ']' if unit else ''}\n      {desc}")
+    return USAGE + "\n".join(rows) + "\n"
+
+
+def wants_help(argv: Sequence[str]) -> bool:
+    """-h / --help before any --ros-args."""
+    user = list(argv)
+    if "--ros-args" in user:
+        user = user[:user.index("--ros-args")]
+    return "-h" in user or "--help" in user
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point ``css_node``; returns the process exit code (0 clean stop, 2 start-up error).
+
+    SIGINT / SIGTERM stop the node: the worker finishes its frame or candidate slice and a final checkpoint
+    is written before the ROS context shuts down.
+    """
+    argv = list(sys.argv[1:] if args is None else args)
+    if wants_help(argv):
+        print(help_text())
+        return 0
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    try:
+        rclpy.init(args=[sys.argv[0], *argv], signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
+        print(f"{NODE_NAME}: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = None
+    try:
+        from .node import CssNode
+
+        try:
+            node = CssNode()
+        except CssError as exc:  # ModelError, MapError, ConfigError, class file
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
+            return 2
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.get_logger().info("shutting down")
+            node.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""css_node parameters: one table (name, default, unit, description), coercion and validation.
+
+Every default comes from the engine (:mod:`css_ros.engine.spec`) or the frame decoder
+(:mod:`css_ros.io.frames`) where those define one; every time quantity is in seconds.
+``config/css_node.yaml`` and ``docs/parameters.md`` are checked against this table by the tests
+(``params_markdown()`` writes the latter).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
+from ..errors import ConfigError
+from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
+
+#: Quaternion (x, y, z, w) of the optical frame in a REP-103 body frame (camera.body_to_optical_rotation()).
+BODY_TO_OPTICAL_XYZW = (-0.5, 0.5, -0.5, 0.5)
+DEFAULT_MODEL = "bags/demo/model.ply"
+DEFAULT_CLASSES = "bags/demo/classes.yaml"
+#: ``{fingerprint}`` is replaced by the first 16 hex digits of the model fingerprint: one map file per model.
+DEFAULT_CHECKPOINT = "~/.ros/css_ros/maps/{fingerprint}.npz"
+FINGERPRINT_DIGITS = 16
+
+
+def _p(default: Any, unit: str, description: str, **kw: Any) -> Any:
+    """A table entry: the dataclass field default plus its unit and description (dataclass metadata)."""
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata={"unit": unit, "description": description})
+    return field(default=default, metadata={"unit": unit, "description": description})
+
+
+@dataclass
+class NodeParams:
+    """Parameters of css_node, in the order of config/css_node.yaml; see :func:`params_markdown`."""
+
+    # --- scene and classes
+    model_path: str = _p(DEFAULT_MODEL, "path", "3DGS PLY of the scene (map frame); relative paths are tried "
+                         "against the working directory, the package share directory and the source tree")
+    class_file: str = _p(DEFAULT_CLASSES, "path", "class YAML (classes: [{id, name, color}]); empty: "
+                         "num_classes anonymous classes")
+    num_classes: int = _p(0, "", "number of classes C when class_file is empty (0: take it from class_file)")
+    # --- semantic model
+    prior: float = _p(DEFAULT_PRIOR, "", "initial Dirichlet concentration per class and Gaussian (alpha_0)")
+    background: float = _p(DEFAULT_BACKGROUND, "", "background Dirichlet concentration per class (alpha_b)")
+    ignore_label: int = _p(DEFAULT_IGNORE_LABEL, "class id", "segmentation value meaning 'no label'; also "
+                           "published for unknown pixels")
+    unknown_threshold: float = _p(DEFAULT_UNKNOWN_THRESHOLD, "", "background weight kappa_b above which a pixel "
+                                  "is published as ignore_label (1.0: never)")
+    backend: str = _p("numba", "", "rasteriser backend: numba or torch")
+    # --- inputs
+    input_qos: str = _p("sensor_data", "", "QoS of the sensor inputs: sensor_data (best effort) or reliable")
+    queue_size: int = _p(10, "messages", "subscription depth and synchroniser buffer per input")
+    sync_slop: float = _p(0.05, "s", "maximum stamp difference between segmentation, pose and confidence of "
+                          "one frame")
+    max_stamp_future: float = _p(10.0, "s", "drop inputs stamped more than this ahead of the node clock (0: off)")
+    max_image_pixels: int = _p(DEFAULT_MAX_IMAGE_PIXELS, "px", "largest camera_info width x height accepted; "
+                               "larger ones are refused (the previous one stays)")
+    use_confidence: bool = _p(True, "", "synchronise segmentation_confidence whenever it has a publisher")
+    body_to_optical: bool = _p(False, "", "poses are of a body frame (x fwd, y left, z up): apply "
+                               "body_to_optical_quaternion")
+    body_to_optical_quaternion: list[float] = _p(list(BODY_TO_OPTICAL_XYZW), "",
+                                                 "rotation (x, y, z, w) of the optical frame in the body frame")
+    map_frame: str = _p("map", "", "frame of the splat model; frame_id of ~/view_uncertainty")
+    # --- processing and outputs
+    max_pending_frames: int = _p(2, "frames", "synchronised frames waiting for the worker; the oldest is "
+                                 "dropped when full (newest wins)")
+    output_scale: float = _p(1.0, "", "resolution scale of the published renders, in (0, 1] (the update uses "
+                             "full resolution)")
+    candidate_scale: float = _p(0.25, "", "resolution scale at which candidate views are rendered, in (0, 1]")
+    max_candidates: int = _p(256, "views", "largest PoseArray scored on candidates (larger: answered with NaN)")
+    candidate_slice: int = _p(16, "views", "candidate views scored between two observed frames (a frame never "
+                              "waits for more than one slice)")
+    candidate_time_budget: float = _p(5.0, "s", "a request not finished this long after it arrived is "
+                                      "answered with NaN for the views not yet scored (0: no limit)")
+    publish_semantic: bool = _p(True, "", "publish ~/semantic (mono8, or mono16 when ids exceed 255)")
+    publish_semantic_color: bool = _p(True, "", "publish ~/semantic_color (rgb8, class palette)")
+    publish_expectation: bool = _p(True, "", "publish ~/expectation (32FC1, E of the argmax class)")
+    publish_variance: bool = _p(True, "", "publish ~/variance (32FC1, Var of the argmax class)")
+    publish_rendered_image: bool = _p(True, "", "publish ~/rendered_image (rgb8 splat render)")
+    publish_view_uncertainty: bool = _p(True, "", "publish ~/view_uncertainty (PointCloud2, one point per "
+                                        "observed frame)")
+    publish_diagnostics: bool = _p(True, "", "publish counters on /diagnostics (diagnostic_msgs/DiagnosticArray)")
+    # --- persistence
+    checkpoint_path: str = _p(DEFAULT_CHECKPOINT, "path", "semantic map checkpoint (.npz); {fingerprint} is "
+                              "replaced by 16 hex digits of the model fingerprint; empty disables saving and "
+                              "resuming")
+    checkpoint_period: float = _p(60.0, "s", "time between automatic checkpoints (0: only on ~/save_map and "
+                                  "shutdown)")
+    checkpoint_retry_max: float = _p(600.0, "s", "longest wait before retrying a failed checkpoint (the wait "
+                                     "doubles from checkpoint_period, or 1 s, per failure)")
+    resume: bool = _p(True, "", "load checkpoint_path at start if it matches the model")
+    # --- logging
+    log_period: float = _p(10.0, "s", "time between status log lines and diagnostics messages (0: never)")
+    warn_period: float = _p(5.0, "s", "minimum time between two warnings of the same topic and reason")
+    warmup: bool = _p(True, "", "compile the rasteriser kernels before subscribing")
+
+
+def param_table() -> list[tuple[str, Any, str, str]]:
+    """(name, default, unit, description) of every parameter, in declaration order."""
+    defaults = NodeParams()
+    return [(f.name, getattr(defaults, f.name), f.metadata["unit"], f.metadata["description"])
+            for f in fields(NodeParams)]
+
+
+def format_default(value: Any) -> str:
+    """A default as written in YAML (true/false, lists in brackets, '' for the empty string)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, list):
+        return "[" + ", ".join(format_default(v) for v in value) + "]"
+    if isinstance(value, str) and value == "":
+        return "''"
+    return str(value)
+
+
+def params_markdown() -> str:
+    """The parameter table as markdown (docs/parameters.md is this text)."""
+    lines = ["# css_node parameters", "",
+             "Generated from `css_ros/ros/params.py` by `css_ros.ros.params.params_markdown()`; "
+             "`test/test_ros_params.py` checks that this file and `config/css_node.yaml` are up to date.",
+             "All parameters are read once at start-up; every time quantity is in seconds.", "",
+             "| name | default | unit | description |", "|---|---|---|---|"]
+    for name, default, unit, desc in param_table():
+        lines.append(f"| `{name}` | `{format_default(default)}` | {unit} | {desc.replace('|', '/')} |")
+    return "\n".join(lines) + "\n"
+
+
+def coerce(name: str, value: Any, default: Any) -> Any:
+    """Convert a parameter value to the type of its default (int -> float allowed); ConfigError otherwise."""
+    def bad() -> ConfigError:
+        return ConfigError(f"parameter {name}={value!r}: expected {type(default).__name__}"
+                           + (" of numbers" if isinstance(default, list) else ""))
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise bad()
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad()
+        return float(value)
+    if isinstance(default, int):
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float)
+                                                                       and float(value).is_integer())):
+            raise bad()
+        return int(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise bad()
+        return value
+    if isinstance(default, list):
+        if isinstance(value, (str, bytes)):
+            raise bad()
+        try:
+            values = list(value)
+        except TypeError:
+            raise bad() from None
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            raise bad()
+        return [float(v) for v in values]
+    return value
+
+
+def params_from_values(values: dict[str, Any]) -> NodeParams:
+    """NodeParams from raw values (missing names take their defaults), coerced and validated."""
+    defaults = NodeParams()
+    unknown = set(values) - {f.name for f in fields(NodeParams)}
+    if unknown:
+        raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
+    p = NodeParams(**{f.name: coerce(f.name, values[f.name], getattr(defaults, f.name)) if f.name in values
+                      else getattr(defaults, f.name) for f in fields(NodeParams)})
+    check_params(p)
+    return p
+
+
+def check_params(p: NodeParams) -> None:
+    """Raise ConfigError naming the parameter when a value is out of range."""
+    def bad(name: str, why: str) -> ConfigError:
+        return ConfigError(f"parameter {name}={getattr(p, name)!r}: {why}")
+
+    if p.input_qos not in ("sensor_data", "reliable"):
+        raise bad("input_qos", "expected 'sensor_data' or 'reliable'")
+    if p.backend not in ("numba", "torch"):
+        raise bad("backend", "expected 'numba' or 'torch'")
+    for name in ("prior", "background", "unknown_threshold", "output_scale", "candidate_scale"):
+        if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
+            raise bad(name, "must be finite and > 0")
+    for name in ("output_scale", "candidate_scale"):
+        if getattr(p, name) > 1:
+            raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")
+    for name in ("sync_slop", "max_stamp_future", "checkpoint_period", "checkpoint_retry_max", "log_period",
+                 "warn_period", "candidate_time_budget"):
+        if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
+            raise bad(name, "must be finite and >= 0")
+    for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels"):
+        if getattr(p, name) < 1:
+            raise bad(name, "must be >= 1")
+    if p.num_classes < 0:
+        raise bad("num_classes", "must be >= 0")
+    if not 0 <= p.ignore_label <= 65535:
+        raise bad("ignore_label", "must be in 0..65535")
+    q = p.body_to_optical_quaternion
+    if len(q) != 4 or not all(math.isfinite(v) for v in q) or abs(math.sqrt(sum(v * v for v in q)) - 1) > 1e-3:
+        raise bad("body_to_optical_quaternion", "expected a unit quaternion [x, y, z, w]")
+
+
+def checkpoint_file(template: str, fingerprint: str) -> str:
+    """checkpoint_path with ``{fingerprint}`` replaced by the model fingerprint's first 16 hex digits."""
+    return template.replace("{fingerprint}", fingerprint[:FINGERPRINT_DIGITS])

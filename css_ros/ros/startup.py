@@ -1,0 +1,140 @@
+"""css_node start-up: load the model, classes and (resumed or fresh) map; stale temp files; kernel warm-up.
+
+Fatal problems raise CssError (ModelError, ConfigError, ...) for main() to report; a checkpoint that
+cannot be used is renamed aside (``<name>.rejected-<time>``) and the map starts fresh.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..engine.camera import Camera
+from ..engine.classes import ClassSet
+from ..engine.gaussians import GaussianModel
+from ..engine.semantic_map import SemanticMap
+from ..errors import ConfigError, CssError, MapError, ModelError
+from ..io.paths import resolve_data_path
+from .params import NodeParams, checkpoint_file
+
+
+@dataclass
+class Engine:
+    """What the node maps with."""
+
+    smap: SemanticMap
+    classes: ClassSet
+    model_path: Path
+    checkpoint_path: Path | None
+    resume_status: str
+
+
+def checkpoint_path(params: NodeParams, fingerprint: str) -> Path | None:
+    """Absolute checkpoint file for this model (None: checkpoints disabled)."""
+    if not params.checkpoint_path:
+        return None
+    return Path(os.path.expanduser(checkpoint_file(params.checkpoint_path, fingerprint))).absolute()
+
+
+def remove_stale_temp_files(path: Path) -> list[Path]:
+    """Delete ``.<name>.*.tmp`` files left next to ``path`` by saves that were killed; returns them."""
+    removed = []
+    if path.parent.is_dir():
+        for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+            try:
+                tmp.unlink()
+                removed.append(tmp)
+            except OSError:
+                pass
+    return removed
+
+
+def reject_aside(path: Path) -> Path | None:
+    """Rename a refused checkpoint to ``<name>.rejected-<YYYYmmdd-HHMMSS>`` (None if that failed)."""
+    aside = path.with_name(path.name + f".rejected-{time.strftime('%Y%m%d-%H%M%S')}")
+    try:
+        os.replace(path, aside)
+        return aside
+    except OSError:
+        return None
+
+
+def load_classes(params: NodeParams, log_warning: Callable[[str], None]) -> ClassSet:
+    if params.class_file:
+        class_path = resolve_data_path(params.class_file)
+        classes = ClassSet.from_yaml(class_path)
+        if params.num_classes and params.num_classes != classes.num_classes:
+            log_warning(f"num_classes={params.num_classes} ignored: class file {class_path} defines "
+                        f"{classes.num_classes} classes")
+        return classes
+    if params.num_classes > 0:
+        return ClassSet.default(params.num_classes)
+    raise ConfigError("set class_file or num_classes > 0")
+
+
+def load_engine(params: NodeParams, log_info: Callable[[str], None],
+                log_warning: Callable[[str], None]) -> Engine:
+    """Model, classes and map (resumed from the checkpoint when it matches, else fresh)."""
+    p = params
+    model_path = resolve_data_path(p.model_path)
+    if not model_path.is_file():
+        raise ModelError(f"model file not found: {model_path} (parameter model_path={p.model_path!r})")
+    model = GaussianModel.from_ply(model_path)
+    classes = load_classes(p, log_warning)
+    C = classes.num_classes
+    kwargs: dict[str, Any] = dict(ignore_label=p.ignore_label, unknown_threshold=p.unknown_threshold,
+                                  backend=p.backend)
+    ckpt = checkpoint_path(p, model.fingerprint)
+    smap = None
+    status = "fresh map"
+    if ckpt is not None:
+        removed = remove_stale_temp_files(ckpt)
+        if removed:
+            log_info(f"removed {len(removed)} temporary file(s) of interrupted saves next to {ckpt}")
+    if ckpt is not None and p.resume and ckpt.exists():
+        try:
+            smap = SemanticMap.load(ckpt, model, expected_classes=C, **kwargs)
+            if smap.num_classes != C:
+                raise MapError(f"it has {smap.num_classes} classes, the class setup has {C}")
+            status = f"resumed from {ckpt} ({smap.frames_observed} frames observed)"
+            if (smap.prior, smap.background) != (p.prior, p.background):
+                log_warning(f"checkpoint prior/background ({smap.prior:g}, {smap.background:g}) override the "
+                            f"parameters ({p.prior:g}, {p.background:g})")
+        except MapError as exc:
+            smap = None
+            aside = reject_aside(ckpt)
+            status = f"starting fresh: checkpoint refused: {exc}" + (f"; kept it as {aside}" if aside else "")
+            log_warning(status)
+    elif ckpt is not None and p.resume:
+        status = f"fresh map (no checkpoint at {ckpt} yet)"
+    if smap is None:
+        smap = SemanticMap(model, num_classes=C, prior=p.prior, background=p.background, **kwargs)
+    return Engine(smap, classes, model_path, ckpt, status)
+
+
+def warm_up(smap: SemanticMap, params: NodeParams, log_info: Callable[[str], None],
+            log_warning: Callable[[str], None]) -> None:
+    """Run the kernels once on a tiny view so the first real frame is not slowed by JIT compilation."""
+    t0 = time.perf_counter()
+    model = smap.model
+    centre = np.median(np.asarray(model.means, dtype=np.float64), axis=0)
+    extent = float(np.max(np.ptp(model.means, axis=0))) if model.num_gaussians > 1 else 1.0
+    K = np.array([[16.0, 0, 7.5], [0, 16.0, 5.5], [0, 0, 1]])
+    cam = Camera.from_pose(K, 16, 12, centre - np.array([0, 0, extent + 1.0]), (0, 0, 0, 1))
+    labels = np.full((12, 16), params.ignore_label, dtype=np.int32)
+    frames_observed = smap.frames_observed
+    try:
+        before = smap.concentrations.copy()
+        smap.update(cam, labels)  # all pixels "no label": compiles the update, adds nothing
+        smap.render(cam)
+        smap.render(cam.scaled(0.5))
+        if not np.array_equal(before, smap.concentrations):
+            smap.concentrations[...] = before
+        smap.frames_observed = frames_observed
+    except CssError as exc:
+        log_warning(f"warm-up failed ({exc}); first frame will compile the kernels")
+    log_info(f"rasteriser warm-up ({params.backend}) took {time.perf_counter() - t0:.2f} s")

@@ -1,0 +1,164 @@
+"""Jobs and the bounded queue between css_node's executor (producers) and its worker thread; WarnLimiter."""
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+
+class WarnLimiter:
+    """Counts bad inputs per (topic, reason) and logs at most one warning per key and ``period`` seconds."""
+
+    def __init__(self, log: Callable[[str], None], period: float) -> None:
+        self._log = log
+        self.period = period
+        self.counts: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()
+        self._last: dict[str, float] = {}
+        self._suppressed: Counter[str] = Counter()
+        self._lock = threading.Lock()
+
+    def __call__(self, topic: str, reason: str, detail: str = "", dropped: bool = True) -> None:
+        """Count and (rate-limited) log a problem with ``topic``; ``dropped``: the message was discarded."""
+        key = f"{topic}: {reason}"
+        now = time.monotonic()
+        with self._lock:
+            self.counts[key] += 1
+            if dropped:
+                self.dropped[topic] += 1
+            last = self._last.get(key)
+            if last is not None and now - last < self.period:
+                self._suppressed[key] += 1
+                return
+            self._last[key] = now
+            extra = f" (+{self._suppressed.pop(key)} similar since last warning)" if self._suppressed.get(key) else ""
+        self._log(f"[{topic}] {reason}{': ' + detail if detail else ''}; total {self.counts[key]}{extra}")
+
+    def snapshot(self) -> tuple[dict[str, int], dict[str, int]]:
+        """(counts per 'topic: reason', dropped messages per topic)."""
+        with self._lock:
+            return dict(self.counts), dict(self.dropped)
+
+
+@dataclass
+class FrameJob:
+    """A synchronised observed frame waiting for the worker."""
+
+    stamp_ns: int
+    frame_id: str
+    labels: np.ndarray            # (H, W) int class ids
+    confidence: np.ndarray | None  # (H, W) float32 in [0, 1]
+    image: np.ndarray | None      # (H, W, 3) uint8 RGB (diagnostics only)
+    K: np.ndarray                 # (3, 3) px
+    position: np.ndarray          # (3,) m, as received
+    quat_in: np.ndarray           # (4,) xyzw, as received (normalised)
+    quat_optical: np.ndarray      # (4,) xyzw of the optical frame
+    t_received: float             # time.monotonic() of the segmentation [s]
+
+
+@dataclass
+class CandidateJob:
+    """A PoseArray of candidate views waiting for (or being scored by) the worker.
+
+    The worker scores ``next_index`` onwards, one slice at a time; ``u_var`` / ``u_exp`` start as NaN and
+    rows that cannot be scored stay NaN.
+    """
+
+    header: Any
+    K: np.ndarray
+    width: int
+    height: int
+    positions: np.ndarray         # (M, 3) m
+    quats_in: np.ndarray          # (M, 4) as received
+    quats_optical: np.ndarray     # (M, 4); rows of invalid poses are NaN
+    t_received: float             # time.monotonic() [s]
+    next_index: int = 0
+    u_var: np.ndarray = field(default=None)  # type: ignore[assignment]
+    u_exp: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        m = len(self.positions)
+        if self.u_var is None:
+            self.u_var = np.full(m, np.nan)
+        if self.u_exp is None:
+            self.u_exp = np.full(m, np.nan)
+
+    @property
+    def done(self) -> bool:
+        return self.next_index >= len(self.positions)
+
+
+class WorkQueue:
+    """Bounded queues between the executor (producers) and the worker thread (consumer).
+
+    Frames: newest wins (the oldest pending frame is dropped when full). Candidate requests have their
+    own queue and are served between frames, one slice per turn: when both are waiting the worker
+    alternates, so neither stream starves the other. A request partly scored goes back to the head of
+    its queue (:meth:`resume_request`).
+    """
+
+    def __init__(self, max_frames: int, max_requests: int = 8) -> None:
+        self.frames: deque[FrameJob] = deque()
+        self.requests: deque[CandidateJob] = deque()
+        self.max_frames = max_frames
+        self.max_requests = max_requests
+        self._cond = threading.Condition()
+        self._last_was_frame = False
+        self.closed = False
+
+    def put_frame(self, job: FrameJob) -> FrameJob | None:
+        """Queue a frame; returns the frame dropped to make room, if any."""
+        with self._cond:
+            dropped = self.frames.popleft() if len(self.frames) >= self.max_frames else None
+            self.frames.append(job)
+            self._cond.notify()
+        return dropped
+
+    def put_request(self, job: CandidateJob) -> CandidateJob | None:
+        """Queue a candidate request; returns the (oldest) request dropped to make room, if any."""
+        with self._cond:
+            dropped = self.requests.popleft() if len(self.requests) >= self.max_requests else None
+            self.requests.append(job)
+            self._cond.notify()
+        return dropped
+
+    def resume_request(self, job: CandidateJob) -> None:
+        """Put a partly scored request back at the head of the request queue (never dropped)."""
+        with self._cond:
+            self.requests.appendleft(job)
+            self._cond.notify()
+
+    def get(self, timeout: float) -> FrameJob | CandidateJob | None:
+        """Next job (None after ``timeout`` s or when closed)."""
+        with self._cond:
+            if not self.frames and not self.requests and not self.closed:
+                self._cond.wait(timeout)
+            if self.closed:
+                return None
+            if self.requests and (not self.frames or self._last_was_frame):
+                self._last_was_frame = False
+                return self.requests.popleft()
+            if self.frames:
+                self._last_was_frame = True
+                return self.frames.popleft()
+            return None
+
+    def drain_requests(self) -> list[CandidateJob]:
+        """Remove and return every pending request (answered with NaN at shutdown)."""
+        with self._cond:
+            out = list(self.requests)
+            self.requests.clear()
+            return out
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+    def sizes(self) -> tuple[int, int]:
+        with self._cond:
+            return len(self.frames), len(self.requests)

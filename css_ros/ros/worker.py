@@ -1,0 +1,249 @@
+"""css_node's worker thread: engine calls (update, render, score) and the checkpoint policy.
+
+Guarantees (docs/reliability.md):
+
+- Each frame is applied under the map lock in one piece, so a checkpoint always holds a state after a
+  whole number of frames.
+- The stop flag is checked between frames and between candidate slices: on SIGTERM the worker stops
+  after at most one frame or one slice of ``candidate_slice`` views.
+- A candidate request is scored ``candidate_slice`` views at a time with observed frames interleaved
+  (a frame never waits for more than one slice); views not scored within ``candidate_time_budget`` s of
+  the request's arrival, or when the node stops, are answered NaN. Every request gets one answer.
+- A failing checkpoint is retried after an exponentially growing delay (capped at
+  ``checkpoint_retry_max`` s); failures are counted and warned about at the warning rate limit.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from ..engine.camera import Camera
+from ..errors import CameraError, MapError
+from ..evaluation.metrics import psnr
+from .params import NodeParams
+from .work import CandidateJob, FrameJob, WarnLimiter, WorkQueue
+
+
+class OutputSink(Protocol):
+    """Where the worker sends its results (css_ros.ros.outputs.OutputPublisher)."""
+
+    def publish_frame(self, job: FrameJob, view: Any) -> None: ...
+
+    def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
+                       u_exp: np.ndarray) -> None: ...
+
+
+class CheckpointPolicy:
+    """When to write the next automatic checkpoint.
+
+    ``period`` [s] between checkpoints while the map changes (0: never automatically); after a failure
+    the next attempt waits ``max(period, 1 s) * 2**(failures - 1)``, capped at ``retry_max`` [s].
+    """
+
+    def __init__(self, period: float, retry_max: float, now: float) -> None:
+        self.period = period
+        self.retry_max = retry_max
+        self.dirty = 0                # map changes since the last successful save
+        self.failures = 0             # consecutive failed saves
+        self.total_failures = 0
+        self.next_due = now + period
+
+    def changed(self, n: int = 1) -> None:
+        self.dirty += n
+
+    def due(self, now: float) -> bool:
+        """An automatic checkpoint is due now."""
+        return self.period > 0 and self.dirty > 0 and now >= self.next_due
+
+    def retry_delay(self) -> float:
+        """Wait [s] after the current run of failures."""
+        if self.failures == 0:
+            return self.period
+        return min(self.retry_max, max(self.period, 1.0) * 2.0 ** (self.failures - 1))
+
+    def saved(self, now: float, dirty_at_save: int) -> None:
+        self.dirty = max(0, self.dirty - dirty_at_save)
+        self.failures = 0
+        self.next_due = now + self.period
+
+    def failed(self, now: float) -> float:
+        """Record a failure; returns the delay [s] until the next automatic attempt."""
+        self.failures += 1
+        self.total_failures += 1
+        delay = self.retry_delay()
+        self.next_due = now + delay
+        return delay
+
+
+class MapWorker:
+    """Owns the semantic map; runs frames and candidate slices from a WorkQueue on its own thread."""
+
+    def __init__(self, smap: Any, params: NodeParams, queue: WorkQueue, sink: OutputSink, warn: WarnLimiter,
+                 stats: Any, checkpoint_path: Path | None, log_info: Callable[[str], None],
+                 log_error: Callable[[str], None]) -> None:
+        self.smap = smap
+        self.p = params
+        self.C = smap.num_classes
+        self.queue = queue
+        self.sink = sink
+        self.warn = warn
+        self.stats = stats
+        self.checkpoint_path = checkpoint_path
+        self.log_info = log_info
+        self.log_error = log_error
+        self.map_lock = threading.Lock()
+        self.save_lock = threading.Lock()
+        self.policy = CheckpointPolicy(params.checkpoint_period, params.checkpoint_retry_max, time.monotonic())
+        self.stop_flag = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.last_u = (float("nan"), float("nan"))
+        self.last_psnr = float("nan")
+
+    # ------------------------------------------------------------------ thread
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.run, name="css_worker", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> bool:
+        """Set the stop flag, wake the worker and wait for it; True when it has stopped."""
+        self.stop_flag.set()
+        self.queue.close()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            return not self._thread.is_alive()
+        return True
+
+    def run(self) -> None:
+        while not self.stop_flag.is_set():
+            job = self.queue.get(timeout=0.2)
+            if self.stop_flag.is_set():
+                if isinstance(job, CandidateJob):
+                    self.finish_request(job, "node stopping")
+                break
+            self.run_job(job)
+            if self.policy.due(time.monotonic()):
+                self.save_checkpoint("periodic")
+        for job in self.queue.drain_requests():
+            self.finish_request(job, "node stopping")
+
+    def run_job(self, job: FrameJob | CandidateJob | None) -> None:
+        """One frame, or one slice of a candidate request (the rest goes back to the queue)."""
+        try:
+            if isinstance(job, FrameJob):
+                self.process_frame(job)
+            elif isinstance(job, CandidateJob):
+                self.process_slice(job)
+                if not job.done:
+                    self.queue.resume_request(job)
+        except Exception as exc:  # noqa: BLE001 - the worker must survive anything one frame does
+            self.stats.count("worker_errors")
+            self.warn("worker", "processing failed", f"{type(exc).__name__}: {exc}")
+            if isinstance(job, CandidateJob):
+                self.finish_request(job, "processing failed")
+
+    # ------------------------------------------------------------------ frames
+    def process_frame(self, job: FrameJob) -> None:
+        p = self.p
+        try:
+            cam = Camera.from_pose(job.K, job.labels.shape[1], job.labels.shape[0], job.position, job.quat_optical)
+        except CameraError as exc:
+            self.warn("pose", "invalid camera", f"{exc}; frame dropped")
+            return
+        labels = job.labels
+        valid = labels != p.ignore_label
+        out_of_range = int(np.count_nonzero(valid & (labels >= self.C)))
+        if out_of_range:
+            self.stats.count("label_pixels_out_of_range", out_of_range)
+            self.warn("segmentation", "class ids >= num_classes",
+                      f"{out_of_range} pixels with ids >= {self.C} (max {int(labels.max())}) treated as no label",
+                      dropped=False)
+        with self.map_lock:
+            if p.output_scale == 1.0:
+                view = self.smap.observe(cam, labels, confidence=job.confidence)
+            else:
+                self.smap.update(cam, labels, confidence=job.confidence)
+                view = self.smap.render(cam.scaled(p.output_scale))
+            self.policy.changed()
+        self.sink.publish_frame(job, view)
+        if job.image is not None and view.rgb.shape == job.image.shape:
+            self.last_psnr = psnr(view.rgb, job.image)
+        self.last_u = (float(view.u_var), float(view.u_exp))
+        self.stats.count("frames_processed")
+        self.stats.frame_latency((time.monotonic() - job.t_received) * 1e3)
+
+    # ------------------------------------------------------------------ candidate requests
+    def process_slice(self, job: CandidateJob) -> None:
+        """Score the next ``candidate_slice`` views of ``job``; answer it when done or over its time budget."""
+        budget = self.p.candidate_time_budget
+        if budget > 0 and time.monotonic() - job.t_received > budget:
+            self.finish_request(job, "time budget exceeded")
+            return
+        m = len(job.positions)
+        start, stop = job.next_index, min(m, job.next_index + self.p.candidate_slice)
+        cams, scored = [], []
+        for i in range(start, stop):
+            if not np.all(np.isfinite(job.quats_optical[i])):
+                continue
+            try:
+                cam = Camera.from_pose(job.K, job.width, job.height, job.positions[i], job.quats_optical[i])
+                cams.append(cam.scaled(self.p.candidate_scale))
+                scored.append(i)
+            except CameraError as exc:
+                self.warn("candidates", "invalid candidate pose", f"{exc}; scored NaN", dropped=False)
+        if cams:
+            with self.map_lock:
+                scores = self.smap.score_views(cams)
+            job.u_var[scored], job.u_exp[scored] = scores[:, 0], scores[:, 1]
+        job.next_index = stop
+        self.stats.count("candidate_views_scored", len(cams))
+        if job.done:
+            self.finish_request(job, None)
+
+    def finish_request(self, job: CandidateJob, reason: str | None) -> None:
+        """Publish the answer of ``job``; ``reason``: why views from next_index on are NaN (None: complete)."""
+        if reason is not None:
+            left = len(job.positions) - job.next_index
+            job.next_index = len(job.positions)
+            self.stats.count(f"requests_nan[{reason}]")
+            self.warn("candidates", reason, f"{left} views answered with NaN scores", dropped=False)
+        self.sink.publish_scores(job.header, job.positions, job.quats_in, job.u_var, job.u_exp)
+        self.stats.count("requests_served")
+        self.stats.count("candidate_views", len(job.positions))
+        self.stats.request_latency((time.monotonic() - job.t_received) * 1e3)
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, path: Path) -> float:
+        """Write the map to ``path`` now (atomic); returns the time taken [s]. MapError/OSError on failure."""
+        t0 = time.perf_counter()
+        with self.save_lock, self.map_lock:
+            dirty = self.policy.dirty
+            self.smap.save(path)
+            self.policy.saved(time.monotonic(), dirty)
+        self.stats.count("checkpoints")
+        return time.perf_counter() - t0
+
+    def save_checkpoint(self, reason: str, force: bool = False) -> bool:
+        """Save to checkpoint_path if set and changed (or ``force``); failures back off and are warned."""
+        path = self.checkpoint_path
+        if path is None or (not force and not self.policy.dirty):
+            return False
+        try:
+            dt = self.save(path)
+        except (MapError, OSError) as exc:
+            delay = self.policy.failed(time.monotonic())
+            self.stats.count("checkpoint_failures")
+            self.warn("checkpoint", "checkpoint failed",
+                      f"({reason}) to {path}: {exc}; failure {self.policy.failures} in a row, next attempt in "
+                      f"{delay:g} s", dropped=False)
+            return False
+        self.log_info(f"checkpoint ({reason}) written to {path} in {dt:.2f} s")
+        return True
+
+    def reset_map(self) -> None:
+        with self.map_lock:
+            self.smap.reset()
+            self.policy.changed()

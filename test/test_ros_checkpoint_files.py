@@ -1,0 +1,160 @@
+"""Crafted checkpoints and models are refused before anything large is read; stale temp files removed."""
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ros_helpers as rh
+from css_ros.engine.gaussians import GaussianModel
+from css_ros.engine.semantic_map import SemanticMap
+from css_ros.errors import MapError, ModelError
+from css_ros.ros.params import NodeParams
+from css_ros.ros.startup import load_engine, remove_stale_temp_files
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    return rh.write_wall_model(tmp_path_factory.mktemp("m") / "wall.ply")
+
+
+@pytest.fixture(scope="module")
+def model(model_path) -> GaussianModel:
+    return GaussianModel.from_ply(model_path)
+
+
+def members(model: GaussianModel, **over) -> dict:
+    m = dict(format_version=np.int64(1), concentrations=np.full((model.num_gaussians, 4), 2.0),
+             prior=np.float64(1e-3), background=np.float64(1e-3), num_classes=np.int64(4),
+             num_gaussians=np.int64(model.num_gaussians), model_fingerprint=np.array(model.fingerprint),
+             frames_observed=np.int64(3))
+    m.update(over)
+    return m
+
+
+def write(path: Path, m: dict, compress: bool = False) -> Path:
+    (np.savez_compressed if compress else np.savez)(path, **m)
+    return path
+
+
+def test_valid_file_loads(model, tmp_path):
+    smap = SemanticMap.load(write(tmp_path / "ok.npz", members(model)), model, expected_classes=4)
+    assert smap.frames_observed == 3 and smap.concentrations.max() == 2.0
+
+
+@pytest.mark.parametrize("case, match", [
+    ("format_version shape (2,)", "format_version has shape"),
+    ("prior shape (3,)", "prior has shape"),
+    ("complex concentrations", "dtype complex"),
+    ("bool concentrations", "dtype bool"),
+    ("1e308 concentrations", "invalid concentrations"),
+    ("1e308 prior", r"prior=1e\+308 outside"),
+    ("frames_observed -5", "frames_observed=-5"),
+    ("other class count", "has 5 classes, expected 4"),
+    ("string prior", "prior has dtype"),
+])
+def test_crafted_members_refused(model, tmp_path, case, match):
+    G = model.num_gaussians
+    over = {
+        "format_version shape (2,)": dict(format_version=np.array([1, 1])),
+        "prior shape (3,)": dict(prior=np.full(3, 1e-3)),
+        "complex concentrations": dict(concentrations=np.full((G, 4), 2.0 + 0j)),
+        "bool concentrations": dict(concentrations=np.ones((G, 4), bool)),
+        "1e308 concentrations": dict(concentrations=np.full((G, 4), 1e308)),
+        "1e308 prior": dict(prior=np.float64(1e308)),
+        "frames_observed -5": dict(frames_observed=np.int64(-5)),
+        "other class count": dict(concentrations=np.full((G, 5), 2.0), num_classes=np.int64(5)),
+        "string prior": dict(prior=np.array("0.001")),
+    }[case]
+    with pytest.raises(MapError, match=match):
+        SemanticMap.load(write(tmp_path / "bad.npz", members(model, **over)), model, expected_classes=4)
+
+
+def test_plain_npy_refused(model, tmp_path):
+    np.save(tmp_path / "plain.npy", np.zeros(3))
+    with pytest.raises(MapError, match="not an .npz archive"):
+        SemanticMap.load(tmp_path / "plain.npy", model)
+
+
+def _npy_header(shape: tuple, dtype: str = "<f8") -> bytes:
+    buf = io.BytesIO()
+    from numpy.lib import format as npformat
+    npformat.write_array_header_1_0(buf, {"descr": dtype, "fortran_order": False, "shape": shape})
+    return buf.getvalue()
+
+
+def test_header_declaring_huge_array_refused_before_reading(model, tmp_path):
+    path = write(tmp_path / "huge.npz", members(model))
+    # Replace the concentrations member with a header declaring 10^12 values over 16 bytes of data.
+    with zipfile.ZipFile(path) as zf:
+        items = {i.filename: zf.read(i) for i in zf.infolist() if i.filename != "concentrations.npy"}
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, data in items.items():
+            zf.writestr(name, data)
+        zf.writestr("concentrations.npy", _npy_header((model.num_gaussians, 10**9)) + b"\0" * 16)
+    with pytest.raises(MapError, match=r"concentrations have shape"):
+        SemanticMap.load(path, model)
+
+
+def test_decompression_bomb_refused_before_inflating(model, tmp_path):
+    path = write(tmp_path / "bomb.npz", members(model))
+    with zipfile.ZipFile(path) as zf:
+        items = {i.filename: zf.read(i) for i in zf.infolist() if i.filename != "concentrations.npy"}
+    bomb = _npy_header((model.num_gaussians, 4)) + b"\0" * (200 * 2**20)  # 200 MB of zeros, ~200 kB deflated
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, data in items.items():
+            zf.writestr(name, data)
+        zf.writestr("concentrations.npy", bomb)
+    assert path.stat().st_size < 2 * 2**20
+    with pytest.raises(MapError, match="holds 209715.* bytes, its header declares"):
+        SemanticMap.load(path, model)
+
+
+def test_ply_with_log_scale_100_refused(tmp_path):
+    m = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "w.ply"))
+    log_scales = m.log_scales.copy()
+    log_scales[0, 0] = 100.0  # sigma = e^100 m: inf in float32
+    object.__setattr__(m, "log_scales", log_scales)
+    m.to_ply(tmp_path / "bad.ply")
+    with pytest.raises(ModelError, match="log_scales: 1 value.* above 20"):
+        GaussianModel.from_ply(tmp_path / "bad.ply")
+
+
+def test_node_start_up_renames_crafted_checkpoint_aside_and_starts_fresh(model, model_path, tmp_path):
+    ckpt = write(tmp_path / "map.npz", members(model, frames_observed=np.int64(-5)))
+    original = ckpt.read_bytes()
+    warnings: list[str] = []
+    p = NodeParams(model_path=str(model_path), class_file="", num_classes=4, checkpoint_path=str(ckpt))
+    engine = load_engine(p, lambda s: None, warnings.append)
+    assert "checkpoint refused" in engine.resume_status and "frames_observed=-5" in warnings[0]
+    assert np.all(engine.smap.concentrations == p.prior) and not ckpt.exists()
+    (aside,) = [q for q in tmp_path.iterdir() if q.name.startswith("map.npz.rejected-")]
+    assert aside.read_bytes() == original
+
+
+def test_stale_temp_files_removed_at_start(model, model_path, tmp_path):
+    ckpt = tmp_path / "map.npz"
+    stale = [tmp_path / ".map.npz.abc123.tmp", tmp_path / ".map.npz.x.tmp"]
+    for s in stale:
+        s.write_bytes(b"partial")
+    other = tmp_path / ".other.npz.abc.tmp"
+    other.write_bytes(b"keep")
+    infos: list[str] = []
+    p = NodeParams(model_path=str(model_path), class_file="", num_classes=4, checkpoint_path=str(ckpt))
+    load_engine(p, infos.append, lambda s: None)
+    assert not any(s.exists() for s in stale) and other.exists()
+    assert "removed 2 temporary file(s)" in infos[0]
+    assert remove_stale_temp_files(ckpt) == []
+
+
+def test_default_checkpoint_path_differs_per_model(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    a = rh.write_wall_model(tmp_path / "a.ply", seed=0)
+    b = rh.write_wall_model(tmp_path / "b.ply", seed=1)
+    pa = load_engine(NodeParams(model_path=str(a), class_file="", num_classes=4), print, print).checkpoint_path
+    pb = load_engine(NodeParams(model_path=str(b), class_file="", num_classes=4), print, print).checkpoint_path
+    assert pa != pb and pa.parent == pb.parent == tmp_path / ".ros" / "css_ros" / "maps"
+    assert pa.name == GaussianModel.from_ply(a).fingerprint[:16] + ".npz"

@@ -1,0 +1,169 @@
+"""css_node's worker without rclpy: checkpoint policy and back-off, candidate slicing, budgets, stop flag."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ros_helpers as rh
+from css_ros.engine.gaussians import GaussianModel
+from css_ros.engine.semantic_map import SemanticMap
+from css_ros.ros.diagnostics import Stats
+from css_ros.ros.params import NodeParams
+from css_ros.ros.work import CandidateJob, FrameJob, WarnLimiter, WorkQueue
+from css_ros.ros.worker import CheckpointPolicy, MapWorker
+
+
+class Sink:
+    def __init__(self) -> None:
+        self.frames: list[int] = []
+        self.scores: list[tuple] = []
+        self.order: list[str] = []
+
+    def publish_frame(self, job, view) -> None:
+        self.frames.append(job.stamp_ns)
+        self.order.append("f")
+
+    def publish_scores(self, header, positions, quats, u_var, u_exp) -> None:
+        self.scores.append((header, u_var.copy(), u_exp.copy()))
+        self.order.append("r")
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> GaussianModel:
+    return GaussianModel.from_ply(rh.write_wall_model(tmp_path_factory.mktemp("w") / "wall.ply"))
+
+
+def make_worker(model, ckpt: Path | None = None, **params) -> tuple[MapWorker, Sink, list[str], Stats]:
+    p = NodeParams(**params)
+    lines: list[str] = []
+    sink, stats = Sink(), Stats()
+    w = MapWorker(SemanticMap(model, rh.NUM_CLASSES), p, WorkQueue(p.max_pending_frames), sink,
+                  WarnLimiter(lines.append, p.warn_period), stats, ckpt, lines.append, lines.append)
+    return w, sink, lines, stats
+
+
+def frame(stamp: int) -> FrameJob:
+    q = rh.IDENTITY.copy()
+    return FrameJob(stamp, "cam", rh.wall_labels().astype(np.int32), None, None, rh.K, np.zeros(3), q, q,
+                    time.monotonic())
+
+
+def request(m: int, t_received: float | None = None) -> CandidateJob:
+    positions = np.zeros((m, 3))
+    quats = np.tile(rh.IDENTITY, (m, 1))
+    return CandidateJob("hdr", rh.K, rh.WIDTH, rh.HEIGHT, positions, quats, quats.copy(),
+                        time.monotonic() if t_received is None else t_received)
+
+
+# ------------------------------------------------------------------ checkpoint policy
+def test_policy_due_only_when_dirty_and_period_elapsed():
+    pol = CheckpointPolicy(period=10.0, retry_max=100.0, now=0.0)
+    assert not pol.due(20.0)                   # nothing changed
+    pol.changed()
+    assert not pol.due(5.0) and pol.due(10.0)
+    pol.saved(10.0, dirty_at_save=1)
+    assert pol.dirty == 0 and not pol.due(30.0)
+
+
+def test_policy_changes_during_a_save_stay_dirty():
+    pol = CheckpointPolicy(period=1.0, retry_max=10.0, now=0.0)
+    pol.changed(3)
+    pol.saved(1.0, dirty_at_save=2)
+    assert pol.dirty == 1
+
+
+def test_policy_period_zero_never_automatic():
+    pol = CheckpointPolicy(period=0.0, retry_max=10.0, now=0.0)
+    pol.changed()
+    assert not pol.due(1e9)
+
+
+def test_policy_failures_back_off_exponentially_capped_and_reset_on_success():
+    pol = CheckpointPolicy(period=5.0, retry_max=60.0, now=0.0)
+    pol.changed()
+    delays = [pol.failed(0.0) for _ in range(6)]
+    assert delays == [5.0, 10.0, 20.0, 40.0, 60.0, 60.0]
+    assert pol.total_failures == 6 and pol.next_due == 60.0
+    pol.saved(100.0, 1)
+    assert pol.failures == 0 and pol.retry_delay() == 5.0 and pol.total_failures == 6
+
+
+def test_failing_checkpoint_counted_warned_rate_limited_and_backs_off(model, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    w, _, lines, stats = make_worker(model, blocker / "map.npz", checkpoint_period=0.01, warn_period=60.0)
+    w.policy.changed()
+    for _ in range(3):
+        assert not w.save_checkpoint("periodic", force=True)
+    assert stats.snapshot()[0]["checkpoint_failures"] == 3 and w.policy.failures == 3
+    warned = [line for line in lines if "checkpoint failed" in line]
+    assert len(warned) == 1 and "next attempt in 1 s" in warned[0]
+    assert w.warn.snapshot()[0]["checkpoint: checkpoint failed"] == 3
+    assert not w.policy.due(time.monotonic() + 3.0) and w.policy.due(time.monotonic() + 4.1)
+
+
+def test_checkpoint_written_after_frames_and_not_when_clean(model, tmp_path):
+    ckpt = tmp_path / "map.npz"
+    w, sink, _, stats = make_worker(model, ckpt)
+    assert not w.save_checkpoint("shutdown") and not ckpt.exists()
+    w.run_job(frame(1))
+    assert sink.frames == [1] and w.policy.dirty == 1
+    assert w.save_checkpoint("shutdown") and w.policy.dirty == 0
+    assert SemanticMap.load(ckpt, model).frames_observed == 1
+
+
+# ------------------------------------------------------------------ candidate requests
+def test_big_request_split_into_slices_interleaved_with_frames(model):
+    w, sink, _, stats = make_worker(model, candidate_slice=4, max_pending_frames=10)
+    w.queue.put_request(request(10))
+    for s in range(1, 4):
+        w.queue.put_frame(frame(s))
+    for _ in range(6):
+        w.run_job(w.queue.get(0))
+    # slice 1 of the request, frame, slice 2, frame, slice 3 (answers), frame
+    assert sink.order == ["f", "f", "f", "r"]  # f, slice, f, slice, f, last slice -> answer
+    assert sink.frames == [1, 2, 3] and len(sink.scores) == 1
+    _, u_var, u_exp = sink.scores[0]
+    assert np.all(np.isfinite(u_var)) and np.all(np.isfinite(u_exp))
+    assert stats.snapshot()[0]["candidate_views_scored"] == 10
+
+
+def test_frames_never_wait_for_more_than_one_slice(model):
+    w, sink, _, _ = make_worker(model, candidate_slice=2, max_pending_frames=10)
+    w.queue.put_request(request(8))
+    for s in range(1, 4):
+        w.queue.put_frame(frame(s))
+    kinds = []
+    while True:
+        job = w.queue.get(0)
+        if job is None:
+            break
+        kinds.append("f" if isinstance(job, FrameJob) else "s")
+        w.run_job(job)
+    assert kinds == ["f", "s", "f", "s", "f", "s", "s"]
+
+
+def test_request_over_time_budget_answered_nan_with_status(model):
+    w, sink, lines, stats = make_worker(model, candidate_slice=2, candidate_time_budget=1.0)
+    job = request(6, t_received=time.monotonic() - 2.0)
+    w.run_job(job)
+    (_, u_var, _), = sink.scores
+    assert np.all(np.isnan(u_var))
+    assert stats.snapshot()[0]["requests_nan[time budget exceeded]"] == 1
+    assert "[candidates] time budget exceeded: 6 views answered with NaN scores" in lines[-1]
+
+
+def test_stop_flag_answers_pending_requests_and_exits_fast(model):
+    w, sink, _, stats = make_worker(model, candidate_slice=1)
+    w.queue.put_request(request(20000))
+    w.start()
+    time.sleep(0.05)
+    t0 = time.monotonic()
+    assert w.stop(5.0)
+    assert time.monotonic() - t0 < 2.0
+    (_, u_var, _), = sink.scores                      # answered exactly once
+    assert np.isnan(u_var[-1])
+    assert stats.snapshot()[0]["requests_nan[node stopping]"] == 1
