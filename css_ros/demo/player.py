@@ -213,7 +213,7 @@ class DemoPlayer:
     def create_publishers(self, bag_path: Path) -> None:
         """One publisher per played topic of the bag, created before playing so discovery completes first."""
         from ..io.bag import InputBag
-        from ..ros.conversions import _rclpy_class
+        from ..ros.conversions import rclpy_class
 
         with InputBag(bag_path) as bag:
             topics = bag.topics()
@@ -222,7 +222,7 @@ class DemoPlayer:
             raise CssError(f"bag {bag_path} lacks {', '.join(missing)} (has {', '.join(sorted(topics))})")
         for topic in PLAYED_TOPICS:
             if topic in topics:
-                self.publisher(topic, _rclpy_class(topics[topic][0])())
+                self.publisher(topic, rclpy_class(topics[topic][0])())
 
     def unsubscribed_topics(self) -> list[str]:
         """Played topics that nobody subscribes to (full names, with --prefix)."""

@@ -90,7 +90,7 @@ def pose_array_msg(positions: np.ndarray, quats_xyzw: np.ndarray, header: Header
     return PoseArray(header=header, poses=[pose_msg(p, q) for p, q in zip(positions, quats_xyzw)])
 
 
-def _rclpy_class(msgtype: str) -> type:
+def rclpy_class(msgtype: str) -> type:
     """'sensor_msgs/msg/Image' -> the rclpy class sensor_msgs.msg.Image."""
     pkg, _, name = msgtype.split("/")
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
@@ -103,7 +103,7 @@ def to_rclpy(msg: Any, msgtype: str | None = None) -> Any:
     libraries). Byte arrays are copied with one memcpy.
     """
     msgtype = msgtype or getattr(msg, "__msgtype__")
-    out = _rclpy_class(msgtype)()
+    out = rclpy_class(msgtype)()
     for name in out.get_fields_and_field_types():
         value = getattr(msg, name)
         if hasattr(value, "__msgtype__"):
