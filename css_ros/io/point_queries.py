@@ -32,20 +32,15 @@ def class_field_names(class_names: Sequence[str]) -> list[str]:
     return out
 
 
-def request_points(msg: Any, max_points: int) -> np.ndarray:
-    """(M, 3) float64 query points [m, map frame] of a request cloud.
+def request_points(msg: Any) -> np.ndarray:
+    """(M, 3) float64 query points [m, map frame] of a request cloud (rows may be non-finite: the caller
+    answers those as unknown).
 
     Raises:
-        InputError: fields x, y, z missing, more than ``max_points`` points, or non-finite coordinates.
+        InputError: fields x, y, z missing or unreadable, or truncated data.
     """
-    n = int(msg.width) * int(msg.height)
-    if n > max_points:
-        raise InputError(f"{n} points > max_query_points {max_points}")
     pts = unpack_cloud(msg, ("x", "y", "z"))
-    xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64)
-    if not np.all(np.isfinite(xyz)):
-        raise InputError("query points hold non-finite coordinates")
-    return xyz
+    return np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64).reshape(-1, 3)
 
 
 def answer_columns(xyz: np.ndarray, labels: np.ndarray, expectation: np.ndarray, variance: np.ndarray,

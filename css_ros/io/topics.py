@@ -23,6 +23,7 @@ INPUT_TOPICS: dict[str, str] = {
     "camera_info": "camera_info",
     "pose": "pose",
     "candidates": "candidates",
+    "point_queries": "point_queries",
 }
 #: kind -> message type of each input.
 INPUT_TYPES: dict[str, str] = {
@@ -32,6 +33,7 @@ INPUT_TYPES: dict[str, str] = {
     "camera_info": CAMERA_INFO_TYPE,
     "pose": POSE_STAMPED_TYPE,
     "candidates": POSE_ARRAY_TYPE,
+    "point_queries": POINTCLOUD2_TYPE,
     "gt": IMAGE_TYPE,
 }
 #: The frame kinds a bag holds (absolute names): the node's inputs plus the evaluation-only GT labels.
@@ -55,8 +57,11 @@ OUTPUT_TOPICS: dict[str, str] = {
     "rendered_image": IMAGE_TYPE,
     "view_uncertainty": POINTCLOUD2_TYPE,
     "candidate_scores": POINTCLOUD2_TYPE,
+    "semantic_cloud": POINTCLOUD2_TYPE,
+    "point_query_results": POINTCLOUD2_TYPE,
 }
-#: Outputs published for every observed frame (``candidate_scores`` answers requests only).
+#: Outputs published for every observed frame (``candidate_scores`` and ``point_query_results`` answer
+#: requests; ``semantic_cloud`` is the 3D map, published periodically with transient-local durability).
 FRAME_OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rendered_image", "view_uncertainty")
 
 

@@ -11,7 +11,8 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
+from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
+                           DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from ..errors import ConfigError
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
 
@@ -82,6 +83,20 @@ class NodeParams:
     publish_view_uncertainty: bool = _p(True, "", "publish ~/view_uncertainty (PointCloud2, one point per "
                                         "observed frame)")
     publish_diagnostics: bool = _p(True, "", "publish counters on /diagnostics (diagnostic_msgs/DiagnosticArray)")
+    # --- the map in 3D (SPEC §9)
+    cloud_period: float = _p(5.0, "s", "time between ~/semantic_cloud messages, sent only when the map changed "
+                             "(transient local: late subscribers get the last one; 0: off)")
+    cloud_voxel_size: float = _p(0.0, "m", "keep only the most certain observed Gaussian per voxel of this edge "
+                                 "in ~/semantic_cloud (0: every observed Gaussian)")
+    cloud_max_points: int = _p(500_000, "points", "largest ~/semantic_cloud; the most certain points are kept "
+                               "(0: no limit)")
+    min_evidence: float = _p(DEFAULT_MIN_EVIDENCE, "", "a Gaussian is observed (in ~/semantic_cloud) when its "
+                             "concentrations exceed the prior by this total (S_n - C alpha_0)")
+    max_query_points: int = _p(1_000_000, "points", "largest point_queries cloud evaluated (larger: answered "
+                               "as unknown)")
+    point_query_slice: int = _p(65_536, "points", "query points evaluated between two observed frames")
+    query_background_weight: float = _p(DEFAULT_QUERY_BACKGROUND_WEIGHT, "", "background weight w_b of the "
+                                        "continuous field at a 3D point (SPEC §9)")
     # --- persistence
     checkpoint_path: str = _p(DEFAULT_CHECKPOINT, "path", "semantic map checkpoint (.npz); {fingerprint} is "
                               "replaced by 16 hex digits of the model fingerprint; empty disables saving and "
@@ -184,19 +199,23 @@ def check_params(p: NodeParams) -> None:
         raise bad("input_qos", "expected 'sensor_data' or 'reliable'")
     if p.backend not in ("numba", "torch"):
         raise bad("backend", "expected 'numba' or 'torch'")
-    for name in ("prior", "background", "unknown_threshold", "output_scale", "candidate_scale"):
+    for name in ("prior", "background", "unknown_threshold", "output_scale", "candidate_scale",
+                 "query_background_weight"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
             raise bad(name, "must be finite and > 0")
     for name in ("output_scale", "candidate_scale"):
         if getattr(p, name) > 1:
             raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")
     for name in ("sync_slop", "max_stamp_future", "checkpoint_period", "checkpoint_retry_max", "log_period",
-                 "warn_period", "candidate_time_budget"):
+                 "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
-    for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels"):
+    for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
+                 "max_query_points", "point_query_slice"):
         if getattr(p, name) < 1:
             raise bad(name, "must be >= 1")
+    if p.cloud_max_points < 0:
+        raise bad("cloud_max_points", "must be >= 0")
     if p.num_classes < 0:
         raise bad("num_classes", "must be >= 0")
     if not 0 <= p.ignore_label <= 65535:
