@@ -12,6 +12,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .views import ImportFormatError, PosedView, check_intrinsics, make_pose, pinhole_K, sorted_views
 
 #: Largest cameras.json read [bytes] (a 10 000-camera file is about 5 MB).
@@ -46,9 +48,8 @@ def load_inria(path: str | Path) -> list[PosedView]:
     return sorted_views(views)
 
 
-def _floats(x: Any, where: str) -> Any:
-    import numpy as np
-
+def _floats(x: Any, where: str) -> np.ndarray:
+    """float64 array of ``x`` (ImportFormatError naming ``where`` if it holds non-numbers)."""
     try:
         return np.asarray(x, dtype=np.float64)
     except (TypeError, ValueError):

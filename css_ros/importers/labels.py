@@ -123,7 +123,7 @@ class LabelDecoder:
         path = Path(path)
         img = _open_image(path)
         if img.mode in ("L", "P", "I;16", "I;16B", "I;16L", "I"):
-            ids = np.asarray(img if img.mode != "P" else img, dtype=np.int64)
+            ids = np.asarray(img, dtype=np.int64)  # P: the palette index is the id
             if ids.min(initial=0) < 0 or ids.max(initial=0) > 65535:
                 raise ImportFormatError(f"{path}: label ids must be in 0..65535")
             ids = ids.astype(np.uint16)

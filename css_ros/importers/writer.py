@@ -22,7 +22,7 @@ from ..io.bag import BagWriter
 from ..io.topics import BAG_TOPICS
 from .labels import LabelDecoder, read_confidence, read_rgb
 from .pairing import ImportFrame
-from .views import ImportFormatError
+from .views import ImportFormatError, PosedView
 
 CAMERA_FRAME = "camera_optical"   #: frame id of images and camera_info (as the demo bag)
 MAP_FRAME = "map"                 #: frame id of the poses (as the demo bag)
@@ -120,7 +120,7 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
                          bag=out / "bag", model=model_out, classes=classes_out)
 
 
-def _sized(arr: np.ndarray, view, path: Path) -> np.ndarray:  # noqa: ANN001 - PosedView
+def _sized(arr: np.ndarray, view: PosedView, path: Path) -> np.ndarray:
     """``arr`` unchanged if its (H, W) equals the camera's, else ImportFormatError."""
     if arr.shape[:2] != (view.height, view.width):
         raise ImportFormatError(f"{path}: image is {arr.shape[1]}x{arr.shape[0]} but camera {view.name} is "
@@ -128,7 +128,8 @@ def _sized(arr: np.ndarray, view, path: Path) -> np.ndarray:  # noqa: ANN001 - P
     return arr
 
 
-def _ids(ids: np.ndarray, view, path: Path, limit: int, dtype: type) -> np.ndarray:  # noqa: ANN001
+def _ids(ids: np.ndarray, view: PosedView, path: Path, limit: int, dtype: type) -> np.ndarray:
+    """(H, W) ids checked against the camera size and the encoding's largest value, as ``dtype``."""
     ids = _sized(ids, view, path)
     if ids.size and int(ids.max()) > limit:
         raise ImportFormatError(f"{path}: label id {int(ids.max())} does not fit the {limit + 1}-value label "
