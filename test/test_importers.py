@@ -326,3 +326,28 @@ def test_end_to_end_import_then_replay_matches_demo(tmp_path, capsys):
     for key in ("input", "css"):
         assert abs(a["segmentation"][key]["miou"] - b["segmentation"][key]["miou"]) <= 1e-6
         assert a["segmentation"][key]["num_pixels"] == b["segmentation"][key]["num_pixels"]
+
+
+def test_label_size_mismatch_and_missing_gt_are_errors(tmp_path, capsys):
+    cams = synthetic_cameras(2)
+    write_inria(tmp_path / "cameras.json", cams)
+    labels = _label_dir(tmp_path, cams, w=32, h=24)  # half size: intrinsics would not match
+    args = [str(tmp_path / "cameras.json"), "--model", str(DEMO / "model.ply"), "--labels", str(labels),
+            "--num-classes", "3", "--out", str(tmp_path / "out"), "--quiet"]
+    assert main(args) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"css_import: error: {labels / 'frame_000.png'}: image is 32x24 but camera frame_000.png is 64x48 "
+        "(images must have the calibrated size)")
+    (tmp_path / "gt").mkdir()
+    assert main(args + ["--gt", str(tmp_path / "gt")]) == 1
+    assert capsys.readouterr().err.strip() == (
+        "css_import: error: no gt file for image frame_000.png (looked for frame_000.* in the gt folder)")
+    assert main(args + ["--classes", str(DEMO / "classes.yaml")]) == 1
+    assert "--num-classes 3 contradicts" in capsys.readouterr().err
+
+
+def test_palette_png_index_is_the_class_id(tmp_path):
+    img = Image.fromarray(np.array([[0, 1], [2, 255]], np.uint8), mode="P")
+    img.putpalette([0, 0, 0, 10, 10, 10, 20, 20, 20] + [0] * (253 * 3))
+    img.save(tmp_path / "p.png")
+    np.testing.assert_array_equal(LabelDecoder().read(tmp_path / "p.png"), [[0, 1], [2, 255]])
