@@ -27,6 +27,7 @@ setup(
         "tqdm>=4.60",
         "matplotlib>=3.7",
         "scipy>=1.10",
+        "pillow>=9.0",
     ],
     extras_require={
         # torch pinned: an unpinned requirement pulls a multi-GB CUDA build.
@@ -66,6 +67,7 @@ setup(
             "css_demo = css_ros.demo.player:main",
             "css_nbv_client = css_ros.clients.nbv_client:main",
             "css_export = css_ros.export.cli:main",
+            "css_import = css_ros.importers.cli:main",
         ],
     },
 )

@@ -11,8 +11,12 @@ from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIO
 from ..errors import ConfigError, CssError
 from ..io.paths import find_demo_bag
 from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
-from .config import DEFAULT_SYNC_QUEUE, DEFAULT_SYNC_SLOP_S, ReplayConfig
+from ..engine.classes import ClassSet
+from .config import DEFAULT_SYNC_QUEUE, DEFAULT_SYNC_SLOP_S, OUT_OF_RANGE_MAX_SHARE, ReplayConfig
 from .replay import default_out_dir, headline, run
+
+#: Printed on stderr before the kernels are compiled (numba's on-disk cache is cold).
+COMPILE_NOTICE = "css_replay: compiling kernels (first run, ~1 min)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,15 +30,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bag directory (default: the shipped demo bags/demo/bag)")
     p.add_argument("--model", type=Path, default=None, metavar="PLY",
                    help="INRIA 3DGS PLY model (default: <bag parent>/model.ply)")
-    p.add_argument("--classes", type=Path, default=None, metavar="YAML",
-                   help="class file YAML (default: <bag parent>/classes.yaml)")
+    p.add_argument("--classes", default=None, metavar="YAML",
+                   help="class file YAML (default: <bag parent>/classes.yaml; '' = anonymous classes, "
+                        "needs --num-classes)")
     p.add_argument("--num-classes", type=int, default=None, metavar="N",
                    help="number of classes when no class file exists (anonymous names, generated palette)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default: out/replay_<bagname>)")
     for kind, topic in BAG_TOPICS.items():
         opt = "--confidence-topic" if kind == "confidence" else f"--{kind.replace('_', '-')}-topic"
-        p.add_argument(opt, dest=f"topic_{kind}", default=topic, metavar="TOPIC",
+        p.add_argument(opt, dest=f"topic_{kind}", default=None, metavar="TOPIC",
                        help=f"{kind} topic (default {topic})" + ("" if kind in ("segmentation", "pose", "camera_info")
                                                               else "; '' = do not use"))
     p.add_argument("--train-frames", type=int, default=None, metavar="K",
@@ -60,9 +65,59 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pixels kept (uniform random subsample, fixed seed) for pixel sparsification")
     p.add_argument("--seed", type=int, default=0, help="seed of the pixel subsample and the random baseline")
     p.add_argument("--examples", type=int, default=4, help="example frames in the report strip")
+    p.add_argument("--allow-out-of-range", action="store_true",
+                   help=f"do not fail when more than {100 * OUT_OF_RANGE_MAX_SHARE:g} %% of the labelled pixels hold "
+                        "ids >= the number of classes (they are always counted and reported)")
     p.add_argument("--no-output-bag", action="store_true", help="do not write the output bag")
     p.add_argument("--quiet", action="store_true", help="no progress bar, only errors and the final line")
     return p
+
+
+def is_bag_dir(path: Path) -> bool:
+    """True if ``path`` is a rosbag2 directory (metadata.yaml, or MCAP / sqlite3 storage files)."""
+    return path.is_dir() and ((path / "metadata.yaml").is_file() or any(path.glob("*.mcap"))
+                              or any(path.glob("*.db3")))
+
+
+def find_bag(path: Path) -> Path:
+    """``path`` itself if it is a bag (or a bag file), else the single bag directly inside it.
+
+    Raises:
+        ConfigError: missing path, or a folder that holds no bag or several (the message names them).
+    """
+    if not path.exists():
+        raise ConfigError(f"bag not found: {path}")
+    if not path.is_dir() or is_bag_dir(path):
+        return path
+    inside = sorted(p for p in path.iterdir() if is_bag_dir(p))
+    if len(inside) == 1:
+        return inside[0]
+    if inside:
+        raise ConfigError(f"{path} is not a bag but holds several: did you mean "
+                          + " or ".join(str(p) for p in inside) + "?")
+    raise ConfigError(f"{path} is not a rosbag2 bag (no metadata.yaml, .mcap or .db3 file) and holds none")
+
+
+def resolve_classes(args: argparse.Namespace, base: Path) -> tuple[Path | None, int]:
+    """(class file or None for anonymous classes, number of classes C) from --classes / --num-classes."""
+    if args.num_classes is not None and args.num_classes < 1:
+        raise ConfigError("--num-classes must be >= 1")
+    if args.classes == "":
+        if args.num_classes is None:
+            raise ConfigError("--classes '' (anonymous classes) needs --num-classes N")
+        return None, args.num_classes
+    classes = Path(args.classes) if args.classes is not None else base / "classes.yaml"
+    if not classes.is_file():
+        if args.classes is not None:
+            raise ConfigError(f"class file not found: {classes}")
+        if args.num_classes is None:
+            raise ConfigError(f"class file not found: {classes} (pass --classes FILE or --num-classes N)")
+        return None, args.num_classes
+    n = ClassSet.from_yaml(classes).num_classes
+    if args.num_classes is not None and args.num_classes != n:
+        raise ConfigError(f"--num-classes {args.num_classes} contradicts the class file {classes} ({n} classes); "
+                          "drop --num-classes or pass --classes ''")
+    return classes, n
 
 
 def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
@@ -73,43 +128,80 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         if bag is None:
             raise ConfigError("no bag given and the demo bag bags/demo/bag was not found; "
                            "pass a bag directory (or generate the demo with css_make_demo)")
-    bag = Path(bag)
-    if not bag.exists():
-        raise ConfigError(f"bag not found: {bag}")
-    base = bag.resolve().parent if bag.is_dir() else bag.resolve().parent
+    bag = find_bag(Path(bag))
+    base = bag.resolve().parent
     model = args.model if args.model is not None else base / "model.ply"
     if not Path(model).is_file():
         raise ConfigError(f"model not found: {model}" + ("" if args.model else " (pass --model)"))
-    classes = args.classes
-    if classes is None:
-        classes = base / "classes.yaml"
-        if not classes.is_file():
-            if args.num_classes is None:
-                raise ConfigError(f"class file not found: {classes} (pass --classes FILE or --num-classes N)")
-            classes = None
-    elif not Path(classes).is_file():
-        raise ConfigError(f"class file not found: {classes}")
+    classes, num_classes = resolve_classes(args, base)
     for name in ("train_frames", "max_frames"):
         v = getattr(args, name)
         if v is not None and v < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0")
-    if args.num_classes is not None and args.num_classes < 1:
-        raise ConfigError("--num-classes must be >= 1")
     if args.prior <= 0 or args.background <= 0:
         raise ConfigError("--prior and --background must be > 0")
-    topics = {kind: getattr(args, f"topic_{kind}") for kind in BAG_TOPICS}
-    for kind in ("segmentation", "pose", "camera_info"):
+    given = {kind: getattr(args, f"topic_{kind}") for kind in BAG_TOPICS}
+    topics = {kind: BAG_TOPICS[kind] if v is None else v for kind, v in given.items()}
+    for kind in REQUIRED_BAG_KINDS:
         if not topics[kind]:
             raise ConfigError(f"the {kind} topic is required")
     return ReplayConfig(
-        bag=bag, model=Path(model), classes=Path(classes) if classes else None,
-        out=args.out if args.out is not None else default_out_dir(bag), num_classes=args.num_classes,
+        bag=bag, model=Path(model), classes=classes,
+        out=args.out if args.out is not None else default_out_dir(bag), num_classes=num_classes,
         topics=topics, train_frames=args.train_frames, max_frames=args.max_frames, prior=args.prior,
         background=args.background, unknown_threshold=args.unknown_threshold, ignore_label=args.ignore_label,
         backend=args.backend, output_bag=not args.no_output_bag, quiet=args.quiet, sync_slop=args.sync_slop,
         sync_queue=max(1, args.sync_queue), namespace=args.namespace, max_pixels=max(1000, args.max_pixels),
-        seed=args.seed, examples=max(0, args.examples),
+        seed=args.seed, examples=max(0, args.examples), allow_out_of_range=args.allow_out_of_range,
+        explicit_topics=frozenset(k for k, v in given.items() if v is not None),
     )
+
+
+def numba_cache_is_cold() -> bool:
+    """Best effort: True when no numba cache index of the rasteriser exists (beside the module, in
+    ``NUMBA_CACHE_DIR`` or in the user-wide cache), i.e. the next run compiles the kernels."""
+    from ..engine.cpu import raster
+
+    src = Path(raster.__file__)
+    places = [src.parent / "__pycache__"]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        places.append(Path(os.environ["NUMBA_CACHE_DIR"]))
+    places.append(Path.home() / ".cache" / "numba")
+    for place in places:
+        if place.is_dir() and next(place.rglob(f"{src.stem}.*.nbi"), None) is not None:
+            return False
+    return True
+
+
+def warm_up(cfg: ReplayConfig) -> float:
+    """Compile and run every kernel of the replay once on a tiny frame (8 Gaussians, 16 x 12 pixels) so that
+    the report's timings exclude compilation; returns the seconds it took. Prints :data:`COMPILE_NOTICE`
+    first when the numba cache is cold (unless ``cfg.quiet``)."""
+    import time
+
+    import numpy as np
+
+    from ..engine.camera import Camera, intrinsics_from_fov
+    from ..engine.gaussians import GaussianModel
+    from ..engine.semantic_map import SemanticMap
+
+    if cfg.backend == "numba" and not cfg.quiet and numba_cache_is_cold():
+        print(COMPILE_NOTICE, file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    xy = np.stack(np.meshgrid([-0.2, 0.2], [-0.3, 0.0, 0.3, 0.1])[::-1], -1).reshape(-1, 2)[:8]
+    means = np.column_stack([xy, np.full(len(xy), 2.0)])
+    model = GaussianModel.from_activated(means, np.full((len(xy), 3), 0.1), np.tile([1.0, 0, 0, 0], (len(xy), 1)),
+                                         np.full(len(xy), 0.9), np.full((len(xy), 3), 0.5))
+    extra = {} if cfg.unknown_threshold is None else {"unknown_threshold": cfg.unknown_threshold}
+    smap = SemanticMap(model, num_classes=int(cfg.num_classes or 1), prior=cfg.prior, background=cfg.background,
+                       ignore_label=cfg.ignore_label, backend=cfg.backend, **extra)
+    cam = Camera(K=intrinsics_from_fov(16, 12, 60.0), width=16, height=12, T_map_cam=np.eye(4))
+    labels = np.zeros((12, 16), dtype=np.int32)
+    smap.observe(cam, labels, np.ones((12, 16), dtype=np.float32))
+    smap.observe(cam, labels, None)
+    smap.update(cam, labels, None)
+    smap.render(cam)
+    return time.perf_counter() - t0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -121,6 +213,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     try:
         cfg = resolve_paths(args)
+        cfg.warmup_s = warm_up(cfg)
         metrics = run(cfg)
     except CssError as exc:
         print(f"css_replay: error: {exc}", file=sys.stderr)

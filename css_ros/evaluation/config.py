@@ -13,6 +13,12 @@ from ..io.topics import BAG_TOPICS, NODE_NAME
 DEFAULT_SYNC_SLOP_S = 0.05
 #: Default pending messages kept per topic while synchronising (the node's ``queue_size``).
 DEFAULT_SYNC_QUEUE = 100
+#: Largest share of labelled pixels (input or GT, ignore_label excluded) that may hold ids >= C before
+#: css_replay fails (unless ``--allow-out-of-range``): such pixels are excluded from the GT metrics and
+#: count as wrong input predictions, so a larger share means a class file that does not fit the bag.
+OUT_OF_RANGE_MAX_SHARE = 0.01
+#: Fields of :class:`ReplayConfig` that are run facts, not options (left out of ``to_json``).
+_NOT_OPTIONS = ("explicit_topics", "warmup_s")
 
 
 @dataclass
@@ -41,9 +47,14 @@ class ReplayConfig:
     seed: int = 0
     examples: int = 4
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+    allow_out_of_range: bool = False
+    #: Kinds whose topic the user named explicitly: a missing one is an error, not "disabled".
+    explicit_topics: frozenset[str] = frozenset()
+    #: Seconds spent compiling / warming up the kernels before the timed run (set by the CLI; None = none).
+    warmup_s: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
+        d = {k: v for k, v in asdict(self).items() if k not in _NOT_OPTIONS}
         for k, v in d.items():
             if isinstance(v, Path):
                 d[k] = str(v)

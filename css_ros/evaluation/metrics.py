@@ -92,6 +92,49 @@ class ConfusionMatrix:
         }
 
 
+class LabelRangeCounter:
+    """Counts label pixels whose id is not a class (>= C or negative) and not ``ignore_label``, per kind.
+
+    Such pixels are excluded from the GT side of every metric and count as wrong predictions on the
+    input side, so they must be reported rather than dropped silently.
+    """
+
+    def __init__(self, num_classes: int, ignore_label: int = 255) -> None:
+        self.num_classes = int(num_classes)
+        self.ignore_label = int(ignore_label)
+        self.labelled: dict[str, int] = {}
+        self.out_of_range: dict[str, int] = {}
+        self.ids: dict[str, dict[int, int]] = {}
+
+    def update(self, kind: str, labels: np.ndarray) -> None:
+        """Add one (H, W) integer label image of ``kind`` ("segmentation" or "gt")."""
+        lab = np.asarray(labels).ravel()
+        labelled = lab != self.ignore_label
+        bad = labelled & ((lab < 0) | (lab >= self.num_classes))
+        self.labelled[kind] = self.labelled.get(kind, 0) + int(labelled.sum())
+        n_bad = int(bad.sum())
+        self.out_of_range[kind] = self.out_of_range.get(kind, 0) + n_bad
+        if n_bad:
+            ids, counts = np.unique(lab[bad], return_counts=True)
+            seen = self.ids.setdefault(kind, {})
+            for i, c in zip(ids.tolist(), counts.tolist()):
+                seen[int(i)] = seen.get(int(i), 0) + int(c)
+
+    def share(self, kind: str) -> float:
+        """Out-of-range pixels / labelled pixels of ``kind`` (0 when nothing was labelled)."""
+        n = self.labelled.get(kind, 0)
+        return self.out_of_range.get(kind, 0) / n if n else 0.0
+
+    def summary(self) -> dict:
+        """JSON-ready {kind: {pixels, labelled_pixels, share, ids {id: pixels} (10 most frequent)}}."""
+        out = {}
+        for kind in self.labelled:
+            top = sorted(self.ids.get(kind, {}).items(), key=lambda kv: (-kv[1], kv[0]))[:10]
+            out[kind] = {"pixels": self.out_of_range.get(kind, 0), "labelled_pixels": self.labelled[kind],
+                         "share": self.share(kind), "ids": {str(i): c for i, c in top}}
+        return out
+
+
 def finite_or_none(x: float) -> float | None:
     """float for JSON, None for NaN / inf."""
     x = float(x)

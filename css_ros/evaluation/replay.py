@@ -25,10 +25,10 @@ from ..export.bundle import export_map
 from ..io.bag import BagWriter
 from ..io.outputs import frame_output_images
 from ..io.topics import output_topic
-from .config import ReplayConfig
+from .config import OUT_OF_RANGE_MAX_SHARE, ReplayConfig
 from .evaluator import Evaluator
 from .metrics import ConfusionMatrix
-from .source import Frame, FrameSource
+from .source import Frame, FrameSource, check_label_range
 
 
 def default_out_dir(bag: Path) -> Path:
@@ -111,6 +111,9 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     if processed == 0:
         reasons = ", ".join(f"{k}={v}" for k, v in sorted(source.skips.items())) or "no synchronised frames"
         raise CssError(f"no usable frames in {cfg.bag} ({reasons})")
+    range_warning = check_label_range(source.label_range, OUT_OF_RANGE_MAX_SHARE, cfg.allow_out_of_range)
+    if range_warning:
+        print(range_warning, file=sys.stderr)
 
     # Pass 2: render every trained frame's pose with the final map (paper protocol).
     t2 = time.perf_counter()
@@ -146,6 +149,8 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
             "evaluated": len(evaluator.images), "heldout": processed - trained,
             "skipped": dict(sorted(skips_pass1.items())), "sync_counts": source.sync_counts,
             "topics_used": {k: (cfg.topics[k] if v else None) for k, v in source.present.items()},
+            "out_of_range_labels": {"kinds": source.label_range.summary(), "max_share": OUT_OF_RANGE_MAX_SHARE,
+                                    "allowed": cfg.allow_out_of_range},
         },
         "segmentation": {
             "miou_definition": "mean IoU over classes present in the GT or the prediction; pixels with GT = "
@@ -164,6 +169,7 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         metrics["segmentation"]["css_trained_frames"] = evaluator.css_train.summary(classes.names)
         metrics["segmentation"]["css_heldout_frames"] = evaluator.css_heldout.summary(classes.names)
     metrics["timing"] = {
+        "warmup_s": cfg.warmup_s, "compilation_excluded": cfg.warmup_s is not None,
         "load_s": t_load, "fuse_s": t_fuse, "fuse_fps": processed / t_fuse if t_fuse > 0 else None,
         "evaluate_s": t_eval, "evaluate_fps": evaluated_train / t_eval if t_eval > 0 else None,
     }

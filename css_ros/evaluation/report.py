@@ -181,6 +181,28 @@ def make_plots(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str, 
     return plots
 
 
+def _compile_note(timing: dict[str, Any]) -> str:
+    """Whether the timings include kernel compilation (one sentence)."""
+    if timing.get("compilation_excluded"):
+        return (f"timings exclude kernel compilation (kernels warmed up on a tiny frame beforehand in "
+                f"{timing['warmup_s']:.1f} s)")
+    return "timings may include kernel compilation (no warm-up run)"
+
+
+def _out_of_range_lines(rec: dict[str, Any] | None) -> list[str]:
+    """Report lines on label ids that are not classes (none when there are none)."""
+    if not rec:
+        return []
+    lines = []
+    for kind, r in rec.get("kinds", {}).items():
+        if r["pixels"]:
+            ids = ", ".join(f"{i} ({n} px)" for i, n in r["ids"].items())
+            lines.append(f"- **out-of-range labels** ({kind}): {r['pixels']} of {r['labelled_pixels']} labelled "
+                         f"pixels ({100 * r['share']:.2f} %) hold ids that are no class: {ids}. GT pixels with such "
+                         "ids are excluded from every metric; input pixels count as wrong.")
+    return lines
+
+
 def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str, str]]) -> Path:
     """Write ``report.md`` (tables from ``metrics`` + the given plots) into ``out``; return its path."""
     out = Path(out)
@@ -196,7 +218,8 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
         f"skipped: {sum(f['skipped'].values())}" + (f" ({', '.join(f'{k}: {v}' for k, v in f['skipped'].items())})"
                                                      if f["skipped"] else ""),
         f"- time: {t['total_s']:.1f} s total (fusion {_f(t.get('fuse_fps'), '.1f')} frames/s, "
-        f"evaluation {_f(t.get('evaluate_fps'), '.1f')} frames/s)",
+        f"evaluation {_f(t.get('evaluate_fps'), '.1f')} frames/s); " + _compile_note(t),
+        *_out_of_range_lines(f.get("out_of_range_labels")),
         "",
         "CSS metrics are computed after all training frames are fused: every frame's pose is rendered with the "
         "final map (the paper's protocol). Pixels whose ground truth is the ignore label are excluded; a "

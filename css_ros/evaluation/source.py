@@ -10,13 +10,14 @@ from typing import TYPE_CHECKING, Any, Iterator
 import numpy as np
 
 from ..engine.camera import Camera
-from ..errors import BagError, CameraError
+from ..errors import BagError, CameraError, InputError
 from ..io.bag import InputBag
 from ..io.frames import (FrameRejected, Intrinsics, check_size, decode_camera_info, decode_confidence, decode_image,
                          decode_labels, decode_pose)
 from ..io.messages import stamp_to_ns
 from ..io.sync import FrameSynchronizer
 from ..io.topics import INPUT_TYPES, REQUIRED_BAG_KINDS
+from .metrics import LabelRangeCounter
 
 if TYPE_CHECKING:
     from .config import ReplayConfig
@@ -58,9 +59,13 @@ class FrameSource:
     """
 
     SYNC_KINDS = ("segmentation", "pose", "image", "confidence", "gt")
+    #: CLI option of each optional topic kind (for error messages).
+    TOPIC_OPTIONS = {"image": "--image-topic", "confidence": "--confidence-topic", "gt": "--gt-topic"}
 
     def __init__(self, cfg: ReplayConfig) -> None:
         self.cfg = cfg
+        #: Label ids >= C (not ignore_label) in the decoded segmentation / GT images (needs cfg.num_classes).
+        self.label_range = LabelRangeCounter(int(cfg.num_classes or 0), cfg.ignore_label)
         self.skips: Counter[str] = Counter()
         self.sync_counts: dict[str, int] = {}
         self.undecodable: dict[str, int] = {}
@@ -72,7 +77,13 @@ class FrameSource:
     def check(self) -> None:
         """Open the bag once: check topics and types, count segmentation messages (raises BagError)."""
         with InputBag(self.cfg.bag) as bag:
+            topics = bag.topics()
             for kind, topic in self.cfg.topics.items():
+                if topic and kind in self.cfg.explicit_topics and kind not in REQUIRED_BAG_KINDS \
+                        and topic not in topics:
+                    have = ", ".join(sorted(topics)) or "none"
+                    raise BagError(f"{self.TOPIC_OPTIONS.get(kind, kind)} {topic}: no such topic in bag "
+                                   f"{self.cfg.bag}; topics in the bag: {have} ('' disables it)")
                 required = kind in REQUIRED_BAG_KINDS
                 self.present[kind] = bool(topic) and bag.check_topic(topic, INPUT_TYPES[kind], required)
             self.anchor_count = bag.topics()[self.cfg.topics["segmentation"]][1]
@@ -169,7 +180,36 @@ class FrameSource:
         except CameraError:
             self.skips["invalid_pose"] += 1
             return None
+        if self.label_range.num_classes:
+            self.label_range.update("segmentation", labels)
+            if gt is not None:
+                self.label_range.update("gt", gt)
         return Frame(
             index=index, stamp_ns=int(stamp_ns), camera=camera, labels=labels, confidence=confidence,
             gt=gt, rgb=rgb, camera_frame=str(seg_msg.header.frame_id), map_frame=str(pose_msg.header.frame_id),
         )
+
+
+def check_label_range(counter: LabelRangeCounter, max_share: float, allow: bool) -> str | None:
+    """The stderr warning about out-of-range label ids (None when there are none).
+
+    Raises:
+        InputError: the share of out-of-range pixels of a kind exceeds ``max_share`` and not ``allow``.
+    """
+    parts = []
+    worst = 0.0
+    for kind, rec in counter.summary().items():
+        if rec["pixels"]:
+            ids = ", ".join(rec["ids"])
+            parts.append(f"{kind}: {rec['pixels']} px ({100 * rec['share']:.2f} % of labelled pixels; ids {ids})")
+            worst = max(worst, rec["share"])
+    if not parts:
+        return None
+    text = (f"label ids >= {counter.num_classes} (not a class; ignore_label {counter.ignore_label} excluded) in "
+            + "; ".join(parts))
+    if worst > max_share and not allow:
+        raise InputError(f"{text}: more than {100 * max_share:g} % of the labelled pixels, so the class file "
+                         "does not fit this bag (GT pixels would be dropped from the metrics); fix --classes / "
+                         "--num-classes or --ignore-label, or pass --allow-out-of-range")
+    return f"css_replay: warning: {text}; GT pixels with such ids are excluded from the metrics, input pixels " \
+           "count as wrong"

@@ -1,0 +1,137 @@
+"""Write an imported dataset in the layout css_replay and css_demo read::
+
+    OUT/model.ply      the splat model (copied, or a symbolic link with ``link_model``)
+    OUT/classes.yaml   the class file (copied after validation, or anonymous classes)
+    OUT/bag/           rosbag2 MCAP with the BAG_TOPICS topics of the demo bag
+
+Every frame i gets the stamp ``START_NS + round(i * 1e9 / rate_hz)`` on all its messages; frame ids
+are the demo's (``camera_optical`` for images and camera_info, ``map`` for the pose).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..engine.classes import ClassSet
+from ..io.bag import BagWriter
+from ..io.topics import BAG_TOPICS
+from .labels import LabelDecoder, read_confidence, read_rgb
+from .pairing import ImportFrame
+from .views import ImportFormatError, PosedView
+
+CAMERA_FRAME = "camera_optical"   #: frame id of images and camera_info (as the demo bag)
+MAP_FRAME = "map"                 #: frame id of the poses (as the demo bag)
+START_NS = 1_700_000_000_000_000_000  #: stamp of frame 0 [ns] (fixed: byte-identical output for equal input)
+
+
+@dataclass
+class ImportSummary:
+    """What was written: frame count, label statistics and the output paths."""
+
+    frames: int
+    labelled_pixels: int
+    out_of_range_pixels: int
+    unknown_color_pixels: int
+    segmentation_encoding: str
+    bag: Path
+    model: Path
+    classes: Path
+
+
+def stamps_ns(n: int, rate_hz: float) -> np.ndarray:
+    """(n,) int64 stamps [ns]: frame i at ``START_NS + round(i * 1e9 / rate_hz)``."""
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise ImportFormatError(f"--rate must be > 0 Hz, got {rate_hz}")
+    return START_NS + np.rint(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
+
+
+def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | Path, classes: ClassSet,
+                  classes_file: str | Path | None, decoder: LabelDecoder, rate_hz: float = 10.0,
+                  ignore_label: int = 255, link_model: bool = False,
+                  progress: Callable[[int], None] | None = None) -> ImportSummary:
+    """Write OUT/model.ply, OUT/classes.yaml and OUT/bag (see the module docstring).
+
+    Args:
+        out: output folder (created; model.ply, classes.yaml and bag/ in it are replaced).
+        frames: frames in output order.
+        model: INRIA 3DGS PLY in the frame and scale of the poses.
+        classes: the class set (C classes); ``classes_file`` is copied verbatim when given, else
+            ``classes`` is written.
+        decoder: turns label/GT PNGs into ids (colour mapping, remap).
+        rate_hz: frame rate of the stamps [Hz].
+        ignore_label: "no label" id (not counted as out of range).
+        link_model: symlink the model instead of copying it.
+        progress: called with 1 after each frame.
+
+    Raises:
+        ImportFormatError: an image whose size differs from its camera, ids that do not fit the encoding.
+    """
+    out = Path(out)
+    model = Path(model)
+    if not model.is_file():
+        raise ImportFormatError(f"model not found: {model}")
+    out.mkdir(parents=True, exist_ok=True)
+    C = classes.num_classes
+    wide = C > 255 or ignore_label > 255
+    enc, dtype, limit = ("mono16", np.uint16, 65535) if wide else ("mono8", np.uint8, 255)
+    stamps = stamps_ns(len(frames), rate_hz)
+    labelled = out_of_range = 0
+    with BagWriter(out / "bag") as bag:
+        bag.set_custom_data("generator", "css_import")
+        for f, stamp in zip(frames, stamps):
+            v, s = f.view, int(stamp)
+            seg = _ids(decoder.read(f.labels), v, f.labels, limit, dtype)
+            valid = seg != ignore_label
+            labelled += int(valid.sum())
+            out_of_range += int((valid & (seg >= C)).sum())
+            bag.write_camera_info(BAG_TOPICS["camera_info"], v.K, v.width, v.height, s, CAMERA_FRAME)
+            bag.write_pose(BAG_TOPICS["pose"], v.position, v.quaternion_xyzw, s, MAP_FRAME)
+            if f.image is not None:
+                bag.write_image(BAG_TOPICS["image"], _sized(read_rgb(f.image), v, f.image), "rgb8", s, CAMERA_FRAME)
+            bag.write_image(BAG_TOPICS["segmentation"], seg, enc, s, CAMERA_FRAME)
+            if f.confidence is not None:
+                conf = _sized(read_confidence(f.confidence), v, f.confidence)
+                bag.write_image(BAG_TOPICS["confidence"], conf, "32FC1", s, CAMERA_FRAME)
+            if f.gt is not None:
+                bag.write_image(BAG_TOPICS["gt"], _ids(decoder.read(f.gt), v, f.gt, limit, dtype), enc, s,
+                                CAMERA_FRAME)
+            if progress is not None:
+                progress(1)
+    model_out = out / "model.ply"
+    if model.resolve() != model_out.resolve():
+        if model_out.exists() or model_out.is_symlink():
+            model_out.unlink()
+        if link_model:
+            os.symlink(model.resolve(), model_out)
+        else:
+            shutil.copyfile(model, model_out)
+    classes_out = out / "classes.yaml"
+    if classes_file is not None and Path(classes_file).resolve() != classes_out.resolve():
+        shutil.copyfile(classes_file, classes_out)
+    elif classes_file is None:
+        classes.to_yaml(classes_out)
+    return ImportSummary(frames=len(frames), labelled_pixels=labelled, out_of_range_pixels=out_of_range,
+                         unknown_color_pixels=decoder.unknown_color_pixels, segmentation_encoding=enc,
+                         bag=out / "bag", model=model_out, classes=classes_out)
+
+
+def _sized(arr: np.ndarray, view: PosedView, path: Path) -> np.ndarray:
+    """``arr`` unchanged if its (H, W) equals the camera's, else ImportFormatError."""
+    if arr.shape[:2] != (view.height, view.width):
+        raise ImportFormatError(f"{path}: image is {arr.shape[1]}x{arr.shape[0]} but camera {view.name} is "
+                                f"{view.width}x{view.height} (images must have the calibrated size)")
+    return arr
+
+
+def _ids(ids: np.ndarray, view: PosedView, path: Path, limit: int, dtype: type) -> np.ndarray:
+    """(H, W) ids checked against the camera size and the encoding's largest value, as ``dtype``."""
+    ids = _sized(ids, view, path)
+    if ids.size and int(ids.max()) > limit:
+        raise ImportFormatError(f"{path}: label id {int(ids.max())} does not fit the {limit + 1}-value label "
+                                "encoding of this class file (use a remap file)")
+    return ids.astype(dtype)
