@@ -222,7 +222,7 @@ def test_corrupt_map(scene, capsys):
     tmp_path, *_ = scene
     (tmp_path / "map.npz").write_bytes(b"not a zip")
     assert run(tmp_path) == 1
-    one_line_error(capsys, "cannot read map file")
+    one_line_error(capsys, "is not an .npz archive")
 
 
 # ------------------------------------------------------------------ bird's-eye view
