@@ -9,10 +9,11 @@ import pytest
 
 import ros_helpers as rh
 from css_ros.engine.gaussians import GaussianModel
+from css_ros.errors import MapError
 from css_ros.engine.semantic_map import SemanticMap
 from css_ros.ros.diagnostics import Stats
 from css_ros.ros.params import NodeParams
-from css_ros.ros.work import CandidateJob, FrameJob, WarnLimiter, WorkQueue
+from css_ros.ros.work import CandidateJob, FrameJob, PointQueryJob, WarnLimiter, WorkQueue
 from css_ros.ros.worker import CheckpointPolicy, MapWorker
 
 
@@ -21,6 +22,8 @@ class Sink:
         self.frames: list[int] = []
         self.scores: list[tuple] = []
         self.order: list[str] = []
+        self.points: list = []
+        self.clouds: list[int] = []
 
     def publish_frame(self, job, view) -> None:
         self.frames.append(job.stamp_ns)
@@ -29,6 +32,14 @@ class Sink:
     def publish_scores(self, header, positions, quats, u_var, u_exp) -> None:
         self.scores.append((header, u_var.copy(), u_exp.copy()))
         self.order.append("r")
+
+    def publish_points(self, job) -> None:
+        self.points.append(job)
+        self.order.append("q")
+
+    def publish_cloud(self, smap, min_evidence) -> int:
+        self.clouds.append(smap.gaussian_semantics(min_evidence).observed.sum())
+        return int(self.clouds[-1])
 
 
 @pytest.fixture(scope="module")
@@ -167,3 +178,51 @@ def test_stop_flag_answers_pending_requests_and_exits_fast(model):
     (_, u_var, _), = sink.scores                      # answered exactly once
     assert np.isnan(u_var[-1])
     assert stats.snapshot()[0]["requests_nan[node stopping]"] == 1
+
+
+def test_point_query_slices_interleave_with_frames(model):
+    w, sink, _, _ = make_worker(model, point_query_slice=2, cloud_period=0.0)
+    w.process_frame(frame(1))
+    xyz = np.array(model.means[:5], dtype=np.float64)
+    xyz[3] = np.nan  # a non-finite row stays unknown
+    w.queue.put_request(PointQueryJob("hdr", xyz, rh.NUM_CLASSES, 255, time.monotonic()))
+    w.queue.put_frame(frame(2))
+    w.queue.put_frame(frame(3))
+    while any(w.queue.sizes()):
+        w.run_job(w.queue.get(0.0))
+    # frame 2, slice [0, 2), frame 3, slice [2, 4), slice [4, 5) -> answer: the frames never waited
+    assert sink.order == ["f", "f", "f", "q"] and sink.frames == [1, 2, 3]
+    job = sink.points[0]
+    assert job.labels[3] == 255 and np.all(np.isnan(job.expectation[3])) and np.all(np.isnan(job.variance[3]))
+    final = w.smap.query_points(xyz[[2, 4]])  # rows 2 and 4 were evaluated on the final map
+    np.testing.assert_allclose(job.expectation[[2, 4]], final.expectation, rtol=1e-6)
+    np.testing.assert_allclose(job.variance[[2, 4]], final.variance, rtol=1e-6)
+    np.testing.assert_array_equal(job.labels[[2, 4]], final.labels)
+
+
+def test_cloud_is_sent_when_the_map_changed_and_the_period_elapsed(model):
+    w, sink, _, stats = make_worker(model, cloud_period=10.0)
+    assert w.cloud_due(0.0)              # the first cloud goes out at once (even of an empty map)
+    w.publish_cloud(0.0)
+    assert sink.clouds == [0] and not w.cloud_due(100.0)  # unchanged map: nothing new to send
+    w.process_frame(frame(1))
+    assert not w.cloud_due(5.0) and w.cloud_due(10.0)     # changed, but not before cloud_period
+    w.publish_cloud(10.0)
+    assert sink.clouds[-1] > 50 and stats.snapshot()[0]["clouds_published"] == 2
+
+
+def test_load_map_replaces_the_state_and_refuses_another_model(model, tmp_path):
+    w, _, _, _ = make_worker(model, cloud_period=0.0)
+    w.process_frame(frame(1))
+    saved = w.smap.concentrations.copy()
+    w.save(tmp_path / "m.npz")
+    w.reset_map()
+    version = w.map_version
+    assert "loaded" in w.load_map(tmp_path / "m.npz")
+    np.testing.assert_array_equal(w.smap.concentrations, saved)
+    assert w.map_version == version + 1 and w.policy.dirty == 0
+    other = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "other.ply", seed=1, depth=4.0))
+    SemanticMap(other, rh.NUM_CLASSES).save(tmp_path / "other.npz")
+    with pytest.raises(MapError, match="fingerprint|another model|model"):
+        w.load_map(tmp_path / "other.npz")
+    np.testing.assert_array_equal(w.smap.concentrations, saved)

@@ -53,7 +53,11 @@ def view_points_msg(header: Header, positions: np.ndarray, quats_xyzw: np.ndarra
         header: header of the cloud (stamp of the view / the request header).
         positions: (M, 3) view positions [m]; quats_xyzw: (M, 4) orientations; u_var, u_exp: (M,).
     """
-    f = pack_view_points(positions, quats_xyzw, u_var, u_exp)
+    return cloud_msg(header, pack_view_points(positions, quats_xyzw, u_var, u_exp))
+
+
+def cloud_msg(header: Header, f: dict[str, Any]) -> PointCloud2:
+    """PointCloud2 from the fields of :func:`css_ros.io.clouds.pack_cloud` (every cloud the node publishes)."""
     msg = PointCloud2(header=header, height=f["height"], width=f["width"],
                       fields=[PointField(name=n, offset=o, datatype=d, count=c) for n, o, d, c in f["fields"]],
                       is_bigendian=f["is_bigendian"], point_step=f["point_step"], row_step=f["row_step"],

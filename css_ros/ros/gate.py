@@ -26,11 +26,13 @@ import numpy as np
 from ..engine.camera import QUATERNION_NORM_TOLERANCE, matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from ..io.frames import (FrameRejected, Intrinsics, check_size, decode_camera_info, decode_confidence, decode_image,
                          decode_labels, decode_pose)
+from ..errors import InputError
 from ..io.messages import stamp_to_ns
+from ..io.point_queries import request_points
 from ..io.sync import FrameSynchronizer
 from ..io.topics import INPUT_TOPICS
 from .params import NodeParams
-from .work import CandidateJob, FrameJob, WarnLimiter
+from .work import CandidateJob, FrameJob, PointQueryJob, WarnLimiter
 
 #: Consecutive segmentations older than the last frame after which the node assumes the clock was reset.
 STAMP_RESET_COUNT = 5
@@ -348,7 +350,36 @@ class InputGate:
         return CandidateJob(msg.header, info.K, info.width, info.height, positions, quats, optical, time.monotonic())
 
 
+    def on_point_query(self, msg: Any, num_classes: int) -> PointQueryJob:
+        """A PointCloud2 of query points -> a job for the worker.
+
+        Every request is answered in request order: a cloud without readable x y z fields is answered
+        with an empty cloud, one with more than ``max_query_points`` points and non-finite points as
+        unknown (the job is then already done and only needs publishing).
+        """
+        topic = INPUT_TOPICS["point_queries"]
+        self.count("point_queries_received")
+        try:
+            xyz = request_points(msg)
+        except (InputError, AttributeError, TypeError, ValueError) as exc:
+            self.warn(topic, "unreadable point query", f"{exc}: answered with an empty cloud", dropped=False)
+            xyz = np.zeros((0, 3))
+        job = PointQueryJob(msg.header, xyz, num_classes, self.p.ignore_label, time.monotonic())
+        self.frame_id_check(topic, msg.header.frame_id)
+        if len(xyz) > self.p.max_query_points:
+            self.warn(topic, "too many points", f"{len(xyz)} > max_query_points={self.p.max_query_points}: "
+                      "answered as unknown", dropped=False)
+            job.next_index = len(xyz)
+            job.status = "too many points"
+        else:
+            bad = int(np.count_nonzero(~np.all(np.isfinite(xyz), axis=1)))
+            if bad:
+                self.warn(topic, "non-finite query points", f"{bad} of {len(xyz)}: answered as unknown",
+                          dropped=False)
+        return job
+
+
 def input_topics() -> Sequence[str]:
     """The relative input topic names, in subscription order."""
     return tuple(INPUT_TOPICS[k] for k in ("camera_info", "pose", "image", "confidence", "segmentation",
-                                           "candidates"))
+                                           "candidates", "point_queries"))

@@ -14,7 +14,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from diagnostic_msgs.msg import DiagnosticArray
 
@@ -101,10 +101,12 @@ class CssNode(Node):
         self.create_subscription(Image, t["confidence"], self._enqueue(self.gate.on_confidence), qos_in)
         self.create_subscription(Image, t["segmentation"], self._enqueue(self.gate.on_segmentation), qos_in)
         self.create_subscription(PoseArray, t["candidates"], self._on_candidates, qos_req)
+        self.create_subscription(PointCloud2, t["point_queries"], self._on_point_query, qos_req)
 
         qos_srv = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.create_service(Trigger, "~/save_map", self._on_save_map, qos_profile=qos_srv)
         self.create_service(Trigger, "~/reset_map", self._on_reset_map, qos_profile=qos_srv)
+        self.create_service(Trigger, "~/load_map", self._on_load_map, qos_profile=qos_srv)
         diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10) if p.publish_diagnostics else None
         self.reporter = StatusReporter(self.stats, self.warn, self.queue.sizes,
                                        lambda: (*self.worker.last_u, self.worker.last_psnr), log.info, diag_pub,
@@ -139,6 +141,20 @@ class CssNode(Node):
             self.warn("candidates", "request queue full", "oldest pending request answered with NaN scores")
             self.worker.finish_request(dropped, "request queue full")
 
+    def _on_point_query(self, msg: Any) -> None:
+        job = self.gate.on_point_query(msg, self.smap.num_classes)
+        if job.done:  # empty, unreadable or too large: answered at once
+            if job.status is not None:
+                self.stats.count(f"requests_nan[{job.status}]")
+            self.outputs.publish_points(job)
+            self.stats.count("point_queries_served")
+            return
+        dropped = self.queue.put_request(job)
+        if dropped is not None:
+            self.stats.count("requests_dropped_busy")
+            self.warn("point_queries", "request queue full", "oldest pending request answered as unknown / NaN")
+            self.worker.finish_request(dropped, "request queue full")
+
     def status(self) -> dict[str, Any]:
         """Counters and rates (also published as diagnostics)."""
         return self.reporter.status()
@@ -156,6 +172,23 @@ class CssNode(Node):
         except (MapError, OSError) as exc:
             response.success, response.message = False, f"saving {path} failed: {exc}"
             self.get_logger().error(response.message)
+        return response
+
+    def _on_load_map(self, request: Any, response: Any) -> Any:
+        """Replace the map by the checkpoint at checkpoint_path (fingerprint, size and value checks of resume)."""
+        path = self.checkpoint_path
+        if path is None:
+            response.success, response.message = False, "checkpoint_path is empty: loading is disabled"
+        elif not path.is_file():
+            response.success, response.message = False, f"no checkpoint at {path}"
+        else:
+            try:
+                response.success, response.message = True, self.worker.load_map(path)
+                self.stats.count("maps_loaded")
+                self.get_logger().info(response.message)
+            except MapError as exc:
+                response.success, response.message = False, f"checkpoint refused, map unchanged: {exc}"
+                self.get_logger().warning(response.message)
         return response
 
     def _on_reset_map(self, request: Any, response: Any) -> Any:
@@ -177,7 +210,7 @@ class CssNode(Node):
                  f"{self.resume_status}")
         log.info(f"inputs ({p.input_qos} QoS; candidates reliable): {ins}")
         log.info(f"outputs: {outs}; services: {self.resolve_topic_name('~/save_map')}, "
-                 f"{self.resolve_topic_name('~/reset_map')}; checkpoint "
+                 f"{self.resolve_topic_name('~/reset_map')}, {self.resolve_topic_name('~/load_map')}; checkpoint "
                  + (f"{self.checkpoint_path} every {p.checkpoint_period:g} s" if self.checkpoint_path else "disabled")
                  + f"; sync slop {p.sync_slop * 1e3:g} ms")
 

@@ -8,30 +8,43 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from ..engine.classes import ClassSet
+from ..io.clouds import pack_cloud
 from ..io.outputs import frame_output_images
+from ..io.point_queries import answer_columns
+from ..io.semantic_cloud import semantic_cloud_columns
 from ..io.topics import FRAME_OUTPUTS, OUTPUT_TOPICS, POINTCLOUD2_TYPE
 from . import conversions as rc
 from .params import NodeParams
-from .work import FrameJob
+from .work import FrameJob, PointQueryJob
+
+#: ~/semantic_cloud: reliable, transient local (a viewer that joins later gets the last map), keep the last one.
+CLOUD_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class OutputPublisher:
     """Creates the enabled ``~/<output>`` publishers and publishes the worker's results.
 
     Every per-frame output carries the frame's input stamp; images the input frame_id, the view point the
-    map frame. ``~/candidate_scores`` is always published (it answers requests).
+    map frame. ``~/candidate_scores`` and ``~/point_query_results`` are always published (they answer
+    requests); ``~/semantic_cloud`` unless ``cloud_period`` is 0.
     """
 
     def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10) -> None:
         self.p = params
         self.classes = classes
+        self.clock = node.get_clock()
         self.pubs: dict[str, Any] = {}
         for name, msgtype in OUTPUT_TOPICS.items():
             if name in FRAME_OUTPUTS and not getattr(params, f"publish_{name}"):
                 continue
+            if name == "semantic_cloud" and params.cloud_period <= 0:
+                continue
             typ = PointCloud2 if msgtype == POINTCLOUD2_TYPE else Image
-            self.pubs[name] = node.create_publisher(typ, f"~/{name}", depth)
+            self.pubs[name] = node.create_publisher(typ, f"~/{name}", CLOUD_QOS if name == "semantic_cloud" else depth)
 
     def publish_frame(self, job: FrameJob, view: Any) -> None:
         header = rc.header_msg(job.stamp_ns, job.frame_id)
@@ -52,6 +65,21 @@ class OutputPublisher:
         """One point per candidate in request order; the header echoes the request header."""
         self.pubs["candidate_scores"].publish(
             rc.view_points_msg(rc.copy_header(header), positions, quats, u_var, u_exp))
+
+    def publish_points(self, job: PointQueryJob) -> None:
+        """Answer a point query: one point per query point in request order, the request header echoed."""
+        cols = answer_columns(job.xyz, job.labels, job.expectation, job.variance, self.classes.names)
+        self.pubs["point_query_results"].publish(rc.cloud_msg(rc.copy_header(job.header), pack_cloud(cols)))
+
+    def publish_cloud(self, smap: Any, min_evidence: float) -> int:
+        """Publish ``~/semantic_cloud`` (map frame, stamped now) from the map; returns its number of points."""
+        sem = smap.gaussian_semantics(min_evidence)
+        cols = semantic_cloud_columns(smap.model.means, sem.label, sem.expectation, sem.variance, sem.evidence,
+                                      sem.observed, self.classes.palette, self.p.cloud_voxel_size,
+                                      self.p.cloud_max_points)
+        header = rc.header_msg(self.clock.now().nanoseconds, self.p.map_frame)
+        self.pubs["semantic_cloud"].publish(rc.cloud_msg(header, pack_cloud(cols)))
+        return len(cols["x"])
 
     def flush(self, timeout_s: float = 1.0) -> bool:
         """Wait up to ``timeout_s`` [s] until reliable subscribers acknowledged every candidate answer."""

@@ -92,18 +92,57 @@ class CandidateJob:
         return self.next_index >= len(self.positions)
 
 
+@dataclass
+class PointQueryJob:
+    """A cloud of 3D query points waiting for (or being evaluated by) the worker (SPEC §9).
+
+    The worker evaluates ``next_index`` onwards, one slice at a time. Rows start unknown (``ignore_label``,
+    E and Var NaN); rows that cannot be evaluated (non-finite points, budget exceeded) stay so.
+    """
+
+    header: Any
+    xyz: np.ndarray               # (M, 3) m, map frame
+    num_classes: int
+    ignore_label: int
+    t_received: float             # time.monotonic() [s]
+    next_index: int = 0
+    labels: np.ndarray = field(default=None)       # type: ignore[assignment]  (M,) int32
+    expectation: np.ndarray = field(default=None)  # type: ignore[assignment]  (M, C) float32
+    variance: np.ndarray = field(default=None)     # type: ignore[assignment]  (M, C) float32
+    status: str | None = None     # why the request was answered at once (e.g. "too many points"), else None
+
+    def __post_init__(self) -> None:
+        m = len(self.xyz)
+        self.labels = np.full(m, self.ignore_label, np.int32)
+        self.expectation = np.full((m, self.num_classes), np.nan, np.float32)
+        self.variance = np.full((m, self.num_classes), np.nan, np.float32)
+
+    @property
+    def done(self) -> bool:
+        return self.next_index >= len(self.xyz)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """The query points (requests of both kinds expose their rows as ``positions``)."""
+        return self.xyz
+
+
+#: A request served between frames, slice by slice: candidate views or 3D query points.
+RequestJob = CandidateJob | PointQueryJob
+
+
 class WorkQueue:
     """Bounded queues between the executor (producers) and the worker thread (consumer).
 
-    Frames: newest wins (the oldest pending frame is dropped when full). Candidate requests have their
-    own queue and are served between frames, one slice per turn: when both are waiting the worker
+    Frames: newest wins (the oldest pending frame is dropped when full). Requests (candidate views and
+    point queries) have their own queue and are served between frames, one slice per turn: when both are waiting the worker
     alternates, so neither stream starves the other. A request partly scored goes back to the head of
     its queue (:meth:`resume_request`).
     """
 
     def __init__(self, max_frames: int, max_requests: int = 8) -> None:
         self.frames: deque[FrameJob] = deque()
-        self.requests: deque[CandidateJob] = deque()
+        self.requests: deque[RequestJob] = deque()
         self.max_frames = max_frames
         self.max_requests = max_requests
         self._cond = threading.Condition()
@@ -118,21 +157,21 @@ class WorkQueue:
             self._cond.notify()
         return dropped
 
-    def put_request(self, job: CandidateJob) -> CandidateJob | None:
-        """Queue a candidate request; returns the (oldest) request dropped to make room, if any."""
+    def put_request(self, job: RequestJob) -> RequestJob | None:
+        """Queue a request; returns the (oldest) request dropped to make room, if any."""
         with self._cond:
             dropped = self.requests.popleft() if len(self.requests) >= self.max_requests else None
             self.requests.append(job)
             self._cond.notify()
         return dropped
 
-    def resume_request(self, job: CandidateJob) -> None:
+    def resume_request(self, job: RequestJob) -> None:
         """Put a partly scored request back at the head of the request queue (never dropped)."""
         with self._cond:
             self.requests.appendleft(job)
             self._cond.notify()
 
-    def get(self, timeout: float) -> FrameJob | CandidateJob | None:
+    def get(self, timeout: float) -> FrameJob | RequestJob | None:
         """Next job (None after ``timeout`` s or when closed)."""
         with self._cond:
             if not self.frames and not self.requests and not self.closed:
@@ -147,7 +186,7 @@ class WorkQueue:
                 return self.frames.popleft()
             return None
 
-    def drain_requests(self) -> list[CandidateJob]:
+    def drain_requests(self) -> list[RequestJob]:
         """Remove and return every pending request (answered with NaN at shutdown)."""
         with self._cond:
             out = list(self.requests)

@@ -25,7 +25,7 @@ from ..engine.camera import Camera
 from ..errors import CameraError, MapError
 from ..evaluation.metrics import psnr
 from .params import NodeParams
-from .work import CandidateJob, FrameJob, WarnLimiter, WorkQueue
+from .work import CandidateJob, FrameJob, PointQueryJob, RequestJob, WarnLimiter, WorkQueue
 
 
 class OutputSink(Protocol):
@@ -35,6 +35,10 @@ class OutputSink(Protocol):
 
     def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
                        u_exp: np.ndarray) -> None: ...
+
+    def publish_points(self, job: PointQueryJob) -> None: ...
+
+    def publish_cloud(self, smap: Any, min_evidence: float) -> int: ...
 
 
 class CheckpointPolicy:
@@ -102,6 +106,9 @@ class MapWorker:
         self._thread: threading.Thread | None = None
         self.last_u = (float("nan"), float("nan"))
         self.last_psnr = float("nan")
+        self.map_version = 0            # +1 per map change (frame, reset, load): the cloud is sent on change
+        self._cloud_version = -1        # map_version of the last ~/semantic_cloud (-1: none yet)
+        self._cloud_next = 0.0          # time.monotonic() before which no cloud is sent
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -121,28 +128,34 @@ class MapWorker:
         while not self.stop_flag.is_set():
             job = self.queue.get(timeout=0.2)
             if self.stop_flag.is_set():
-                if isinstance(job, CandidateJob):
+                if isinstance(job, (CandidateJob, PointQueryJob)):
                     self.finish_request(job, "node stopping")
                 break
             self.run_job(job)
-            if self.policy.due(time.monotonic()):
+            now = time.monotonic()
+            if self.policy.due(now):
                 self.save_checkpoint("periodic")
+            if self.cloud_due(now):
+                self.publish_cloud(now)
         for job in self.queue.drain_requests():
             self.finish_request(job, "node stopping")
 
-    def run_job(self, job: FrameJob | CandidateJob | None) -> None:
-        """One frame, or one slice of a candidate request (the rest goes back to the queue)."""
+    def run_job(self, job: FrameJob | RequestJob | None) -> None:
+        """One frame, or one slice of a request (the rest goes back to the queue)."""
         try:
             if isinstance(job, FrameJob):
                 self.process_frame(job)
-            elif isinstance(job, CandidateJob):
-                self.process_slice(job)
+            elif isinstance(job, (CandidateJob, PointQueryJob)):
+                if isinstance(job, CandidateJob):
+                    self.process_slice(job)
+                else:
+                    self.process_points(job)
                 if not job.done:
                     self.queue.resume_request(job)
         except Exception as exc:  # noqa: BLE001 - the worker must survive anything one frame does
             self.stats.count("worker_errors")
             self.warn("worker", "processing failed", f"{type(exc).__name__}: {exc}")
-            if isinstance(job, CandidateJob):
+            if isinstance(job, (CandidateJob, PointQueryJob)):
                 self.finish_request(job, "processing failed")
 
     # ------------------------------------------------------------------ frames
@@ -168,6 +181,7 @@ class MapWorker:
                 self.smap.update(cam, labels, confidence=job.confidence)
                 view = self.smap.render(cam.scaled(p.output_scale))
             self.policy.changed()
+            self.map_version += 1
         self.sink.publish_frame(job, view)
         if job.image is not None and view.rgb.shape == job.image.shape:
             self.last_psnr = psnr(view.rgb, job.image)
@@ -203,17 +217,76 @@ class MapWorker:
         if job.done:
             self.finish_request(job, None)
 
-    def finish_request(self, job: CandidateJob, reason: str | None) -> None:
-        """Publish the answer of ``job``; ``reason``: why views from next_index on are NaN (None: complete)."""
+    def process_points(self, job: PointQueryJob) -> None:
+        """Evaluate the next ``point_query_slice`` points of ``job`` (SPEC §9); answer when done or over budget."""
+        budget = self.p.candidate_time_budget
+        if budget > 0 and time.monotonic() - job.t_received > budget:
+            self.finish_request(job, "time budget exceeded")
+            return
+        start, stop = job.next_index, min(len(job.xyz), job.next_index + self.p.point_query_slice)
+        rows = start + np.flatnonzero(np.all(np.isfinite(job.xyz[start:stop]), axis=1))
+        if len(rows):
+            with self.map_lock:
+                q = self.smap.query_points(job.xyz[rows], self.p.query_background_weight)
+            job.labels[rows], job.expectation[rows], job.variance[rows] = q.labels, q.expectation, q.variance
+        job.next_index = stop
+        self.stats.count("query_points_evaluated", len(rows))
+        if job.done:
+            self.finish_request(job, None)
+
+    def finish_request(self, job: RequestJob, reason: str | None) -> None:
+        """Publish the answer of ``job``; ``reason``: why rows from next_index on are NaN (None: complete)."""
+        points = isinstance(job, PointQueryJob)
         if reason is not None:
             left = len(job.positions) - job.next_index
             job.next_index = len(job.positions)
             self.stats.count(f"requests_nan[{reason}]")
-            self.warn("candidates", reason, f"{left} views answered with NaN scores", dropped=False)
-        self.sink.publish_scores(job.header, job.positions, job.quats_in, job.u_var, job.u_exp)
-        self.stats.count("requests_served")
-        self.stats.count("candidate_views", len(job.positions))
+            self.warn("point_queries" if points else "candidates", reason,
+                      f"{left} {'points answered as unknown' if points else 'views answered with NaN scores'}",
+                      dropped=False)
+        if points:
+            self.sink.publish_points(job)
+            self.stats.count("point_queries_served")
+            self.stats.count("query_points", len(job.xyz))
+        else:
+            self.sink.publish_scores(job.header, job.positions, job.quats_in, job.u_var, job.u_exp)
+            self.stats.count("requests_served")
+            self.stats.count("candidate_views", len(job.positions))
         self.stats.request_latency((time.monotonic() - job.t_received) * 1e3)
+
+    # ------------------------------------------------------------------ the map in 3D
+    def cloud_due(self, now: float) -> bool:
+        """``~/semantic_cloud`` is due: enabled, the map changed since the last one, cloud_period elapsed."""
+        return self.p.cloud_period > 0 and self.map_version != self._cloud_version and now >= self._cloud_next
+
+    def publish_cloud(self, now: float) -> None:
+        """Publish the observed Gaussians (the sink reads the map under the map lock)."""
+        version = self.map_version
+        with self.map_lock:
+            n = self.sink.publish_cloud(self.smap, self.p.min_evidence)
+        self._cloud_version = version
+        self._cloud_next = now + self.p.cloud_period
+        self.stats.count("clouds_published")
+        self.stats.count("cloud_points", n)
+
+    def load_map(self, path: Path) -> str:
+        """Replace the map's state by the checkpoint at ``path`` (same checks as resume at start).
+
+        Returns a status line; raises MapError (the current map is then kept unchanged).
+        """
+        from ..engine.semantic_map import SemanticMap
+
+        loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C)
+        with self.map_lock:
+            self.smap.concentrations[...] = loaded.concentrations
+            self.smap.frames_observed = loaded.frames_observed
+            self.map_version += 1
+            self.policy.saved(time.monotonic(), self.policy.dirty)  # the map now equals the file
+        note = ""
+        if (loaded.prior, loaded.background) != (self.smap.prior, self.smap.background):
+            note = (f"; its prior/background ({loaded.prior:g}, {loaded.background:g}) differ from the node's "
+                    f"({self.smap.prior:g}, {self.smap.background:g}): concentrations taken as they are")
+        return f"loaded {path} ({loaded.frames_observed} frames observed){note}"
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: Path) -> float:
@@ -247,3 +320,4 @@ class MapWorker:
         with self.map_lock:
             self.smap.reset()
             self.policy.changed()
+            self.map_version += 1
