@@ -7,6 +7,12 @@ resident memory reported is that scene's alone (model + map + buffers + interpre
     python benchmarks/bench_frame.py                   # the three scenes of the README + candidates + torch ratio
     python benchmarks/bench_frame.py --scene 100k      # one scene
     python benchmarks/bench_frame.py --gaussians 200000 --width 640 --height 480 --classes 28
+    python benchmarks/bench_frame.py --backend cuda            # the GPU table (docs/cuda.md), needs a GPU
+    python benchmarks/bench_frame.py --backend cuda --simulate # the same code path on a tiny scene, no GPU
+
+Real-density scenes (when /work/shared/data/real-ply/biker.ply or $CSS_BIKER_PLY exists): "biker" (the
+trained splat alone, orbiting camera, 640x480, C=20) and "biker8" (8 copies in a 4 x 2 grid 2 m
+apart, 1.22 M Gaussians, orbiting camera, 1280x720, C=28).
 
 Prints frames/s (median over the timed frames, after warm-up; numba compile time reported
 separately), per-stage milliseconds and peak RSS.
@@ -32,7 +38,63 @@ SCENES = {
     "100k": dict(gaussians=100_000, width=320, height=240, classes=20, kitti=False),
     "500k": dict(gaussians=500_000, width=640, height=480, classes=28, kitti=False),
     "1M": dict(gaussians=1_000_000, width=1241, height=376, classes=19, kitti=True),
+    "3M": dict(gaussians=3_000_000, width=1280, height=720, classes=40, kitti=False),
+    "biker": dict(gaussians=152_746, width=640, height=480, classes=20, kitti=False, ply="biker", copies=1),
+    "biker8": dict(gaussians=8 * 152_746, width=1280, height=720, classes=28, kitti=False, ply="biker", copies=8),
+    # the code path of --simulate (numba-cuda simulator: each GPU thread is a Python thread)
+    "tiny": dict(gaussians=1400, width=16, height=12, classes=4, kitti=False),
 }
+DEFAULT_SCENES = {"numba": ["100k", "500k", "1M", "biker", "biker8"],
+                  "cuda": ["100k", "500k", "1M", "3M", "biker", "biker8"]}
+BIKER_PLY = Path(os.environ.get("CSS_BIKER_PLY", "/work/shared/data/real-ply/biker.ply"))
+
+
+def biker_model(copies: int):
+    """biker.ply alone, or ``copies`` (8) copies in a 4 x 2 grid 2 m apart in the x-z plane (y is down
+    in that capture). Returns (model, centre [m], orbit radius [m])."""
+    from css_ros import GaussianModel
+
+    base = GaussianModel.from_ply(BIKER_PLY)
+    centre = np.median(np.asarray(base.means, dtype=np.float64), axis=0)
+    if copies == 1:
+        return base, centre, 2.2
+    offsets = [np.array([2.0 * (i % 4) - 3.0, 0.0, 2.0 * (i // 4) - 1.0]) for i in range(copies)]
+    cat = lambda f: np.concatenate([f(o) for o in offsets])  # noqa: E731
+    model = GaussianModel(means=cat(lambda o: np.asarray(base.means) + o.astype(np.float32)),
+                          sh=cat(lambda o: base.sh), opacity_logits=cat(lambda o: base.opacity_logits),
+                          log_scales=cat(lambda o: base.log_scales), rotations=cat(lambda o: base.rotations))
+    return model, centre, 6.5
+
+
+def orbit_cameras(centre: np.ndarray, radius: float, count: int, K: np.ndarray, width: int, height: int) -> list:
+    """Cameras on a circle around ``centre`` in the x-z plane, 0.4 m above it (y down), looking at it."""
+    from css_ros import Camera
+
+    cams = []
+    for i in range(count):
+        a = 2.0 * math.pi * i / max(count, 1)
+        pos = centre + np.array([radius * math.cos(a), -0.4, radius * math.sin(a)])
+        cams.append(Camera.look_at(pos, centre, K, width, height, up=(0.0, -1.0, 0.0)))
+    return cams
+
+
+def build_scene(cfg: dict, num_cams: int) -> tuple:
+    """(model, ground-truth class per Gaussian, cameras) of a benchmark scene."""
+    from css_ros import Camera
+    from css_ros.demo.scene import build_indoor_scene
+    from css_ros.demo.trajectory import robot_trajectory
+
+    K = intrinsics(cfg["width"], cfg["height"], cfg["kitti"])
+    if cfg.get("ply"):
+        model, centre, radius = biker_model(cfg["copies"])
+        means = np.asarray(model.means, dtype=np.float64)
+        gt = (np.floor(means[:, 0] / 0.25) + 3 * np.floor(means[:, 1] / 0.25) + 7 * np.floor(means[:, 2] / 0.25))
+        return model, gt.astype(np.int64) % cfg["classes"], orbit_cameras(centre, radius, num_cams, K,
+                                                                           cfg["width"], cfg["height"])
+    model, gt = build_indoor_scene(cfg["gaussians"], seed=0)
+    model = with_view_dependent_colour(model, cfg.get("sh_degree", 3))
+    traj = robot_trajectory(num_cams, seed=0)
+    return model, gt, [Camera(K, cfg["width"], cfg["height"], T) for T in traj.T_map_cam]
 
 
 def intrinsics(width: int, height: int, kitti: bool) -> np.ndarray:
@@ -63,22 +125,16 @@ def with_view_dependent_colour(model, degree: int):
 
 def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int, cand_h: int,
               torch_frames: int) -> dict:
-    from css_ros import Camera, SemanticMap
-    from css_ros.demo.scene import build_indoor_scene
+    from css_ros import SemanticMap
     from css_ros.engine.cpu.projection import project
     from css_ros.engine.cpu.raster import (ContributionStore, accumulate_update, add_increments, bin_tiles,
                                 dirichlet_attributes, render_semantic)
     from css_ros.engine.semantic_map import image_uncertainty
-    from css_ros.demo.trajectory import robot_trajectory
 
     t0 = time.perf_counter()
-    model, gt = build_indoor_scene(cfg["gaussians"], seed=0)
-    model = with_view_dependent_colour(model, cfg.get("sh_degree", 3))
+    model, gt, cams = build_scene(cfg, frames + warmup + 1)
     build_s = time.perf_counter() - t0
     C = cfg["classes"]
-    K = intrinsics(cfg["width"], cfg["height"], cfg["kitti"])
-    traj = robot_trajectory(frames + warmup + 1, seed=0)
-    cams = [Camera(K, cfg["width"], cfg["height"], T) for T in traj.T_map_cam]
 
     # segmentations: the ground truth rendered at each pose (outside the timings)
     gt_map = SemanticMap(model, C)
@@ -173,10 +229,157 @@ def print_table(results: list[dict]) -> None:
               + f"   | first frame (compile/cache load) {r['first_frame_s']:.2f} s, scene build {r['build_s']:.1f} s")
 
 
+def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int, cand_h: int) -> dict:
+    """The observe cycle, a query view and (optionally) a score_views batch on backend "cuda".
+
+    Every timing ends with the outputs on the host (the backend's one download per frame), so no
+    extra synchronisation is needed; per-stage times synchronise after each stage. Kernel compiles
+    happen in the untimed first frame (and first batch).
+    """
+    from css_ros import SemanticMap
+
+    t0 = time.perf_counter()
+    model, gt, cams = build_scene(cfg, frames + warmup + 1)
+    build_s = time.perf_counter() - t0
+    C = cfg["classes"]
+    gt_map = SemanticMap(model, C, backend="cuda")   # ground-truth segmentations, outside the timings
+    conc = np.full((model.num_gaussians, C), 1e-3)
+    conc[np.arange(model.num_gaussians), gt % C] = 1e3
+    gt_map.concentrations = conc
+    labels = [gt_map.render(c).labels for c in cams]
+    del gt_map, conc
+    gpu_memory_reset()
+
+    smap = SemanticMap(model, C, backend="cuda")
+    t0 = time.perf_counter()
+    smap.observe(cams[0], labels[0])  # compiles the kernels
+    first_s = time.perf_counter() - t0
+    backend = smap._backend
+    sync = backend.ops.synchronize
+    e_b, v_b, s_b = smap._background_moments()
+    cycle, stages = [], {k: [] for k in ("prepare", "update", "render", "uncertainty")}
+    for i in range(1, frames + warmup + 1):
+        cam, lab = cams[i], labels[i]
+        sync()
+        t_start = time.perf_counter()
+        smap.observe(cam, lab)
+        t_cycle = time.perf_counter() - t_start
+        # the stages one by one, a second pass at the same pose (the map receives the frame twice)
+        lab32, w32, _ = smap._prepare_labels(cam, lab, None)
+        t = [time.perf_counter()]
+        frame = backend.prepare(cam)
+        sync()
+        t.append(time.perf_counter())
+        backend.update(frame, lab32, w32, smap._concentrations)
+        sync()
+        t.append(time.perf_counter())
+        buf = backend.render(frame, smap._concentrations, e_b, v_b, s_b, smap.background_rgb, False)
+        t.append(time.perf_counter())
+        image_uncertainty_(buf)
+        t.append(time.perf_counter())
+        if i > warmup:
+            cycle.append(t_cycle)
+            for k, (a, b) in zip(stages, zip(t[:-1], t[1:])):
+                stages[k].append(b - a)
+    query = []
+    for cam in cams[warmup + 1:]:
+        t0 = time.perf_counter()
+        smap.render(cam)
+        query.append(time.perf_counter() - t0)
+    result = dict(cfg, build_s=build_s, first_frame_s=first_s, visible=int(backend.prepare(cams[-1]).num_pairs),
+                  cycle_ms=1e3 * statistics.median(cycle), fps=1.0 / statistics.median(cycle),
+                  query_ms=1e3 * statistics.median(query), query_fps=1.0 / statistics.median(query),
+                  stages_ms={k: 1e3 * statistics.median(v) for k, v in stages.items()})
+    if candidates:
+        from css_ros.demo.trajectory import robot_trajectory
+
+        if cfg.get("ply"):
+            cand = [c.scaled(cand_w / c.width) for c in cams] * (candidates // len(cams) + 1)
+        else:
+            K = intrinsics(cfg["width"], cfg["height"], cfg["kitti"])
+            from css_ros import Camera
+
+            cand = [Camera(K, cfg["width"], cfg["height"], T).scaled(cand_w / cfg["width"])
+                    for T in robot_trajectory(candidates, seed=1).T_map_cam]
+        cand = cand[:candidates]
+        smap.score_views(cand)  # compiles the batched kernels
+        times = []
+        for _ in range(max(5, frames // 4)):
+            t0 = time.perf_counter()
+            smap.score_views(cand)
+            times.append(time.perf_counter() - t0)
+        result["score_ms"] = 1e3 * statistics.median(times)
+        result["candidates"] = len(cand)
+        result["candidate_size"] = f"{cand[0].width}x{cand[0].height}"
+    result.update(gpu_memory())
+    result["peak_rss_mib"] = peak_rss_mib()
+    return result
+
+
+def image_uncertainty_(buf) -> None:
+    from css_ros.engine.semantic_map import image_uncertainty
+
+    image_uncertainty(buf.expectation, buf.variance)
+
+
+def gpu_memory_reset() -> None:
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+            torch.cuda.empty_cache()
+            torch.cuda.reset_peak_memory_stats()
+    except ImportError:
+        pass
+
+
+def gpu_memory() -> dict:
+    """Peak device memory of this process since the reset after the ground-truth render (the backend
+    allocates every device array through torch), MiB; NaN in the simulator."""
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            return dict(gpu_peak_alloc_mib=torch.cuda.max_memory_allocated() / 2**20,
+                        gpu_peak_reserved_mib=torch.cuda.max_memory_reserved() / 2**20,
+                        device_name=torch.cuda.get_device_name())
+    except ImportError:
+        pass
+    return dict(gpu_peak_alloc_mib=float("nan"), gpu_peak_reserved_mib=float("nan"), device_name="simulator")
+
+
+CUDA_TARGETS_MS = {"100k": 2.5, "1M": 5.5, "3M": 18.0}
+
+
+def print_cuda_table(results: list[dict]) -> None:
+    print()
+    print(f"{'scene':>7} {'Gaussians':>9} {'res':>10} {'C':>3} {'pairs':>8} {'cycle ms':>8} {'target':>6} "
+          f"{'query ms':>8} {'peak GPU MiB':>12} {'score ms':>12}")
+    for r in results:
+        target = CUDA_TARGETS_MS.get(r["name"])
+        print(f"{r['name']:>7} {r['gaussians']:>9} {r['width']}x{r['height']:<5} {r['classes']:>3} {r['visible']:>8} "
+              f"{r['cycle_ms']:>8.2f} {'' if target is None else f'<={target:g}':>6} {r['query_ms']:>8.2f} "
+              f"{r['gpu_peak_alloc_mib']:>12.0f} {r.get('score_ms', float('nan')):>12.2f}")
+    print()
+    print("per-stage median ms (prepare = project + sort + bin; render includes the one download):")
+    for r in results:
+        print(f"{r['name']:>7}: " + "  ".join(f"{k}={v:.2f}" for k, v in r["stages_ms"].items())
+              + f"   | first frame (kernel compile) {r['first_frame_s']:.2f} s, device {r['device_name']}")
+    for r in results:
+        if "score_ms" in r:
+            print(f"score_views: {r['candidates']} views at {r['candidate_size']} on {r['name']}: "
+                  f"{r['score_ms']:.2f} ms (target <= 15 ms on 1M)")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", choices=sorted(SCENES), action="append",
-                   help="scene(s) to run (default: all three)")
+                   help="scene(s) to run (default: the backend's list; biker scenes when the file exists)")
+    p.add_argument("--backend", choices=("numba", "cuda"), default="numba")
+    p.add_argument("--simulate", action="store_true",
+                   help="with --backend cuda: run the tiny scene under the numba-cuda simulator (no GPU; checks "
+                        "the code path, timings meaningless)")
     p.add_argument("--gaussians", type=int, help="custom scene: number of Gaussians")
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
@@ -193,6 +396,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if args._child:
         cfg = json.loads(args._child)
+        if cfg.pop("backend", "numba") == "cuda":
+            cand_w = cfg.pop("candidate_width", 160)
+            res = run_scene_cuda(cfg, args.frames, args.warmup, cfg.pop("candidates", 0), cand_w, cand_w * 3 // 4)
+            print("RESULT " + json.dumps(res))
+            return 0
         res = run_scene(cfg, args.frames, args.warmup, cfg.pop("candidates", 0), 160, 120, cfg.pop("torch_frames", 0))
         print("RESULT " + json.dumps(res))
         return 0
@@ -201,17 +409,28 @@ def main(argv: list[str] | None = None) -> int:
         jobs = {"custom": dict(gaussians=args.gaussians, width=args.width, height=args.height,
                                classes=args.classes, kitti=False)}
     else:
-        jobs = {k: dict(SCENES[k]) for k in (args.scene or list(SCENES))}
+        names = args.scene or (["tiny"] if args.simulate else DEFAULT_SCENES[args.backend])
+        names = [n for n in names if not SCENES[n].get("ply") or BIKER_PLY.exists()]
+        jobs = {k: dict(SCENES[k]) for k in names}
+    env = dict(os.environ)
+    if args.simulate:
+        env["NUMBA_ENABLE_CUDASIM"] = "1"
+        args.frames, args.warmup = min(args.frames, 2), min(args.warmup, 1)
     results = []
     for name, cfg in jobs.items():
-        cfg = dict(cfg, name=name, sh_degree=args.sh_degree)
-        if name == "500k":
+        cfg = dict(cfg, name=name, sh_degree=args.sh_degree, backend=args.backend)
+        if args.backend == "cuda":
+            if name in ("1M", "tiny"):
+                cfg["candidates"] = 0 if args.no_candidates else (8 if args.simulate else 256)
+                if args.simulate:
+                    cfg["candidate_width"] = cfg["width"]  # simulated threads are Python threads
+        elif name == "500k":
             cfg["candidates"] = 0 if args.no_candidates else 16
             cfg["torch_frames"] = 0 if args.no_torch else 3
         print(f"[{name}] {cfg['gaussians']} Gaussians (SH degree {cfg['sh_degree']}), {cfg['width']}x{cfg['height']}, {cfg['classes']} classes ...",
               flush=True)
         out = subprocess.run([sys.executable, __file__, "--frames", str(args.frames), "--warmup", str(args.warmup),
-                              "--_child", json.dumps(cfg)], capture_output=True, text=True)
+                              "--_child", json.dumps(cfg)], capture_output=True, text=True, env=env)
         lines = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
         if out.returncode != 0 or not lines:
             print(out.stdout, out.stderr, file=sys.stderr)
@@ -221,7 +440,12 @@ def main(argv: list[str] | None = None) -> int:
         results.append(res)
         print(f"    {res['fps']:.2f} frames/s, {res['query_fps']:.2f} views/s, peak {res['peak_rss_mib']:.0f} MiB",
               flush=True)
-    print_table(results)
+    if args.backend == "cuda":
+        print_cuda_table(results)
+        if args.simulate:
+            print("(simulator: numba-cuda runs each GPU thread as a Python thread; these timings mean nothing)")
+    else:
+        print_table(results)
     print(f"machine: {os.cpu_count()} cores, {cpu_model()}, numba threads {numba_threads()}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))

@@ -44,16 +44,24 @@ def _torch_backend(model: "GaussianModel") -> RasterBackend:
     return TorchBackend(model)
 
 
-BACKENDS: dict[str, Callable[["GaussianModel"], RasterBackend]] = {
+def _cuda_backend(model: "GaussianModel", device: int | None = None) -> RasterBackend:
+    from .cuda.backend import CudaBackend  # numba.cuda is imported only when this backend is asked for
+
+    return CudaBackend(model, device=device)
+
+
+BACKENDS: dict[str, Callable[..., RasterBackend]] = {
     "numba": _numba_backend,
     "torch": _torch_backend,
+    "cuda": _cuda_backend,
 }
 
 
-def make_backend(name: str, model: "GaussianModel") -> RasterBackend:
-    """Instantiate the backend registered under ``name`` for ``model``."""
+def make_backend(name: str, model: "GaussianModel", **options: Any) -> RasterBackend:
+    """Instantiate the backend registered under ``name`` for ``model`` (``options``, e.g. ``device``,
+    go to its factory)."""
     try:
         factory = BACKENDS[name]
     except KeyError:
         raise CssError(f"unknown backend '{name}' (choose from {', '.join(BACKENDS)})") from None
-    return factory(model)
+    return factory(model, **options)

@@ -154,14 +154,17 @@ class SemanticMap:
         ignore_label: label value meaning "no label" in inputs and "unknown" in rendered labels.
         unknown_threshold: rendered pixels whose background weight kappa_b exceeds this get
             ``ignore_label`` (default 0.5: the pixel is mostly empty space). Use 1.0 to never do so.
-        backend: "numba" (compiled CPU kernels, default) or "torch" (plain PyTorch twin).
+        backend: "numba" (compiled CPU kernels, default), "torch" (plain PyTorch twin) or "cuda"
+            (numba-cuda kernels, concentrations kept on the GPU; docs/cuda.md).
         background_rgb: colour behind all Gaussians, RGB in [0, 1].
+        device: GPU index for backend "cuda" (default: the current device).
     """
 
     def __init__(self, model: "GaussianModel", num_classes: int, prior: float = DEFAULT_PRIOR,
                  background: float = DEFAULT_BACKGROUND, ignore_label: int = DEFAULT_IGNORE_LABEL,
                  unknown_threshold: float = DEFAULT_UNKNOWN_THRESHOLD,
-                 backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+                 backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 device: int | None = None) -> None:
         if int(num_classes) < 1:
             raise MapError(f"num_classes must be >= 1, got {num_classes}")
         if not (np.isfinite(prior) and prior > 0):
@@ -176,12 +179,23 @@ class SemanticMap:
         self.unknown_threshold = float(unknown_threshold)
         self.background_rgb = np.asarray(background_rgb, dtype=np.float64)
         self.backend_name = backend
-        self._backend = make_backend(backend, model)
-        self.concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
+        self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
+        self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.frames_observed = 0
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
     # ------------------------------------------------------------------ state
+    @property
+    def concentrations(self) -> np.ndarray:
+        """(N, C) float64 alpha. A backend that keeps them on a device (``host_view``) brings this
+        host array up to date first and treats it as possibly modified afterwards."""
+        host_view = getattr(self._backend, "host_view", None)
+        return self._concentrations if host_view is None else host_view(self._concentrations)
+
+    @concentrations.setter
+    def concentrations(self, value: np.ndarray) -> None:
+        self._concentrations = value
+
     def reset(self) -> None:
         """Forget every observation: all concentrations back to the prior."""
         self.concentrations[...] = self.prior
@@ -227,13 +241,13 @@ class SemanticMap:
     def _update_frame(self, frame: Any, camera: "Camera", labels: np.ndarray,
                       confidence: np.ndarray | None) -> UpdateStats:
         lab, weights, stats = self._prepare_labels(camera, labels, confidence)
-        self._backend.update(frame, lab, weights, self.concentrations)
+        self._backend.update(frame, lab, weights, self._concentrations)
         self.frames_observed += 1
         return stats
 
     def _render_frame(self, frame: Any, probabilities: bool) -> RenderedView:
         e_b, v_b, s_b = self._background_moments()
-        buf = self._backend.render(frame, self.concentrations, e_b, v_b, s_b, self.background_rgb, probabilities)
+        buf = self._backend.render(frame, self._concentrations, e_b, v_b, s_b, self.background_rgb, probabilities)
         labels = buf.labels
         labels[buf.background > self.unknown_threshold] = self.ignore_label
         u_var, u_exp = image_uncertainty(buf.expectation, buf.variance)
@@ -284,8 +298,11 @@ class SemanticMap:
             (len(cameras), 2) float64, columns (U_var, U_exp), in the order of ``cameras``.
         """
         e_b, v_b, s_b = self._background_moments()
+        batched = getattr(self._backend, "score_views", None)  # all views in one launch (cuda)
+        if batched is not None:
+            return batched(list(cameras), self._concentrations, e_b, v_b, s_b)
         scores = np.empty((len(cameras), 2))
-        images = self._backend.score_images(list(cameras), self.concentrations, e_b, v_b, s_b)
+        images = self._backend.score_images(list(cameras), self._concentrations, e_b, v_b, s_b)
         for i, (expectation, variance) in enumerate(images):
             scores[i] = image_uncertainty(expectation, variance)
         return scores

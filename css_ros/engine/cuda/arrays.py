@@ -1,0 +1,189 @@
+"""Device array helpers: one small set of array operations that runs on a GPU (torch.cuda, or cupy)
+and, under the numba-cuda simulator, on host numpy arrays.
+
+The kernels only need arrays they can index; the device-wide steps between kernels (stable sorts,
+prefix sums, compaction, searchsorted) come from the array library. Every array the backend keeps is
+an array of that library: numpy in the simulator; a torch CUDA tensor (or cupy array) on a GPU, which
+numba kernels read and write in place through ``__cuda_array_interface__`` (no copies).
+"""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from ...errors import CssError
+
+
+def simulator_enabled() -> bool:
+    """True when numba-cuda runs kernels in its CPU simulator (``NUMBA_ENABLE_CUDASIM=1``)."""
+    return os.environ.get("NUMBA_ENABLE_CUDASIM", "0") not in ("", "0")
+
+
+def import_cuda() -> Any:
+    """Import ``numba.cuda`` and check that kernels can run (a GPU, or the simulator).
+
+    Raises:
+        CssError: numba-cuda is not installed, or there is neither a CUDA GPU nor the simulator.
+    """
+    try:
+        from numba import cuda
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise CssError("backend 'cuda' needs numba-cuda: pip install -e '.[cuda]' "
+                       f"(on a machine with an NVIDIA GPU), or NUMBA_ENABLE_CUDASIM=1 to simulate ({exc})") from exc
+    if getattr(cuda, "simulator", None) is None and not hasattr(cuda, "is_available"):  # pragma: no cover
+        raise CssError("numba.cuda is not the numba-cuda package; pip install -e '.[cuda]'")
+    try:
+        available = cuda.is_available()
+    except Exception:  # pragma: no cover - driver errors
+        available = False
+    if not available:
+        raise CssError("backend 'cuda': no CUDA GPU found (numba.cuda.is_available() is False); "
+                       "set NUMBA_ENABLE_CUDASIM=1 to run the kernels in the (slow) simulator")
+    return cuda
+
+
+class NumpyOps:
+    """Array operations over a numpy-like module: numpy (simulator) or cupy (GPU)."""
+
+    def __init__(self, xp: Any = np, device: int | None = None) -> None:
+        self.xp = xp
+        self.name = xp.__name__
+        self.device = device
+
+    def empty(self, shape: Any, dtype: Any) -> Any:
+        return self.xp.empty(shape, dtype=dtype)
+
+    def zeros(self, shape: Any, dtype: Any) -> Any:
+        return self.xp.zeros(shape, dtype=dtype)
+
+    def arange(self, n: int, dtype: Any = np.int64) -> Any:
+        return self.xp.arange(n, dtype=dtype)
+
+    def upload(self, host: np.ndarray, dtype: Any = None) -> Any:
+        """Host array -> contiguous device array (of ``dtype`` if given)."""
+        a = np.ascontiguousarray(host if dtype is None else np.asarray(host, dtype=dtype))
+        return self.xp.asarray(a)
+
+    def copy_into(self, dst: Any, host: np.ndarray) -> None:
+        """dst[...] = host (host -> device, same shape)."""
+        dst[...] = self.xp.asarray(np.ascontiguousarray(host, dtype=dst.dtype))
+
+    def download(self, dev: Any) -> np.ndarray:
+        """Device array -> host numpy array (a copy on a GPU)."""
+        get = getattr(dev, "get", None)
+        return np.asarray(get() if get is not None and self.xp is not np else dev)
+
+    def argsort_stable(self, x: Any) -> Any:
+        return self.xp.argsort(x, kind="stable")
+
+    def sort(self, x: Any) -> Any:
+        return self.xp.sort(x)
+
+    def cumsum(self, x: Any) -> Any:
+        """Inclusive prefix sum, int64."""
+        return self.xp.cumsum(x, dtype=np.int64)
+
+    def searchsorted(self, sorted_values: Any, values: Any) -> Any:
+        return self.xp.searchsorted(sorted_values, values)
+
+    def nonzero(self, mask: Any) -> Any:
+        return self.xp.flatnonzero(mask)
+
+    def scalar(self, x: Any) -> int:
+        """One element -> Python int (a device-to-host synchronisation on a GPU)."""
+        return int(x)
+
+    def kernel_arg(self, x: Any) -> Any:
+        return x
+
+    def synchronize(self) -> None:
+        if self.xp is not np:  # pragma: no cover - GPU only
+            self.xp.cuda.Device().synchronize()
+
+
+class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
+    """Array operations over torch CUDA tensors (device-wide radix sort and scan)."""
+
+    _DTYPES = {np.dtype(np.float64): "float64", np.dtype(np.float32): "float32", np.dtype(np.int64): "int64",
+               np.dtype(np.int32): "int32", np.dtype(np.uint8): "uint8", np.dtype(np.bool_): "bool"}
+
+    def __init__(self, device: int | None = None) -> None:
+        import torch
+
+        self.torch = torch
+        self.name = "torch"
+        self.device = torch.device("cuda", 0 if device is None else int(device))
+
+    def _dt(self, dtype: Any) -> Any:
+        return getattr(self.torch, self._DTYPES[np.dtype(dtype)])
+
+    def empty(self, shape: Any, dtype: Any) -> Any:
+        return self.torch.empty(shape, dtype=self._dt(dtype), device=self.device)
+
+    def zeros(self, shape: Any, dtype: Any) -> Any:
+        return self.torch.zeros(shape, dtype=self._dt(dtype), device=self.device)
+
+    def arange(self, n: int, dtype: Any = np.int64) -> Any:
+        return self.torch.arange(n, dtype=self._dt(dtype), device=self.device)
+
+    def upload(self, host: np.ndarray, dtype: Any = None) -> Any:
+        a = np.ascontiguousarray(host if dtype is None else np.asarray(host, dtype=dtype))
+        return self.torch.from_numpy(a).to(self.device)
+
+    def copy_into(self, dst: Any, host: np.ndarray) -> None:
+        dst.copy_(self.torch.from_numpy(np.ascontiguousarray(host)).to(dst.dtype))
+
+    def download(self, dev: Any) -> np.ndarray:
+        return dev.cpu().numpy()
+
+    def argsort_stable(self, x: Any) -> Any:
+        return self.torch.sort(x, stable=True).indices
+
+    def sort(self, x: Any) -> Any:
+        return self.torch.sort(x).values
+
+    def cumsum(self, x: Any) -> Any:
+        return self.torch.cumsum(x, 0, dtype=self.torch.int64)
+
+    def searchsorted(self, sorted_values: Any, values: Any) -> Any:
+        return self.torch.searchsorted(sorted_values, values)
+
+    def nonzero(self, mask: Any) -> Any:
+        return self.torch.nonzero(mask.reshape(-1)).reshape(-1)
+
+    def scalar(self, x: Any) -> int:
+        return int(x.item()) if hasattr(x, "item") else int(x)
+
+    def kernel_arg(self, x: Any) -> Any:
+        return x  # torch CUDA tensors expose __cuda_array_interface__
+
+    def synchronize(self) -> None:
+        self.torch.cuda.synchronize(self.device)
+
+
+def make_ops(device: int | None = None) -> "NumpyOps | TorchOps":
+    """The array operations for this process: numpy under the simulator, else torch.cuda, else cupy.
+
+    Raises:
+        CssError: on a GPU machine with neither a CUDA build of torch nor cupy.
+    """
+    if simulator_enabled():
+        return NumpyOps(np, device)
+    try:  # pragma: no cover - GPU only
+        import torch
+
+        if torch.cuda.is_available():
+            return TorchOps(device)
+    except ImportError:  # pragma: no cover
+        pass
+    try:  # pragma: no cover - GPU only
+        import cupy
+
+        if device is not None:
+            cupy.cuda.Device(int(device)).use()
+        return NumpyOps(cupy, device)
+    except ImportError:  # pragma: no cover
+        raise CssError("backend 'cuda' needs a CUDA build of torch (torch.cuda.is_available()) or cupy "
+                       "for its device-wide sorts and scans; see docs/cuda.md") from None

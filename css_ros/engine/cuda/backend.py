@@ -1,0 +1,300 @@
+"""The CUDA backend: :class:`CudaBackend` implements the RasterBackend protocol with the numba-cuda
+kernels of :mod:`.kernels`; device-wide sorts and scans come from the array library of
+:mod:`.arrays` (torch.cuda on a GPU, numpy under the simulator).
+
+State on the device: the model (means, 3D covariances, opacities, largest std, SH) and the
+concentrations (N, C) float64. SemanticMap's host array is kept coherent lazily: the backend
+uploads it when the host side may have changed (first use, after ``host_view`` handed it out, or a
+different array) and downloads the device copy when the host asks for it (``host_view``). Per
+observed frame the only transfers are the labels/weights in and one (H, W, 8) float32 array out.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
+
+import numpy as np
+
+from ..buffers import RenderBuffers
+from ..spec import TILE_SIZE
+from .arrays import import_cuda, make_ops, simulator_enabled
+
+if TYPE_CHECKING:
+    from ..camera import Camera
+    from ..gaussians import GaussianModel
+
+
+@dataclass
+class CudaFrame:
+    """Per-batch view state on the device (V views of one size; M kept (view, Gaussian) pairs in
+    (view, depth, id) order; P (pair, tile) keys).
+
+    Attributes:
+        cameras: the V cameras. width, height: image size [px]. tiles_x, tiles_per_view: tile grid.
+        num_pairs: M. offsets: (V T + 1,) i64 ranges of each (view, tile) in ``keys``.
+        keys: (max(P, 1),) i64 sorted (view * T + tile) * M + pair. packed: (M, 8) f64 rows
+        (u, v, a, b, c, opacity, qmax, depth). colors: (M, 3) f32. ids: (M,) i32 model rows.
+        pair_row: (M,) i32 row of each pair in ``rows``. rows: (R,) i32 model rows whose moments
+        the render needs (each once).
+    """
+
+    cameras: list
+    width: int
+    height: int
+    tiles_x: int
+    tiles_per_view: int
+    num_pairs: int
+    offsets: Any
+    keys: Any
+    packed: Any
+    colors: Any
+    ids: Any
+    pair_row: Any
+    rows: Any
+
+
+class CudaBackend:
+    """numba-cuda rasteriser (SPEC §3-6) with the model and the concentrations on the GPU.
+
+    Args:
+        model: the splat model (map frame).
+        device: CUDA device index (default: the current device, normally 0).
+        tile_size: tile edge [px]; one block of tile_size^2 threads per tile.
+    Raises:
+        CssError: numba-cuda missing, or neither a GPU nor the simulator.
+    """
+
+    def __init__(self, model: "GaussianModel", device: int | None = None, tile_size: int = TILE_SIZE) -> None:
+        self.cuda = import_cuda()
+        self.simulated = simulator_enabled()
+        if device is not None and not self.simulated:  # pragma: no cover - GPU only
+            self.cuda.select_device(int(device))
+        self.ops = make_ops(device)
+        from . import kernels  # compiles lazily, at the first launch
+
+        self.k = kernels
+        self.tile = int(tile_size)
+        ops = self.ops
+        scales = np.asarray(model.scales, dtype=np.float64)
+        cov = model.covariances()
+        cov6 = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
+        self.num_gaussians = int(model.num_gaussians)
+        self.means = ops.upload(model.means, np.float64)
+        self.cov3d = ops.upload(cov6, np.float64)
+        self.opacities = ops.upload(model.opacities, np.float64)
+        self.max_std = ops.upload(scales.max(axis=1) if len(scales) else np.zeros(0), np.float64)
+        self.sh = ops.upload(model.sh, np.float32)
+        self._capacity = {1: max(1, self.num_gaussians)}  # projection rows per batch size (grown on demand)
+        self._conc: Any = None
+        self._host: np.ndarray | None = None
+        self._host_dirty = True
+        self._device_newer = False
+
+    # ------------------------------------------------------------------ concentrations
+    def _device_concentrations(self, host: np.ndarray) -> Any:
+        """The device copy of the concentrations, uploaded first if the host array may differ."""
+        if self._conc is None or tuple(self._conc.shape) != host.shape:
+            self._conc = self.ops.upload(host, np.float64)
+            self._device_newer = False
+        elif self._host_dirty or host is not self._host:
+            self.ops.copy_into(self._conc, host)
+            self._device_newer = False
+        self._host, self._host_dirty = host, False
+        return self._conc
+
+    def host_view(self, host: np.ndarray) -> np.ndarray:
+        """Bring ``host`` up to date with the device (if the device is newer) and hand it out; it may be
+        written afterwards, so the next kernel that needs the concentrations uploads it again."""
+        if self._device_newer and host is self._host and self._conc is not None:
+            host[...] = self.ops.download(self._conc)
+        self._device_newer = False
+        self._host_dirty = True
+        return host
+
+    # ------------------------------------------------------------------ projection + binning
+    def _launch_1d(self, total: int) -> tuple[int, int]:
+        return self.k.launch_1d(total, self.simulated)
+
+    def prepare(self, camera: "Camera") -> CudaFrame:
+        return self.prepare_views([camera], want_color=True)
+
+    def prepare_views(self, cameras: Sequence["Camera"], want_color: bool) -> CudaFrame:
+        """Project, depth-sort and tile-bin V views of one image size in a fixed number of launches."""
+        ops, k = self.ops, self.k
+        cams = list(cameras)
+        width, height = int(cams[0].width), int(cams[0].height)
+        if any((int(c.width), int(c.height)) != (width, height) for c in cams):
+            raise ValueError("prepare_views needs views of one image size")
+        n_views, n = len(cams), self.num_gaussians
+        tiles_x = (width + self.tile - 1) // self.tile
+        tiles_y = (height + self.tile - 1) // self.tile
+        tiles_per_view = tiles_x * tiles_y
+        cam_rows = np.empty((n_views, k.CAM_COLS))
+        for v, cam in enumerate(cams):
+            w2c = np.asarray(cam.world_to_cam, dtype=np.float64)
+            kk = np.asarray(cam.K, dtype=np.float64)
+            cam_rows[v, 0:9] = w2c[:3, :3].ravel()
+            cam_rows[v, 9:12] = w2c[:3, 3]
+            cam_rows[v, 12:16] = (kk[0, 0], kk[1, 1], kk[0, 2], kk[1, 2])
+            cam_rows[v, 16:19] = np.asarray(cam.position, dtype=np.float64)
+        cam_dev = ops.upload(cam_rows)
+        cap = self._capacity.get(n_views, max(1, min(n_views * n, 4 * n)))
+        while True:
+            counter = ops.zeros(1, np.int32)
+            packed = ops.empty((cap, k.PACK_COLS), np.float64)
+            bbox = ops.empty((cap, 4), np.int32)
+            ids = ops.empty(cap, np.int32)
+            views = ops.empty(cap, np.int32)
+            ntiles = ops.empty(cap, np.int32)
+            colors = ops.empty((cap, 3), np.float32)
+            blocks, threads = self._launch_1d(n_views * n)
+            if n_views * n:
+                k.project_kernel[blocks, threads](self.means, self.cov3d, self.opacities, self.max_std, self.sh,
+                                                  cam_dev, float(width), float(height), self.tile, bool(want_color),
+                                                  cap, counter, packed, bbox, ids, views, ntiles, colors)
+            m = ops.scalar(counter[0])
+            if m <= cap:
+                break
+            cap = m
+        self._capacity[n_views] = cap
+        # (view, depth, id) order: stable sorts, least significant key first (slot order is arbitrary)
+        order = ops.argsort_stable(ids[:m])
+        order = order[ops.argsort_stable(packed[:m, 7][order])]
+        if n_views > 1:
+            order = order[ops.argsort_stable(views[:m][order])]
+        packed, bbox, ids, views = packed[order], bbox[order], ids[order], views[order]
+        colors, ntiles = colors[order], ntiles[order]
+        ends = ops.cumsum(ntiles)
+        total = ops.scalar(ends[m - 1]) if m else 0
+        keys = ops.empty(max(total, 1), np.int64)
+        if m:
+            blocks, threads = self._launch_1d(m)
+            k.emit_keys_kernel[blocks, threads](bbox, views, ends - ntiles, m, self.tile, tiles_x,
+                                                tiles_per_view, keys)
+            keys[:total] = ops.sort(keys[:total])
+            bounds = ops.arange(n_views * tiles_per_view + 1) * m
+            offsets = ops.searchsorted(keys[:total], bounds)
+        else:
+            offsets = ops.zeros(n_views * tiles_per_view + 1, np.int64)
+        if n_views == 1:
+            rows, pair_row = ids, ops.arange(m, np.int32)
+        else:
+            flag = ops.zeros(n, np.int32)
+            flag[ids] = 1
+            rows = ops.nonzero(flag)
+            row_of = ops.zeros(n, np.int32)
+            row_of[rows] = ops.arange(rows.shape[0], np.int32)
+            pair_row = row_of[ids]
+            rows = rows.to(ids.dtype) if hasattr(rows, "to") else rows.astype(np.int32)
+        if m == 0:  # kernels never read these, but device arrays must not be empty
+            packed, colors = ops.zeros((1, k.PACK_COLS), np.float64), ops.zeros((1, 3), np.float32)
+            ids, pair_row = ops.zeros(1, np.int32), ops.zeros(1, np.int32)
+        return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, keys, packed, colors,
+                         ids, pair_row, rows)
+
+    # ------------------------------------------------------------------ update
+    def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+        """concentrations[n, c] += sum_i kappa_in y_i^c on the device (labels (H, W) int32, -1 = none;
+        weights (H, W) float32). The host array is brought up to date lazily (``host_view``)."""
+        conc = self._device_concentrations(concentrations)
+        if frame.num_pairs == 0:
+            return
+        ops = self.ops
+        lab = ops.upload(labels, np.int32)
+        wts = ops.upload(weights, np.float32)
+        kernel = self.k.make_update_kernel(int(conc.shape[1]), self.tile)
+        kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.keys, frame.num_pairs, frame.packed,
+                                                            frame.ids, lab, wts, frame.tiles_x, conc)
+        self._device_newer = True
+
+    # ------------------------------------------------------------------ render
+    def _moments(self, frame: CudaFrame, conc: Any) -> Any:
+        ops = self.ops
+        r = int(frame.rows.shape[0])
+        mom = ops.empty((max(r, 1), 2 * int(conc.shape[1]) + 1), np.float32)
+        if r:
+            blocks, threads = self._launch_1d(r)
+            self.k.moments_kernel[blocks, threads](conc, frame.rows, mom)
+        return mom
+
+    def _render(self, frame: CudaFrame, conc: Any, e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
+                score: bool, want_probs: bool) -> tuple[Any, Any, Any]:
+        ops = self.ops
+        num_classes = int(conc.shape[1])
+        n_views = len(frame.cameras)
+        mom = self._moments(frame, conc)
+        if score:
+            out = ops.empty((1, 1, 1, 8), np.float32)
+            scores = ops.zeros((n_views, 2), np.float64)
+        else:
+            out = ops.empty((n_views, frame.height, frame.width, 8), np.float32)
+            scores = ops.zeros((1, 2), np.float64)
+        probs = ops.empty((n_views, frame.height, frame.width, num_classes) if want_probs else (1, 1, 1, 1),
+                          np.float32)
+        kernel = self.k.make_render_kernel(num_classes, self.tile, bool(score), bool(want_probs))
+        kernel[n_views * frame.tiles_per_view, self.tile * self.tile](
+            frame.offsets, frame.keys, frame.num_pairs, frame.packed, frame.colors, frame.pair_row, mom,
+            float(e_bg), float(v_bg), float(s_bg), ops.upload(np.asarray(bg_rgb, dtype=np.float64)),
+            frame.width, frame.height, frame.tiles_x, frame.tiles_per_view, out, probs, scores)
+        return out, probs, scores
+
+    def render(self, frame: CudaFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
+               bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
+        """Composite colour, E, Var (argmax class), kappa_b and evidence; one transfer of (H, W, 8) f32."""
+        conc = self._device_concentrations_for_read(concentrations)
+        out, probs, _ = self._render(frame, conc, e_bg, v_bg, s_bg, bg_rgb, False, want_probs)
+        host = self.ops.download(out)[0]
+        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+        return RenderBuffers(
+            labels=np.ascontiguousarray(host[..., 0], dtype=np.int32),
+            expectation=f64(host[..., 1]), variance=f64(host[..., 2]), background=f64(host[..., 3]),
+            evidence=f64(host[..., 4]), rgb=f64(host[..., 5:8]),
+            probabilities=f64(self.ops.download(probs)[0]) if want_probs else None)
+
+    def _device_concentrations_for_read(self, host: np.ndarray) -> Any:
+        """Like _device_concentrations, but keeps a newer device state (a render after an update)."""
+        if self._device_newer and host is self._host and self._conc is not None:
+            return self._conc
+        return self._device_concentrations(host)
+
+    # ------------------------------------------------------------------ query views
+    def _groups(self, cameras: Sequence["Camera"]) -> dict[tuple[int, int], list[int]]:
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, cam in enumerate(cameras):
+            groups.setdefault((int(cam.width), int(cam.height)), []).append(i)
+        return groups
+
+    def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """(expectation, variance) images of the views, rendered in one batch per image size."""
+        cams = list(cameras)
+        if not cams:
+            return
+        conc = self._device_concentrations_for_read(concentrations)
+        images: list[Any] = [None] * len(cams)
+        for idx in self._groups(cams).values():
+            frame = self.prepare_views([cams[i] for i in idx], want_color=False)
+            out, _, _ = self._render(frame, conc, e_bg, v_bg, s_bg, np.zeros(3), False, False)
+            host = self.ops.download(out)
+            for row, i in enumerate(idx):
+                images[i] = (host[row, ..., 1].astype(np.float64), host[row, ..., 2].astype(np.float64))
+        yield from images
+
+    def score_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                    s_bg: float) -> np.ndarray:
+        """(V, 2) float64 (U_var, U_exp) of SPEC §6 per view: all views of one size projected, sorted
+        and rendered in one launch per stage; the per-view sums are reduced on the device, so only
+        2 V numbers come back."""
+        cams = list(cameras)
+        result = np.empty((len(cams), 2))
+        if not cams:
+            return result
+        conc = self._device_concentrations_for_read(concentrations)
+        for (width, height), idx in self._groups(cams).items():
+            frame = self.prepare_views([cams[i] for i in idx], want_color=False)
+            _, _, scores = self._render(frame, conc, e_bg, v_bg, s_bg, np.zeros(3), True, False)
+            sums = self.ops.download(scores)
+            npix = float(width * height)
+            result[idx, 0] = np.exp(sums[:, 0] / npix)
+            result[idx, 1] = 1.0 - sums[:, 1] / npix
+        return result

@@ -1,0 +1,430 @@
+"""numba-cuda kernels of the CUDA backend: projection, tile-key emission, Dirichlet moments, the
+update and the render (SPEC §3-6). Imported only by :mod:`.backend` (it imports ``numba.cuda``).
+
+Pipeline per batch of views (one view for ``observe`` / ``render``, all candidates for
+``score_views``), each stage one launch over all views:
+
+1. :func:`project_kernel`: one thread per (view, Gaussian): EWA projection, SPEC §3 culls, exact
+   alpha >= 1/255 box, view-dependent colour; kept pairs are appended through an atomic counter.
+2. (array library) stable sorts to (view, depth, id) order, then per kept pair the number of
+   tiles its box overlaps, prefix sum.
+3. :func:`emit_keys_kernel`: one key ``(view * T + tile) * M + j`` per (pair j, tile); one device
+   sort of these keys gives every tile its front-to-back list, searchsorted its range.
+4. :func:`moments_kernel`: E, Var, S per visible Gaussian in float32, once per frame.
+5. update / render kernels (:func:`make_update_kernel`, :func:`make_render_kernel`): one block per
+   tile, one thread per pixel; the tile's list is staged through shared memory in batches, pixels
+   composite front to back with the INRIA rules (float64 transmittance), the block stops when all
+   its pixels are done; the update sums kappa * weight per (Gaussian, class) in shared memory and
+   adds each sum once with a float64 atomic.
+
+Pixel (u, v) centres are integers (u right, v down); lengths in pixels, depths in metres.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+from numba import cuda, float32, float64, int32
+
+from ..sh import SH_C0, SH_C1, SH_C2, SH_C3
+from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, VAR_FLOOR
+
+CAM_COLS = 19   # per view: R_cam_map (9, row-major), t_cam_map (3), fx, fy, cx, cy, camera centre (3, map)
+PACK_COLS = 8   # per kept pair: u, v, conic a, b, c, opacity, qmax, depth
+SHARED_BUDGET = 40 * 1024  # bytes of static shared memory a block may stage per batch
+C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2        # scalars: the kernels read module-level floats as constants
+C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
+
+
+@cuda.jit
+def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, want_color, capacity,
+                   counter, out_packed, out_bbox, out_id, out_view, out_ntiles, out_color):  # pragma: no cover
+    """Project every (view, Gaussian) pair; append the kept ones at ``counter`` (atomic).
+
+    Args:
+        means (N, 3) f64 [m, map]; cov3d (N, 6) f64 upper triangle [m^2]; opac (N,) f64;
+        max_std (N,) f64 [m]; sh (N, K, 3) f32; cams (V, CAM_COLS) f64; width, height [px] (float);
+        tile [px]; want_color: evaluate SH (else colours are 0); capacity: rows of the outputs.
+    Outputs (row = slot, valid below min(counter, capacity)):
+        out_packed (cap, 8) f64 (u, v, a, b, c, opacity, qmax, depth); out_bbox (cap, 4) i32 inclusive
+        pixel box (u0, u1, v0, v1) of the alpha >= 1/255 ellipse; out_id / out_view (cap,) i32;
+        out_ntiles (cap,) i32 tiles the box overlaps; out_color (cap, 3) f32.
+    """
+    n_g = means.shape[0]
+    total = n_g * cams.shape[0]
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for flat in range(start, total, stride):
+        view = flat // n_g
+        i = flat - view * n_g
+        o = opac[i]
+        if not (o >= ALPHA_MIN):
+            continue
+        fx, fy, cx, cy = cams[view, 12], cams[view, 13], cams[view, 14], cams[view, 15]
+        px, py, pz = means[i, 0], means[i, 1], means[i, 2]
+        x = cams[view, 0] * px + cams[view, 1] * py + cams[view, 2] * pz + cams[view, 9]
+        y = cams[view, 3] * px + cams[view, 4] * py + cams[view, 5] * pz + cams[view, 10]
+        z = cams[view, 6] * px + cams[view, 7] * py + cams[view, 8] * pz + cams[view, 11]
+        if not (z > NEAR_PLANE):
+            continue
+        u = fx * x / z + cx
+        v = fy * y / z + cy
+        tan_x = width / (2.0 * fx)
+        tan_y = height / (2.0 * fy)
+        lo_x = -(cx + 0.5) / fx - FOV_CLAMP * tan_x
+        hi_x = (width - 0.5 - cx) / fx + FOV_CLAMP * tan_x
+        lo_y = -(cy + 0.5) / fy - FOV_CLAMP * tan_y
+        hi_y = (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y
+        # conservative early cull (as the CPU kernel): lambda_max <= ||J||_F^2 s_max^2 + 0.3
+        jac_sq = fx * fx * (1.0 + max(lo_x * lo_x, hi_x * hi_x)) + fy * fy * (1.0 + max(lo_y * lo_y, hi_y * hi_y))
+        bound = 3.0 * math.sqrt(jac_sq * max_std[i] * max_std[i] / (z * z) + COV2D_DILATION) + 1.0
+        if u < -0.5 - bound or u > width - 0.5 + bound or v < -0.5 - bound or v > height - 0.5 + bound:
+            continue
+        txz = min(max(x / z, lo_x), hi_x)
+        tyz = min(max(y / z, lo_y), hi_y)
+        j00 = fx / z
+        j02 = -fx * txz / z
+        j11 = fy / z
+        j12 = -fy * tyz / z
+        m00 = j00 * cams[view, 0] + j02 * cams[view, 6]
+        m01 = j00 * cams[view, 1] + j02 * cams[view, 7]
+        m02 = j00 * cams[view, 2] + j02 * cams[view, 8]
+        m10 = j11 * cams[view, 3] + j12 * cams[view, 6]
+        m11 = j11 * cams[view, 4] + j12 * cams[view, 7]
+        m12 = j11 * cams[view, 5] + j12 * cams[view, 8]
+        sxx, sxy, sxz = cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]
+        syy, syz, szz = cov3d[i, 3], cov3d[i, 4], cov3d[i, 5]
+        a0 = m00 * sxx + m01 * sxy + m02 * sxz
+        a1 = m00 * sxy + m01 * syy + m02 * syz
+        a2 = m00 * sxz + m01 * syz + m02 * szz
+        b0 = m10 * sxx + m11 * sxy + m12 * sxz
+        b1 = m10 * sxy + m11 * syy + m12 * syz
+        b2 = m10 * sxz + m11 * syz + m12 * szz
+        ca = a0 * m00 + a1 * m01 + a2 * m02 + COV2D_DILATION
+        cb = a0 * m10 + a1 * m11 + a2 * m12
+        cc = b0 * m10 + b1 * m11 + b2 * m12 + COV2D_DILATION
+        det = ca * cc - cb * cb
+        if not (det > 0.0):
+            continue
+        mid = 0.5 * (ca + cc)
+        lam = mid + math.sqrt(max(0.0, mid * mid - det))
+        r = math.ceil(3.0 * math.sqrt(lam))
+        if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
+            continue
+        qmax = 2.0 * math.log(255.0 * o)
+        hx = math.sqrt(qmax * ca) * (1.0 + 1e-9) + 1e-9
+        hy = math.sqrt(qmax * cc) * (1.0 + 1e-9) + 1e-9
+        umin = max(0.0, math.ceil(u - hx))
+        umax = min(width - 1.0, math.floor(u + hx))
+        vmin = max(0.0, math.ceil(v - hy))
+        vmax = min(height - 1.0, math.floor(v + hy))
+        if umin > umax or vmin > vmax:
+            continue
+        slot = cuda.atomic.add(counter, 0, 1)
+        if slot >= capacity:
+            continue  # the host grows the buffers and projects again
+        out_packed[slot, 0] = u
+        out_packed[slot, 1] = v
+        out_packed[slot, 2] = cc / det
+        out_packed[slot, 3] = -cb / det
+        out_packed[slot, 4] = ca / det
+        out_packed[slot, 5] = o
+        out_packed[slot, 6] = qmax
+        out_packed[slot, 7] = z
+        bu0 = int32(umin)
+        bu1 = int32(umax)
+        bv0 = int32(vmin)
+        bv1 = int32(vmax)
+        out_bbox[slot, 0] = bu0
+        out_bbox[slot, 1] = bu1
+        out_bbox[slot, 2] = bv0
+        out_bbox[slot, 3] = bv1
+        out_id[slot] = i
+        out_view[slot] = view
+        out_ntiles[slot] = (bu1 // tile - bu0 // tile + 1) * (bv1 // tile - bv0 // tile + 1)
+        if want_color:
+            dx = px - cams[view, 16]
+            dy = py - cams[view, 17]
+            dz = pz - cams[view, 18]
+            norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+            dx /= norm
+            dy /= norm
+            dz /= norm
+            k = sh.shape[1]
+            xx, yy, zz, xy, yz, xz = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
+            for c in range(3):
+                val = SH_C0 * float64(sh[i, 0, c])
+                if k >= 4:
+                    val += (-SH_C1 * dy * sh[i, 1, c] + SH_C1 * dz * sh[i, 2, c] - SH_C1 * dx * sh[i, 3, c])
+                if k >= 9:
+                    val += (C2_0 * xy * sh[i, 4, c] + C2_1 * yz * sh[i, 5, c]
+                            + C2_2 * (2.0 * zz - xx - yy) * sh[i, 6, c] + C2_3 * xz * sh[i, 7, c]
+                            + C2_4 * (xx - yy) * sh[i, 8, c])
+                if k >= 16:
+                    val += (C3_0 * dy * (3.0 * xx - yy) * sh[i, 9, c] + C3_1 * xy * dz * sh[i, 10, c]
+                            + C3_2 * dy * (4.0 * zz - xx - yy) * sh[i, 11, c]
+                            + C3_3 * dz * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12, c]
+                            + C3_4 * dx * (4.0 * zz - xx - yy) * sh[i, 13, c]
+                            + C3_5 * dz * (xx - yy) * sh[i, 14, c]
+                            + C3_6 * dx * (xx - 3.0 * yy) * sh[i, 15, c])
+                out_color[slot, c] = max(val + 0.5, 0.0)
+        else:
+            for c in range(3):
+                out_color[slot, c] = 0.0
+
+
+@cuda.jit
+def emit_keys_kernel(bbox, view, first, num_pairs, tile, tiles_x, tiles_per_view, keys):  # pragma: no cover
+    """keys[first[j] + k] = (view_j * T + tile_k) * M + j for the k-th tile of pair j's box (M = num_pairs)."""
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for j in range(start, num_pairs, stride):
+        pos = first[j]
+        base = view[j] * tiles_per_view
+        for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
+            for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
+                keys[pos] = (base + ty * tiles_x + tx) * num_pairs + j
+                pos += 1
+
+
+@cuda.jit
+def moments_kernel(concentrations, rows, out):  # pragma: no cover
+    """out[r] = (E_0..E_{C-1}, Var_0..Var_{C-1}, S) in float32 for Gaussian rows[r] (SPEC §4):
+    S = sum_c alpha^c, E = alpha / S, Var = E (1 - E) / (1 + S) (computed in float64)."""
+    num_classes = concentrations.shape[1]
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for r in range(start, rows.shape[0], stride):
+        n = rows[r]
+        total = 0.0
+        for c in range(num_classes):
+            total += concentrations[n, c]
+        inv = 1.0 / total
+        denom = 1.0 / (1.0 + total)
+        for c in range(num_classes):
+            e = concentrations[n, c] * inv
+            out[r, c] = e
+            out[r, num_classes + c] = e * (1.0 - e) * denom
+        out[r, 2 * num_classes] = total
+
+
+def batch_size(bytes_per_gaussian: int, threads: int) -> int:
+    """Gaussians staged per batch: one per thread, fewer if their shared rows exceed SHARED_BUDGET."""
+    return max(1, min(threads, SHARED_BUDGET // bytes_per_gaussian))
+
+
+@lru_cache(maxsize=None)
+def make_update_kernel(num_classes: int, tile: int) -> Any:
+    """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants).
+
+    Launch: grid = tiles of the view, block = tile * tile threads. Kernel arguments: offsets (T + 1,)
+    i64 tile ranges in ``keys``; keys (P,) i64 sorted; num_pairs M; packed (M, 8) f64; ids (M,) i32
+    model rows; labels (H, W) i32 (-1 = none); weights (H, W) f32; tiles_x; concentrations (N, C) f64,
+    to which sum_i kappa_in * weight_i is added at [n, label_i].
+    """
+    nt = tile * tile
+    batch = batch_size(7 * 8 + 4 + 8 * num_classes, nt)
+    C = num_classes
+
+    @cuda.jit
+    def update_kernel(offsets, keys, num_pairs, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
+        t = cuda.blockIdx.x
+        tid = cuda.threadIdx.x
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        u = tx * tile + tid % tile
+        v = ty * tile + tid // tile
+        height, width = labels.shape
+        lab = -1
+        w = 0.0
+        if u < width and v < height:
+            lab = labels[v, u]
+            w = float64(weights[v, u])
+        done = not (lab >= 0 and w > 0.0)
+        s_g = cuda.shared.array((batch, 7), float64)
+        s_acc = cuda.shared.array((batch, C), float64)
+        s_id = cuda.shared.array(batch, int32)
+        fu = float64(u)
+        fv = float64(v)
+        trans = 1.0
+        start = offsets[t]
+        end = offsets[t + 1]
+        for b0 in range(start, end, batch):
+            if cuda.syncthreads_count(0 if done else 1) == 0:
+                break  # every labelled pixel of the tile has terminated
+            n = min(batch, end - b0)
+            if tid < n:
+                j = keys[b0 + tid] % num_pairs
+                for c in range(7):
+                    s_g[tid, c] = packed[j, c]
+                s_id[tid] = ids[j]
+            for idx in range(tid, batch * C, nt):
+                s_acc[idx // C, idx % C] = 0.0
+            cuda.syncthreads()
+            if not done:
+                for k in range(n):
+                    dx = fu - s_g[k, 0]
+                    dy = fv - s_g[k, 1]
+                    q = s_g[k, 2] * dx * dx + 2.0 * s_g[k, 3] * dx * dy + s_g[k, 4] * dy * dy
+                    if not (q <= s_g[k, 6]):
+                        continue
+                    alpha = min(ALPHA_MAX, s_g[k, 5] * math.exp(-0.5 * q))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    test_t = trans * (1.0 - alpha)
+                    if test_t < T_MIN:
+                        done = True
+                        break
+                    cuda.atomic.add(s_acc, (k, lab), alpha * trans * w)
+                    trans = test_t
+            cuda.syncthreads()
+            for idx in range(tid, n * C, nt):
+                k = idx // C
+                c = idx - k * C
+                val = s_acc[k, c]
+                if val != 0.0:
+                    cuda.atomic.add(concentrations, (s_id[k], c), val)
+    return update_kernel
+
+
+@lru_cache(maxsize=None)
+def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) -> Any:
+    """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode).
+
+    Launch: grid = views * tiles, block = tile * tile threads. Kernel arguments: offsets (V T + 1,)
+    i64; keys (P,) i64 sorted; num_pairs M; packed (M, 8) f64; colors (M, 3) f32; pair_row (M,) i32
+    row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; e_bg, v_bg, s_bg background moments;
+    bg_rgb (3,) f64; width, height [px]; tiles_x, tiles_per_view; outputs:
+
+    - ``score`` False: out (V, H, W, 8) f32 per pixel (label, E, Var of the argmax class, kappa_b,
+      evidence, r, g, b); with ``probs`` also probs (V, H, W, C) f32 = E_i^c.
+    - ``score`` True: scores (V, 2) f64 += (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i) per view.
+    """
+    nt = tile * tile
+    C = num_classes
+    na = 2 * C + 4               # staged row: E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}
+    nm = 2 * C + 1               # moments row: E.., Var.., S
+    batch = batch_size(7 * 8 + 4 + 4 * na, nt)
+
+    @cuda.jit
+    def render_kernel(offsets, keys, num_pairs, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
+                      width, height, tiles_x, tiles_per_view, out, probs_out, scores):  # pragma: no cover
+        b = cuda.blockIdx.x
+        tid = cuda.threadIdx.x
+        view = b // tiles_per_view
+        t = b - view * tiles_per_view
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        u = tx * tile + tid % tile
+        v = ty * tile + tid // tile
+        inside = u < width and v < height
+        done = not inside
+        s_g = cuda.shared.array((batch, 7), float64)
+        s_a = cuda.shared.array((batch, na), float32)
+        s_row = cuda.shared.array(batch, int32)
+        s_sum = cuda.shared.array(2, float64)
+        eacc = cuda.local.array(C, float32)
+        vacc = cuda.local.array(C, float32)
+        for c in range(C):
+            eacc[c] = 0.0
+            vacc[c] = 0.0
+        cr = float32(0.0)
+        cg = float32(0.0)
+        cb = float32(0.0)
+        ev = float32(0.0)
+        if score and tid < 2:
+            s_sum[tid] = 0.0
+        fu = float64(u)
+        fv = float64(v)
+        trans = 1.0
+        start = offsets[b]
+        end = offsets[b + 1]
+        for b0 in range(start, end, batch):
+            if cuda.syncthreads_count(0 if done else 1) == 0:
+                break
+            n = min(batch, end - b0)
+            if tid < n:
+                j = keys[b0 + tid] % num_pairs
+                for c in range(7):
+                    s_g[tid, c] = packed[j, c]
+                s_row[tid] = pair_row[j]
+                s_a[tid, C] = colors[j, 0]
+                s_a[tid, C + 1] = colors[j, 1]
+                s_a[tid, C + 2] = colors[j, 2]
+            cuda.syncthreads()
+            for idx in range(tid, n * nm, nt):
+                k = idx // nm
+                c = idx - k * nm
+                val = mom[s_row[k], c]
+                if c < C:
+                    s_a[k, c] = val
+                elif c < 2 * C:
+                    s_a[k, c + 4] = val
+                else:
+                    s_a[k, C + 3] = val
+            cuda.syncthreads()
+            if not done:
+                for k in range(n):
+                    dx = fu - s_g[k, 0]
+                    dy = fv - s_g[k, 1]
+                    q = s_g[k, 2] * dx * dx + 2.0 * s_g[k, 3] * dx * dy + s_g[k, 4] * dy * dy
+                    if not (q <= s_g[k, 6]):
+                        continue
+                    alpha = min(ALPHA_MAX, s_g[k, 5] * math.exp(-0.5 * q))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    test_t = trans * (1.0 - alpha)
+                    if test_t < T_MIN:
+                        done = True
+                        break
+                    kappa = alpha * trans
+                    w1 = float32(kappa)
+                    w2 = float32(kappa * kappa)
+                    for c in range(C):
+                        eacc[c] += w1 * s_a[k, c]
+                        vacc[c] += w2 * s_a[k, C + 4 + c]
+                    cr += w1 * s_a[k, C]
+                    cg += w1 * s_a[k, C + 1]
+                    cb += w1 * s_a[k, C + 2]
+                    ev += w1 * s_a[k, C + 3]
+                    trans = test_t
+        if score:
+            cuda.syncthreads()
+        if inside:
+            best = 0
+            for c in range(1, C):
+                if eacc[c] > eacc[best]:
+                    best = c
+            e_hat = float64(eacc[best]) + trans * e_bg
+            v_hat = float64(vacc[best]) + trans * trans * v_bg
+            if score:
+                cuda.atomic.add(s_sum, 0, math.log(max(v_hat, VAR_FLOOR)))
+                cuda.atomic.add(s_sum, 1, e_hat)
+            else:
+                out[view, v, u, 0] = best
+                out[view, v, u, 1] = e_hat
+                out[view, v, u, 2] = v_hat
+                out[view, v, u, 3] = trans
+                out[view, v, u, 4] = float64(ev) + trans * s_bg
+                out[view, v, u, 5] = float64(cr) + trans * bg_rgb[0]
+                out[view, v, u, 6] = float64(cg) + trans * bg_rgb[1]
+                out[view, v, u, 7] = float64(cb) + trans * bg_rgb[2]
+                if probs:
+                    for c in range(C):
+                        probs_out[view, v, u, c] = float64(eacc[c]) + trans * e_bg
+        if score:
+            cuda.syncthreads()
+            if tid < 2:
+                cuda.atomic.add(scores, (view, tid), s_sum[tid])
+    return render_kernel
+
+
+def launch_1d(total: int, simulated: bool) -> tuple[int, int]:
+    """(blocks, threads) of a grid-stride launch over ``total`` items (few threads in the simulator,
+    where each GPU thread is a Python thread)."""
+    if simulated:
+        return 1, max(1, min(32, total))
+    threads = 256
+    return max(1, min((total + threads - 1) // threads, 16 * 1024)), threads

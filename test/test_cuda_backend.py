@@ -1,0 +1,96 @@
+"""The CUDA backend in an ordinary test run (no GPU needed).
+
+- test_simulated_kernels runs test/test_cuda_sim.py in a subprocess with NUMBA_ENABLE_CUDASIM=1
+  (the simulator must be chosen before numba is imported; this process has numba CPU kernels loaded).
+- Without a GPU and without the simulator, asking for backend "cuda" is a clear CssError.
+- On a machine with a GPU, the same comparison with the numba path runs on the device.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from css_ros import SemanticMap
+from css_ros.errors import CssError
+
+ROOT = Path(__file__).resolve().parents[1]
+HAS_NUMBA_CUDA = importlib.util.find_spec("numba_cuda") is not None
+needs_numba_cuda = pytest.mark.skipif(not HAS_NUMBA_CUDA, reason="numba-cuda is not installed (pip install -e '.[cuda]')")
+
+
+def _env(sim: bool) -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "test"), env.get("PYTHONPATH", "")])
+    env["NUMBA_ENABLE_CUDASIM"] = "1" if sim else "0"
+    return env
+
+
+@needs_numba_cuda
+def test_simulated_kernels():
+    """Every check of test_cuda_sim.py (brute-force reference and numba path) under the simulator."""
+    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(ROOT / "test" / "test_cuda_sim.py")],
+                         env=_env(True), cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-3000:]
+    assert " passed" in out.stdout and "skipped" not in out.stdout.splitlines()[-1], out.stdout[-2000:]
+
+
+def test_cuda_backend_is_lazy():
+    """Choosing another backend never imports numba.cuda (the CPU install stays light)."""
+    code = ("import sys; from css_ros import SemanticMap; from scenes import random_scene; "
+            "SemanticMap(random_scene(0, n=10), 2); "
+            "assert 'numba.cuda' not in sys.modules and 'css_ros.engine.cuda.backend' not in sys.modules")
+    out = subprocess.run([sys.executable, "-c", code], env=_env(False), cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+
+
+def _gpu_available() -> bool:
+    if not HAS_NUMBA_CUDA or os.environ.get("NUMBA_ENABLE_CUDASIM", "0") not in ("", "0"):
+        return False
+    code = "from numba import cuda; import sys; sys.exit(0 if cuda.is_available() else 1)"
+    return subprocess.run([sys.executable, "-c", code], env=_env(False), capture_output=True, timeout=120).returncode == 0
+
+
+GPU = _gpu_available()
+
+
+@pytest.mark.skipif(GPU, reason="this machine has a GPU")
+def test_no_gpu_no_simulator_is_a_clear_error():
+    code = ("from css_ros import SemanticMap; from css_ros.errors import CssError; from scenes import random_scene\n"
+            "try:\n    SemanticMap(random_scene(0, n=10), 2, backend='cuda')\n"
+            "except CssError as e:\n    print('CSSERROR', e)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=_env(False), cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert "CSSERROR" in out.stdout, out.stdout + out.stderr[-3000:]
+    assert ("numba-cuda" in out.stdout) or ("NUMBA_ENABLE_CUDASIM" in out.stdout)
+
+
+def test_unknown_option_is_a_clear_error():
+    from scenes import random_scene
+
+    with pytest.raises((CssError, TypeError)):
+        SemanticMap(random_scene(0, n=10), 2, backend="nope")
+
+
+@pytest.mark.skipif(not GPU, reason="needs a CUDA GPU (the simulated form is test_simulated_kernels)")
+def test_gpu_matches_numba():  # pragma: no cover - GPU only
+    """On a real GPU: a few observed frames, a render and score_views agree with the numba path."""
+    from scenes import camera, random_scene
+
+    model = random_scene(0, n=3000, log_scale=(-4.0, -1.5))
+    cams = [camera(width=96, height=72, f=70.0, position=(0.05 * i, 0, 0)) for i in range(4)]
+    gpu, cpu = SemanticMap(model, 6, backend="cuda"), SemanticMap(model, 6)
+    rng = np.random.default_rng(0)
+    for cam in cams[:3]:
+        lab = rng.integers(0, 6, (cam.height, cam.width))
+        a, b = gpu.observe(cam, lab), cpu.observe(cam, lab)
+        np.testing.assert_allclose(a.expectation, b.expectation, atol=1e-5)
+        np.testing.assert_allclose(a.variance, b.variance, rtol=1e-4, atol=1e-8)
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(gpu.score_views(cams), cpu.score_views(cams), rtol=1e-4)

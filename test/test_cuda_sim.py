@@ -1,0 +1,169 @@
+"""The CUDA backend's kernels, run through the numba-cuda simulator, against the float64 brute-force
+reference (test/css_reference.py) and the numba CPU path, on tiny scenes.
+
+The simulator must be switched on before numba is imported, so these tests run in a subprocess
+started by test/test_cuda_backend.py with NUMBA_ENABLE_CUDASIM=1; collected in a process without
+it (the ordinary pytest run) this module skips itself.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+if os.environ.get("NUMBA_ENABLE_CUDASIM", "0") in ("", "0"):
+    pytest.skip("simulated CUDA checks run in a subprocess (test_cuda_backend.py::test_simulated_kernels)",
+                allow_module_level=True)
+pytest.importorskip("numba.cuda", reason="numba-cuda is not installed (pip install -e '.[cuda]')")
+
+from css_ros import GaussianModel, SemanticMap  # noqa: E402
+from css_ros.engine.sh import eval_sh  # noqa: E402
+from css_reference import kappa_reference, render_reference, update_reference  # noqa: E402
+from scenes import camera, edge_case_scene, random_scene  # noqa: E402
+
+C = 4
+W, H = 16, 12
+CAMS = [dict(width=W, height=H, f=12.0),
+        dict(width=13, height=11, f=10.0, position=(0.3, -0.2, -0.5), quat=(0.05, -0.08, 0.02, 0.995)),
+        dict(width=W, height=H, f=12.5, cx=3.0, cy=9.0)]
+
+
+def reference(model, cam):
+    return kappa_reference(model.means, model.scales, model.quats_wxyz, model.opacities,
+                           cam.K, cam.T_map_cam, cam.width, cam.height)
+
+
+def labels_and_confidence(cam, seed):
+    rng = np.random.default_rng(seed)
+    lab = rng.integers(0, C, (cam.height, cam.width))
+    lab[rng.random(lab.shape) < 0.15] = 255          # no label
+    lab[rng.random(lab.shape) < 0.05] = C + 3        # out of range: ignored
+    conf = rng.uniform(0.2, 1.0, lab.shape).astype(np.float32)
+    return lab, conf
+
+
+@pytest.mark.parametrize("case", range(len(CAMS)))
+def test_update_matches_brute_force_and_numba(case):
+    model = random_scene(case, n=120) if case != 2 else edge_case_scene()
+    cam = camera(**CAMS[case])
+    lab, conf = labels_and_confidence(cam, case)
+    gpu = SemanticMap(model, C, backend="cuda")
+    cpu = SemanticMap(model, C)
+    stats = gpu.update(cam, lab, conf)
+    assert stats == cpu.update(cam, lab, conf)
+    kap, _ = reference(model, cam)
+    ref = update_reference(kap, np.full((model.num_gaussians, C), 1e-3), lab, C, confidence=conf)
+    assert kap.max() > 0.1 and np.abs(ref - 1e-3).max() > 0.5   # the scene is really seen
+    np.testing.assert_allclose(gpu.concentrations, ref, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("case", range(len(CAMS)))
+def test_render_matches_brute_force_and_numba(case):
+    model = random_scene(10 + case, n=120) if case != 2 else edge_case_scene(1)
+    cam = camera(**CAMS[case])
+    rng = np.random.default_rng(case)
+    alpha = rng.gamma(0.5, 2.0, (model.num_gaussians, C)) + 1e-3
+    gpu = SemanticMap(model, C, backend="cuda", unknown_threshold=0.7, background_rgb=(0.2, 0.4, 0.6))
+    cpu = SemanticMap(model, C, unknown_threshold=0.7, background_rgb=(0.2, 0.4, 0.6))
+    gpu.concentrations[...] = alpha      # a host write must reach the device copy
+    cpu.concentrations[...] = alpha
+    a = gpu.render(cam, probabilities=True)
+    b = cpu.render(cam, probabilities=True)
+    kap, bg = reference(model, cam)
+    E, V, lab, e_hat, v_hat, u_var, u_exp = render_reference(kap, bg, alpha, 1e-3)
+    if case == 2:
+        assert bg.min() < 1e-2   # the opaque sheets: early termination is exercised
+    shape = (cam.height, cam.width)
+    np.testing.assert_allclose(a.background, bg.reshape(shape), atol=1e-6)
+    np.testing.assert_allclose(a.probabilities, E.reshape(*shape, C), atol=2e-6)
+    np.testing.assert_allclose(a.expectation, e_hat.reshape(shape), atol=2e-6)
+    np.testing.assert_allclose(a.variance, v_hat.reshape(shape), rtol=1e-5, atol=1e-9)
+    want = np.where(bg.reshape(shape) > 0.7, 255, lab.reshape(shape))
+    np.testing.assert_array_equal(a.labels, want)
+    s_n = alpha.sum(axis=1)
+    np.testing.assert_allclose(a.evidence, (kap @ s_n + bg * C * 1e-3).reshape(shape), rtol=1e-5, atol=1e-5)
+    assert abs(a.u_var - u_var) <= 1e-5 * u_var and abs(a.u_exp - u_exp) < 1e-6
+    for f in ("expectation", "variance", "background", "evidence", "probabilities"):
+        np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-5, atol=1e-6, err_msg=f)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    assert np.abs(a.rgb.astype(int) - b.rgb).max() <= 1
+
+
+def test_observe_sequence_and_host_coherence():
+    """observe = update then render at the same pose; the host array follows the device state."""
+    model = random_scene(3, n=120)
+    cams = [camera(width=W, height=H, f=12.0, position=(0.1 * i, 0.0, 0.0)) for i in range(2)]
+    gpu = SemanticMap(model, C, backend="cuda")
+    cpu = SemanticMap(model, C)
+    for i, cam in enumerate(cams):
+        lab, conf = labels_and_confidence(cam, 20 + i)
+        a = gpu.observe(cam, lab, conf)
+        b = cpu.observe(cam, lab, conf)
+        np.testing.assert_allclose(a.expectation, b.expectation, atol=1e-6)
+        np.testing.assert_allclose(a.variance, b.variance, rtol=1e-5, atol=1e-9)
+        np.testing.assert_array_equal(a.labels, b.labels)
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=1e-9, atol=1e-10)
+    gpu.reset()
+    assert np.all(gpu.concentrations == 1e-3)
+    fresh = SemanticMap(model, C, backend="cuda")
+    np.testing.assert_allclose(gpu.render(cams[0]).expectation, fresh.render(cams[0]).expectation, atol=0)
+
+
+def test_score_views_batched_matches_numba_and_render():
+    model = random_scene(4, n=120)
+    rng = np.random.default_rng(4)
+    alpha = rng.gamma(0.5, 2.0, (model.num_gaussians, C)) + 1e-3
+    views = [camera(width=W, height=H, f=12.0, position=(0.2 * i, -0.1 * i, 0.0)) for i in range(3)]
+    views.insert(1, camera(width=8, height=8, f=7.0, quat=(0.0, 0.1, 0.0, 0.995)))   # another size
+    views.append(camera(width=W, height=H, f=12.0, quat=(0.0, 1.0, 0.0, 0.0)))       # looks away: empty
+    gpu = SemanticMap(model, C, backend="cuda")
+    cpu = SemanticMap(model, C)
+    gpu.concentrations[...] = alpha
+    cpu.concentrations[...] = alpha
+    got = gpu.score_views(views)
+    np.testing.assert_allclose(got, cpu.score_views(views), rtol=1e-5, atol=1e-7)
+    for i in (0, 1):
+        r = gpu.render(views[i])
+        np.testing.assert_allclose(got[i], [r.u_var, r.u_exp], rtol=1e-5, atol=1e-7)
+    kap, bg = reference(model, views[2])
+    _, _, _, _, _, u_var, u_exp = render_reference(kap, bg, alpha, 1e-3)
+    np.testing.assert_allclose(got[2], [u_var, u_exp], rtol=1e-5, atol=1e-7)
+    e_b = 1.0 / C
+    assert got[4, 1] == pytest.approx(1.0 - e_b) and got[4, 0] == pytest.approx(e_b * (1 - e_b) / (1 + C * 1e-3))
+    # score_images (the protocol method) gives the same images as render
+    e, v = list(gpu._backend.score_images(views[:2], gpu._concentrations, e_b, e_b * (1 - e_b) / (1 + C * 1e-3),
+                                          C * 1e-3))[1]
+    np.testing.assert_allclose(e, gpu.render(views[1]).expectation, atol=1e-7)
+
+
+def test_view_dependent_colour_matches_reference():
+    rng = np.random.default_rng(7)
+    base = random_scene(7, n=100)
+    sh = rng.normal(scale=0.4, size=(base.num_gaussians, 16, 3)).astype(np.float32)
+    model = GaussianModel(means=base.means, sh=sh, opacity_logits=base.opacity_logits,
+                          log_scales=base.log_scales, rotations=base.rotations)
+    cam = camera(width=W, height=H, f=12.0, position=(0.2, 0.1, -0.3))
+    buf = SemanticMap(model, 2, backend="cuda", background_rgb=(0.2, 0.4, 0.6))
+    backend = buf._backend
+    out = backend.render(backend.prepare(cam), np.ones((model.num_gaussians, 2)), 0.5, 0.0, 1.0,
+                         np.array([0.2, 0.4, 0.6]), False)
+    kap, bg = reference(model, cam)
+    dirs = model.means.astype(np.float64) - cam.position
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    colours = np.maximum(eval_sh(sh.astype(np.float64), dirs) + 0.5, 0.0)
+    ref = kap @ colours + bg[:, None] * np.array([0.2, 0.4, 0.6])
+    np.testing.assert_allclose(out.rgb.reshape(-1, 3), ref, atol=1e-5)
+
+
+def test_projection_capacity_grows_for_large_batches():
+    """Kept (view, Gaussian) pairs are appended through an atomic counter into buffers sized from a
+    guess; a batch that keeps more pairs than the guess must be projected again, not truncated."""
+    model = random_scene(5, n=60, log_scale=(-2.0, -0.5))
+    views = [camera(width=8, height=6, f=6.0, position=(0.01 * i, 0, 0)) for i in range(6)]
+    gpu = SemanticMap(model, 2, backend="cuda")
+    gpu._backend._capacity[6] = 5           # far too small
+    frame = gpu._backend.prepare_views(views, want_color=False)
+    assert frame.num_pairs > 5 * 6
+    np.testing.assert_allclose(gpu.score_views(views), SemanticMap(model, 2).score_views(views), rtol=1e-5)
