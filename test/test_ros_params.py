@@ -63,7 +63,7 @@ def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, defa
         coerce(name, value, default)
 
 
-@pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "cuda"), ("prior", 0.0),
+@pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "opencl"), ("prior", 0.0),
                                           ("queue_size", 0), ("sync_slop", -1.0), ("output_scale", float("nan")),
                                           ("output_scale", 2.0), ("candidate_scale", 1.5), ("max_image_pixels", 0),
                                           ("candidate_slice", 0), ("candidate_time_budget", float("inf")),

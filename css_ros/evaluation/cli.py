@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
+from ..engine.backends import BACKENDS
 from ..errors import ConfigError, CssError
 from ..io.paths import find_demo_bag
 from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
@@ -54,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default {DEFAULT_UNKNOWN_THRESHOLD:g}; 1.0 = never)")
     p.add_argument("--ignore-label", type=int, default=DEFAULT_IGNORE_LABEL,
                    help=f"'no label' value of label images (default {DEFAULT_IGNORE_LABEL})")
-    p.add_argument("--backend", choices=("numba", "torch"), default="numba", help="rasteriser backend")
+    p.add_argument("--backend", choices=tuple(BACKENDS), default="numba",
+                   help="rasteriser backend: numba (CPU), cuda (GPU, needs the cuda extra) or torch")
     p.add_argument("--sync-slop", type=float, default=DEFAULT_SYNC_SLOP_S, metavar="S",
                    help="max stamp difference [s] between a segmentation and its pose/image/GT "
                         f"(default {DEFAULT_SYNC_SLOP_S:g}, as css_node's sync_slop)")

@@ -13,6 +13,7 @@ from typing import Any
 
 from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                            DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
+from ..engine.backends import BACKENDS
 from ..errors import ConfigError
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
 
@@ -49,7 +50,7 @@ class NodeParams:
                            "published for unknown pixels")
     unknown_threshold: float = _p(DEFAULT_UNKNOWN_THRESHOLD, "", "background weight kappa_b above which a pixel "
                                   "is published as ignore_label (1.0: never)")
-    backend: str = _p("numba", "", "rasteriser backend: numba or torch")
+    backend: str = _p("numba", "", "rasteriser backend: numba (CPU), cuda (GPU, the cuda extra) or torch")
     # --- inputs
     input_qos: str = _p("sensor_data", "", "QoS of the sensor inputs: sensor_data (best effort) or reliable")
     queue_size: int = _p(10, "messages", "subscription depth and synchroniser buffer per input")
@@ -197,8 +198,8 @@ def check_params(p: NodeParams) -> None:
 
     if p.input_qos not in ("sensor_data", "reliable"):
         raise bad("input_qos", "expected 'sensor_data' or 'reliable'")
-    if p.backend not in ("numba", "torch"):
-        raise bad("backend", "expected 'numba' or 'torch'")
+    if p.backend not in BACKENDS:
+        raise bad("backend", f"expected one of {', '.join(BACKENDS)}")
     for name in ("prior", "background", "unknown_threshold", "output_scale", "candidate_scale",
                  "query_background_weight"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
