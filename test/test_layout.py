@@ -27,6 +27,8 @@ ALLOWED: dict[str, set[str]] = {
     "clients": {"engine", "io", "ros"},
 }
 ROS_FREE = ("engine", "io", "evaluation", "export", "importers")
+#: Root modules of layer 0, importable from every layer (they import nothing of the package but errors).
+BASE = ("errors", "console")
 ROS_MODULES = ("rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "std_srvs", "diagnostic_msgs",
                "builtin_interfaces", "rcl_interfaces")
 
@@ -79,10 +81,16 @@ def test_imports_follow_the_layers():
             if parts[0] != "css_ros" or len(parts) < 2:
                 continue
             target = parts[1]
-            if target in ("errors", layer) or target in ALLOWED[layer]:
+            if target in BASE or target == layer or target in ALLOWED[layer]:
                 continue
             bad.append(f"{path.relative_to(PKG)}:{line} imports {mod} ({layer} may not import {target})")
     assert not bad, "\n".join(bad)
+
+
+def test_base_modules_import_nothing_above_them():
+    for name in BASE:
+        for mod, line in _imports(PKG / f"{name}.py"):
+            assert not mod.startswith("css_ros.") or mod == "css_ros.errors", f"{name}.py:{line} imports {mod}"
 
 
 def test_torch_twin_imports_no_numba_code():

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ..errors import InputError, MapError
+from .gaussians import rotation_matrices_wxyz
 from .spec import QUERY_MAHALANOBIS_CUTOFF
 
 if TYPE_CHECKING:
@@ -150,7 +151,7 @@ class FieldIndex:
         all_scales = model.scales                           # (N, 3) float32 std devs, as the renderer uses
         for a in range(0, n, 1 << 18):                      # bounded temporaries for large models
             b = min(n, a + (1 << 18))
-            R = _rotation_matrices(_unit(model.rotations[a:b]))
+            R = rotation_matrices_wxyz(_unit(model.rotations[a:b]))
             scales = all_scales[a:b].astype(np.float64)
             M = R / scales[:, None, :]                      # R S⁻¹
             A = M @ np.swapaxes(M, 1, 2)                    # Σ⁻¹ = R S⁻² Rᵀ
@@ -197,22 +198,6 @@ def _unit(q: np.ndarray) -> np.ndarray:
     """(N, 4) float64 unit quaternions from raw ones."""
     q = q.astype(np.float64)
     return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _rotation_matrices(q: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of unit quaternions (w, x, y, z) (SPEC §1 convention)."""
-    w, x, y, z = q.T
-    R = np.empty((q.shape[0], 3, 3))
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    R[:, 0, 1] = 2 * (x * y - w * z)
-    R[:, 0, 2] = 2 * (x * z + w * y)
-    R[:, 1, 0] = 2 * (x * y + w * z)
-    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    R[:, 1, 2] = 2 * (y * z - w * x)
-    R[:, 2, 0] = 2 * (x * z - w * y)
-    R[:, 2, 1] = 2 * (y * z + w * x)
-    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
 
 
 def _build_cells(box_lo: np.ndarray, box_hi: np.ndarray, level: np.ndarray, origin: np.ndarray,

@@ -53,6 +53,22 @@ def _as_f32(name: str, value: np.ndarray, shape: tuple) -> np.ndarray:
     return arr
 
 
+def rotation_matrices_wxyz(q: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) float64 rotation matrices of unit quaternions (N, 4) in the PLY order (w, x, y, z) (SPEC §1)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64).T
+    R = np.empty((len(w), 3, 3))
+    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    R[:, 0, 1] = 2 * (x * y - w * z)
+    R[:, 0, 2] = 2 * (x * z + w * y)
+    R[:, 1, 0] = 2 * (x * y + w * z)
+    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    R[:, 1, 2] = 2 * (y * z - w * x)
+    R[:, 2, 0] = 2 * (x * z - w * y)
+    R[:, 2, 1] = 2 * (y * z + w * x)
+    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
 @dataclass(frozen=True, eq=False)
 class GaussianModel:
     """A 3DGS model in the map frame, stored RAW exactly as in the INRIA PLY (so saving round-trips bit-exactly).
@@ -161,17 +177,7 @@ class GaussianModel:
 
     def covariances(self) -> np.ndarray:
         """(N, 3, 3) float64 world-frame covariances R S S^T R^T in m^2 (SPEC section 1)."""
-        w, x, y, z = self.quats_wxyz.T
-        R = np.empty((self.num_gaussians, 3, 3))
-        R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-        R[:, 0, 1] = 2 * (x * y - w * z)
-        R[:, 0, 2] = 2 * (x * z + w * y)
-        R[:, 1, 0] = 2 * (x * y + w * z)
-        R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-        R[:, 1, 2] = 2 * (y * z - w * x)
-        R[:, 2, 0] = 2 * (x * z - w * y)
-        R[:, 2, 1] = 2 * (y * z + w * x)
-        R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+        R = rotation_matrices_wxyz(self.quats_wxyz)
         M = R * self.scales.astype(np.float64)[:, None, :]
         return M @ np.swapaxes(M, 1, 2)
 

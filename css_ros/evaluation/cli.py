@@ -9,6 +9,7 @@ from typing import Sequence
 
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
 from ..engine.backends import BACKENDS
+from ..console import run_console
 from ..errors import ConfigError, CssError
 from ..io.paths import find_demo_bag
 from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
@@ -213,29 +214,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse already printed the usage message
         return int(exc.code or 0)
-    try:
+
+    def work() -> int:
         cfg = resolve_paths(args)
         cfg.warmup_s = warm_up(cfg)
         metrics = run(cfg)
-    except CssError as exc:
-        print(f"css_replay: error: {exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:
-        print(f"css_replay: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("css_replay: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - last resort: one line for the user, traceback on request
-        if os.environ.get("CSS_REPLAY_DEBUG"):
-            raise
-        print(f"css_replay: error: unexpected {type(exc).__name__}: {exc} "
-              "(set CSS_REPLAY_DEBUG=1 for the traceback)", file=sys.stderr)
-        return 1
-    print(headline(metrics))
-    report = (cfg.out / "report.md").resolve()
-    print(f"report: {report}")
-    return 0
+        print(headline(metrics))
+        print(f"report: {(cfg.out / 'report.md').resolve()}")
+        return 0
+
+    return run_console("css_replay", work)
 
 
 if __name__ == "__main__":

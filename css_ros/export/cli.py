@@ -10,6 +10,7 @@ from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
 from ..engine.spec import DEFAULT_MIN_EVIDENCE
+from ..console import run_console
 from ..errors import CssError
 from .bundle import FORMATS, export_map
 
@@ -91,17 +92,12 @@ def export(args: argparse.Namespace) -> list[Path]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``css_export``: 0 on success, 1 with a one-line error, 2 for usage errors."""
     args = build_parser().parse_args(argv)
-    try:
-        written = export(args)
-    except CssError as exc:
-        print(f"css_export: error: {exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:
-        print(f"css_export: error: {exc}", file=sys.stderr)
-        return 1
-    for path in written:
-        print(path)
-    return 0
+
+    def work() -> None:
+        for path in export(args):
+            print(path)
+
+    return run_console("css_export", work)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ from typing import Sequence
 from tqdm import tqdm
 
 from ..engine.classes import ClassSet
+from ..console import run_console
 from ..errors import CssError
 from .colmap import load_colmap
 from .inria import load_inria
@@ -148,24 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
-    try:
-        print(run(args))
-    except CssError as exc:
-        print(f"css_import: error: {exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:
-        print(f"css_import: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("css_import: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - one line for the user, traceback on request
-        if os.environ.get("CSS_IMPORT_DEBUG"):
-            raise
-        print(f"css_import: error: unexpected {type(exc).__name__}: {exc} (set CSS_IMPORT_DEBUG=1 for the "
-              "traceback)", file=sys.stderr)
-        return 1
-    return 0
+    return run_console("css_import", lambda: print(run(args)))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,37 @@
+"""How every ROS-free console script ends: one-line errors and documented exit codes.
+
+0 success; 1 a user-facing error (``CssError``: bad file, bad option value, refused data; or an OS
+error naming the file); 2 a usage error (argparse); 130 interrupted. An unexpected exception is also
+one line (exit 1) unless ``CSS_DEBUG=1`` is set, which shows the traceback.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from typing import Callable
+
+from .errors import CssError
+
+DEBUG_ENV = "CSS_DEBUG"
+
+
+def run_console(prog: str, work: Callable[[], int | None]) -> int:
+    """Run ``work`` (which prints its own results) and turn failures into ``prog: error: ...`` lines."""
+    try:
+        code = work()
+    except CssError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"{prog}: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - last resort: one line for the user, traceback on request
+        if os.environ.get(DEBUG_ENV):
+            raise
+        print(f"{prog}: error: unexpected {type(exc).__name__}: {exc} (set {DEBUG_ENV}=1 for the traceback)",
+              file=sys.stderr)
+        return 1
+    return int(code or 0)
