@@ -94,7 +94,7 @@ def test_check_quaternion(q, ok):
     assert (check_quaternion(np.array(q, dtype=float)) is None) == ok
 
 
-@pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "cuda"), ("prior", 0.0),
+@pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "opencl"), ("prior", 0.0),
                                           ("queue_size", 0), ("sync_slop", -1.0), ("output_scale", float("nan")),
                                           ("body_to_optical_quaternion", [0.0, 0.0, 0.0, 2.0])])
 def test_check_params_rejects(field, value):
