@@ -5,13 +5,16 @@ import threading
 import time
 from pathlib import Path
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from css_ros.engine.camera import body_to_optical_rotation, quaternion_xyzw_to_matrix
 from css_ros.errors import CssError
 from css_ros.io.paths import resolve_data_path
-from css_ros.ros.gate import body_to_optical, check_quaternion
+from css_ros.io.frames import FrameRejected, decode_pose
+from css_ros.ros.gate import body_to_optical
 from css_ros.ros.params import BODY_TO_OPTICAL_XYZW, NodeParams, check_params
 from css_ros.ros.work import FrameJob, WarnLimiter, WorkQueue
 
@@ -90,8 +93,16 @@ def test_body_to_optical_matches_rep103():
 
 @pytest.mark.parametrize("q, ok", [((0, 0, 0, 1), True), ((0, 0, 0, 1.05), True), ((0, 0, 0, 2), False),
                                    ((0, 0, 0, 0), False), ((np.nan, 0, 0, 1), False)])
-def test_check_quaternion(q, ok):
-    assert (check_quaternion(np.array(q, dtype=float)) is None) == ok
+def test_pose_quaternion_rule(q, ok):
+    """The quaternion rule of the shared decoder (norm within QUATERNION_NORM_TOLERANCE, finite)."""
+    o = SimpleNamespace(x=q[0], y=q[1], z=q[2], w=q[3])
+    msg = SimpleNamespace(pose=SimpleNamespace(position=SimpleNamespace(x=0.0, y=0.0, z=0.0), orientation=o))
+    try:
+        decode_pose(msg)
+        accepted = True
+    except FrameRejected:
+        accepted = False
+    assert accepted == ok
 
 
 @pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "opencl"), ("prior", 0.0),

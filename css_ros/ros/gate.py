@@ -23,7 +23,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..engine.camera import QUATERNION_NORM_TOLERANCE, matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from ..engine.camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from ..io.frames import (FrameRejected, Intrinsics, check_size, decode_camera_info, decode_confidence, decode_image,
                          decode_labels, decode_pose)
 from ..errors import InputError
@@ -43,16 +43,6 @@ def body_to_optical(quats_xyzw: np.ndarray, q_body_optical: np.ndarray) -> np.nd
     """Orientation of the optical frame: R_map_optical = R_map_body @ R_body_optical; (M, 4) -> (M, 4) xyzw."""
     R = quaternion_xyzw_to_matrix(quats_xyzw) @ quaternion_xyzw_to_matrix(q_body_optical)
     return matrix_to_quaternion_xyzw(R)
-
-
-def check_quaternion(q: np.ndarray) -> str | None:
-    """Reason why ``q`` (x, y, z, w) is unusable as an orientation, or None (rule of Camera.from_pose)."""
-    if not np.all(np.isfinite(q)):
-        return "non-finite quaternion"
-    lo, hi = QUATERNION_NORM_TOLERANCE
-    if not lo <= float(np.linalg.norm(q)) <= hi:
-        return "non-unit quaternion"
-    return None
 
 
 @dataclass
