@@ -9,6 +9,7 @@ from typing import Sequence
 
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
 from ..engine.backends import BACKENDS
+from ..engine.warmup import warm_up_kernels
 from ..console import run_console
 from ..errors import ConfigError, CssError
 from ..io.paths import find_demo_bag
@@ -177,34 +178,12 @@ def numba_cache_is_cold() -> bool:
 
 
 def warm_up(cfg: ReplayConfig) -> float:
-    """Compile and run every kernel of the replay once on a tiny frame (8 Gaussians, 16 x 12 pixels) so that
-    the report's timings exclude compilation; returns the seconds it took. Prints :data:`COMPILE_NOTICE`
-    first when the numba cache is cold (unless ``cfg.quiet``)."""
-    import time
-
-    import numpy as np
-
-    from ..engine.camera import Camera, intrinsics_from_fov
-    from ..engine.gaussians import GaussianModel
-    from ..engine.semantic_map import SemanticMap
-
+    """Compile the kernels on a tiny throwaway map (:func:`css_ros.engine.warmup.warm_up_kernels`) so that the
+    report's timings exclude compilation; returns the seconds it took. Prints :data:`COMPILE_NOTICE` first
+    when the numba cache is cold (unless ``cfg.quiet``)."""
     if cfg.backend == "numba" and not cfg.quiet and numba_cache_is_cold():
         print(COMPILE_NOTICE, file=sys.stderr, flush=True)
-    t0 = time.perf_counter()
-    xy = np.stack(np.meshgrid([-0.2, 0.2], [-0.3, 0.0, 0.3, 0.1])[::-1], -1).reshape(-1, 2)[:8]
-    means = np.column_stack([xy, np.full(len(xy), 2.0)])
-    model = GaussianModel.from_activated(means, np.full((len(xy), 3), 0.1), np.tile([1.0, 0, 0, 0], (len(xy), 1)),
-                                         np.full(len(xy), 0.9), np.full((len(xy), 3), 0.5))
-    extra = {} if cfg.unknown_threshold is None else {"unknown_threshold": cfg.unknown_threshold}
-    smap = SemanticMap(model, num_classes=int(cfg.num_classes or 1), prior=cfg.prior, background=cfg.background,
-                       ignore_label=cfg.ignore_label, backend=cfg.backend, **extra)
-    cam = Camera(K=intrinsics_from_fov(16, 12, 60.0), width=16, height=12, T_map_cam=np.eye(4))
-    labels = np.zeros((12, 16), dtype=np.int32)
-    smap.observe(cam, labels, np.ones((12, 16), dtype=np.float32))
-    smap.observe(cam, labels, None)
-    smap.update(cam, labels, None)
-    smap.render(cam)
-    return time.perf_counter() - t0
+    return warm_up_kernels(cfg.backend, int(cfg.num_classes or 1))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

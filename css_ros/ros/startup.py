@@ -11,12 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
-from ..engine.camera import Camera
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
+from ..engine.warmup import warm_up_kernels
 from ..errors import ConfigError, CssError, MapError, ModelError
 from ..io.paths import resolve_data_path
 from .params import NodeParams, checkpoint_file
@@ -118,23 +116,11 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
 
 def warm_up(smap: SemanticMap, params: NodeParams, log_info: Callable[[str], None],
             log_warning: Callable[[str], None]) -> None:
-    """Run the kernels once on a tiny view so the first real frame is not slowed by JIT compilation."""
-    t0 = time.perf_counter()
-    model = smap.model
-    centre = np.median(np.asarray(model.means, dtype=np.float64), axis=0)
-    extent = float(np.max(np.ptp(model.means, axis=0))) if model.num_gaussians > 1 else 1.0
-    K = np.array([[16.0, 0, 7.5], [0, 16.0, 5.5], [0, 0, 1]])
-    cam = Camera.from_pose(K, 16, 12, centre - np.array([0, 0, extent + 1.0]), (0, 0, 0, 1))
-    labels = np.full((12, 16), params.ignore_label, dtype=np.int32)
-    frames_observed = smap.frames_observed
+    """Compile the kernels on a tiny throwaway map (the node's map is not touched) so that the first real
+    frame is not slowed by JIT compilation."""
     try:
-        before = smap.concentrations.copy()
-        smap.update(cam, labels)  # all pixels "no label": compiles the update, adds nothing
-        smap.render(cam)
-        smap.render(cam.scaled(0.5))
-        if not np.array_equal(before, smap.concentrations):
-            smap.concentrations[...] = before
-        smap.frames_observed = frames_observed
+        seconds = warm_up_kernels(params.backend, smap.num_classes)
     except CssError as exc:
         log_warning(f"warm-up failed ({exc}); first frame will compile the kernels")
-    log_info(f"rasteriser warm-up ({params.backend}) took {time.perf_counter() - t0:.2f} s")
+        return
+    log_info(f"rasteriser warm-up ({params.backend}) took {seconds:.2f} s")
