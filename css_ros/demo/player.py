@@ -15,11 +15,10 @@ import numpy as np
 
 from ..errors import CssError
 from ..io.paths import resolve_data_path
-from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
+from ..io.topics import BAG_TOPICS, INPUT_TOPICS, REQUIRED_BAG_KINDS
 from ..io.messages import image_to_array, ns_to_sec_nanosec, stamp_to_ns, unpack_view_points
 
 DEFAULT_BAG = "bags/demo/bag"
-#: Input topics of css_node (SPEC §8) replayed from the bag; the ground truth is only used for the accuracy print.
 #: Bag topics played into the node, in the order a frame's messages are published (segmentation last:
 #: it completes the frame); the GT labels stay in the player to score the node's answers.
 PLAYED_TOPICS = tuple(BAG_TOPICS[k] for k in ("camera_info", "pose", "image", "confidence", "segmentation"))
@@ -106,7 +105,7 @@ def start_node(args: argparse.Namespace, bag: Path) -> subprocess.Popen:
     else:
         cmd += ["-p", "class_file:=''", "-p", f"num_classes:={args.num_classes}"]
     if args.prefix:
-        for topic in ("image", "segmentation", "segmentation_confidence", "camera_info", "pose"):
+        for topic in (INPUT_TOPICS[k] for k in ("image", "segmentation", "confidence", "camera_info", "pose")):
             cmd += ["-r", f"{topic}:={args.prefix.rstrip('/')}/{topic}"]
     for item in args.node_param:
         cmd += ["-p", item]
