@@ -22,6 +22,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from ..engine.camera import Camera
+from ..engine.semantic_map import SemanticMap
 from ..errors import CameraError, MapError
 from ..evaluation.metrics import psnr
 from .params import NodeParams
@@ -274,8 +275,6 @@ class MapWorker:
 
         Returns a status line; raises MapError (the current map is then kept unchanged).
         """
-        from ..engine.semantic_map import SemanticMap
-
         loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C)
         with self.map_lock:
             self.smap.concentrations[...] = loaded.concentrations
