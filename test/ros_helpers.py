@@ -25,8 +25,13 @@ IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def next_domain_id() -> int:
-    """A ROS_DOMAIN_ID in 1..101 unique within this process and unlikely to clash with other runs."""
-    return 1 + (os.getpid() * 7 + next(_domain_counter) * 37) % 101
+    """A ROS_DOMAIN_ID unique within this process and unlikely to clash with other runs.
+
+    By default in 1..101; ``CSS_TEST_DOMAINS=FIRST:COUNT`` confines it to FIRST..FIRST+COUNT-1 so that test runs
+    started side by side on one host (several checkouts) never share a DDS domain.
+    """
+    first, count = (int(v) for v in os.environ.get("CSS_TEST_DOMAINS", "1:101").split(":"))
+    return first + (os.getpid() * 7 + next(_domain_counter) * 37) % count
 
 
 def write_wall_model(path: Path, seed: int = 0, depth: float = 3.0) -> Path:
