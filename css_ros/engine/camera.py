@@ -326,17 +326,22 @@ class Camera:
         return uv, z
 
     def scaled(self, factor: float) -> "Camera":
-        """Camera for the image resized by ``factor`` (same pose).
-
-        width' = max(1, round(width * factor)) (likewise height); with s_x = width' / width, s_y = height' / height:
-        fx' = fx s_x, cx' = (cx + 0.5) s_x - 0.5 (likewise y), which keeps the
-        pixel-centres-at-integers convention (the image edge -0.5 maps to -0.5).
-        """
+        """Camera for the image resized by ``factor`` (same pose): :meth:`resized` to
+        (max(1, round(width * factor)), max(1, round(height * factor)))."""
         f = float(factor)
         if not (math.isfinite(f) and f > 0):
             raise CameraError(f"scale factor must be finite and > 0, got {factor!r}")
-        w2 = max(1, int(round(self.width * f)))
-        h2 = max(1, int(round(self.height * f)))
+        return self.resized(max(1, int(round(self.width * f))), max(1, int(round(self.height * f))))
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """Camera for the image resampled to ``width`` x ``height`` pixels (same pose, same field of view).
+
+        With s_x = width' / width and s_y = height' / height: fx' = fx s_x, cx' = (cx + 0.5) s_x - 0.5 (likewise
+        y), which keeps the pixel-centres-at-integers convention (the image edge -0.5 maps to -0.5).
+        """
+        w2, h2 = _as_int("width", width), _as_int("height", height)
+        if w2 <= 0 or h2 <= 0:
+            raise CameraError(f"image size must be positive, got width={w2} height={h2}")
         sx, sy = w2 / self.width, h2 / self.height
         K = np.array(self.K)
         K[0, 0] *= sx

@@ -13,7 +13,11 @@ from ..engine.warmup import warm_up_kernels
 from ..console import run_console
 from ..errors import ConfigError, CssError
 from ..io.paths import find_demo_bag
-from ..io.topics import BAG_TOPICS, REQUIRED_BAG_KINDS
+from ..engine.similarity import Similarity, parse_extrinsics
+from ..io.params_file import PARAMS_FILE_NAME, read_params_file
+from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
+                               DEFAULT_POSE_WAIT_S, PosePolicy)
+from ..io.topics import BAG_TOPICS, POSE_TYPES, REQUIRED_BAG_KINDS
 from ..engine.classes import ClassSet
 from .config import DEFAULT_SYNC_QUEUE, DEFAULT_SYNC_SLOP_S, OUT_OF_RANGE_MAX_SHARE, ReplayConfig
 from .replay import default_out_dir, headline, run
@@ -59,8 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"'no label' value of label images (default {DEFAULT_IGNORE_LABEL})")
     p.add_argument("--backend", choices=tuple(BACKENDS), default="numba",
                    help="rasteriser backend: numba (CPU), cuda (GPU, needs the cuda extra) or torch")
-    p.add_argument("--sync-slop", type=float, default=DEFAULT_SYNC_SLOP_S, metavar="S",
-                   help="max stamp difference [s] between a segmentation and its pose/image/GT "
+    p.add_argument("--sync-slop", type=float, default=None, metavar="S",
+                   help="max stamp difference [s] between a segmentation and its confidence/image/GT "
                         f"(default {DEFAULT_SYNC_SLOP_S:g}, as css_node's sync_slop)")
     p.add_argument("--sync-queue", type=int, default=DEFAULT_SYNC_QUEUE, help="pending messages kept per topic while syncing")
     p.add_argument("--namespace", default=ReplayConfig.namespace,
@@ -72,6 +76,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-out-of-range", action="store_true",
                    help=f"do not fail when more than {100 * OUT_OF_RANGE_MAX_SHARE:g} %% of the labelled pixels hold "
                         "ids >= the number of classes (they are always counted and reported)")
+    g = p.add_argument_group("poses, cameras and frames (the css_node parameters of the same names; README "
+                             "'On your robot')")
+    g.add_argument("--params", type=Path, default=None, metavar="YAML",
+                   help=f"css_node parameter file to take these from (default: {PARAMS_FILE_NAME} next to the bag "
+                        "directory when present); options given here win")
+    g.add_argument("--pose-type", choices=("auto", *POSE_TYPES), default=None,
+                   help="pose message type (default auto: from the bag's pose topic)")
+    g.add_argument("--pose-buffer", type=float, default=None, metavar="S",
+                   help=f"pose history [s] (default {DEFAULT_POSE_BUFFER_S:g})")
+    g.add_argument("--pose-wait", type=float, default=None, metavar="S",
+                   help=f"longest wait of a frame for its pose [s of bag log time] (default {DEFAULT_POSE_WAIT_S:g})")
+    g.add_argument("--max-pose-extrapolation", type=float, default=None, metavar="S",
+                   help=f"largest pose extrapolation [s] (default {DEFAULT_MAX_POSE_EXTRAPOLATION_S:g})")
+    g.add_argument("--max-pose-gap", type=float, default=None, metavar="S",
+                   help=f"no interpolation across poses further apart [s] (default {DEFAULT_MAX_POSE_GAP_S:g})")
+    g.add_argument("--cameras", nargs="+", default=None, metavar="NS",
+                   help="camera namespaces: camera NS reads /NS/segmentation, /NS/camera_info, ... ('' = the "
+                        "un-namespaced topics, the default)")
+    g.add_argument("--pose-per-camera", action="store_true", default=None,
+                   help="each camera has its own /NS/pose")
+    g.add_argument("--camera-extrinsics", nargs="+", type=float, default=None, metavar="V",
+                   help="7 numbers per camera (x y z qx qy qz qw): the optical frame in the frame the pose describes")
+    g.add_argument("--splat-to-map", nargs=8, type=float, default=None, metavar="V",
+                   help="s x y z qx qy qz qw: the similarity taking splat coordinates into the map frame")
     p.add_argument("--no-output-bag", action="store_true", help="do not write the output bag")
     p.add_argument("--quiet", action="store_true", help="no progress bar, only errors and the final line")
     return p
@@ -149,16 +177,67 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
     for kind in REQUIRED_BAG_KINDS:
         if not topics[kind]:
             raise ConfigError(f"the {kind} topic is required")
+    frames = resolve_frame_options(args, base)
     return ReplayConfig(
+        **frames,
         bag=bag, model=Path(model), classes=classes,
         out=args.out if args.out is not None else default_out_dir(bag), num_classes=num_classes,
         topics=topics, train_frames=args.train_frames, max_frames=args.max_frames, prior=args.prior,
         background=args.background, unknown_threshold=args.unknown_threshold, ignore_label=args.ignore_label,
-        backend=args.backend, output_bag=not args.no_output_bag, quiet=args.quiet, sync_slop=args.sync_slop,
+        backend=args.backend, output_bag=not args.no_output_bag, quiet=args.quiet,
         sync_queue=max(1, args.sync_queue), namespace=args.namespace, max_pixels=max(1000, args.max_pixels),
         seed=args.seed, examples=max(0, args.examples), allow_out_of_range=args.allow_out_of_range,
         explicit_topics=frozenset(k for k, v in given.items() if v is not None),
     )
+
+
+#: css_node parameters css_replay takes from a parameter file (the node's names) -> ReplayConfig field.
+FRAME_PARAMS = ("pose_type", "pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap", "cameras",
+                "pose_per_camera", "camera_extrinsics", "splat_to_map", "map_frame", "sync_slop")
+
+
+def resolve_frame_options(args: argparse.Namespace, base: Path) -> dict:
+    """The pose / camera / frame options: the parameter file's values, overridden by the command line.
+
+    ``--params FILE``, else ``<bag parent>/css_node.yaml`` when it exists (a note on stderr says so). Values are
+    validated with the node's rules (ConfigError naming the option).
+    """
+    values: dict = {}
+    params_path = args.params
+    if params_path is None and (base / PARAMS_FILE_NAME).is_file():
+        params_path = base / PARAMS_FILE_NAME
+        if not args.quiet:
+            print(f"css_replay: using the parameters in {params_path} (--params to choose another file)",
+                  file=sys.stderr)
+    if params_path is not None:
+        given = read_params_file(params_path)
+        values.update({k: v for k, v in given.items() if k in FRAME_PARAMS})
+    for name in FRAME_PARAMS:
+        v = getattr(args, name, None)
+        if v is not None:
+            values[name] = v
+    if "cameras" in values:
+        values["cameras"] = [str(c) for c in values["cameras"]] or [""]
+    for name in ("camera_extrinsics", "splat_to_map"):
+        if name in values:
+            try:
+                values[name] = [float(v) for v in values[name]]
+            except (TypeError, ValueError):
+                raise ConfigError(f"{name}: expected a list of numbers, got {values[name]!r}") from None
+    pose_type = values.get("pose_type", "auto")
+    if pose_type not in ("auto", *POSE_TYPES):
+        raise ConfigError(f"pose_type {pose_type!r}: expected auto or one of {', '.join(POSE_TYPES)}")
+    try:
+        PosePolicy(**{k: float(values[n]) for k, n in (("buffer", "pose_buffer"), ("wait", "pose_wait"),
+                                                       ("max_extrapolation", "max_pose_extrapolation"),
+                                                       ("max_gap", "max_pose_gap")) if n in values})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"pose options: {exc}") from None
+    parse_extrinsics(values.get("camera_extrinsics", []), len(values.get("cameras", [""])))
+    if "splat_to_map" in values:
+        Similarity.from_params(values["splat_to_map"])
+    values["params_file"] = params_path
+    return values
 
 
 def numba_cache_is_cold() -> bool:

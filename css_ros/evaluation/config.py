@@ -5,8 +5,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..engine.similarity import IDENTITY_SIMILARITY
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
+from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
+                               DEFAULT_POSE_WAIT_S)
 from ..io.topics import BAG_TOPICS, NODE_NAME
 
 #: Default sync tolerance [s] between a segmentation and its pose/image/GT (the node's ``sync_slop``).
@@ -48,6 +51,19 @@ class ReplayConfig:
     examples: int = 4
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
     allow_out_of_range: bool = False
+    # --- poses, cameras and frames: the node's parameters of the same names (README "On your robot")
+    pose_type: str = "auto"  # auto: from the bag's pose topic type
+    pose_buffer: float = DEFAULT_POSE_BUFFER_S  # s
+    pose_wait: float = DEFAULT_POSE_WAIT_S  # s (bag log time)
+    max_pose_extrapolation: float = DEFAULT_MAX_POSE_EXTRAPOLATION_S  # s
+    max_pose_gap: float = DEFAULT_MAX_POSE_GAP_S  # s
+    cameras: list[str] = field(default_factory=lambda: [""])
+    pose_per_camera: bool = False
+    camera_extrinsics: list[float] = field(default_factory=list)
+    splat_to_map: list[float] = field(default_factory=lambda: list(IDENTITY_SIMILARITY))
+    map_frame: str = "map"
+    #: the css_node parameter file the options above came from (None: none)
+    params_file: Path | None = None
     #: Kinds whose topic the user named explicitly: a missing one is an error, not "disabled".
     explicit_topics: frozenset[str] = frozenset()
     #: Seconds spent compiling / warming up the kernels before the timed run (set by the CLI; None = none).

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import RenderedView, SemanticMap
+from ..engine.similarity import Similarity
 from ..errors import CssError, MapError
 from ..export.birdseye import render_birdseye
 from ..export.bundle import export_map
@@ -46,12 +47,14 @@ def _progress(total: int | None, desc: str, quiet: bool) -> tqdm:
 def _write_outputs(obag: BagWriter, frame: Frame, view: RenderedView, classes: ClassSet, cfg: ReplayConfig) -> None:
     """The node's per-frame outputs, stamped with the segmentation stamp, under ``cfg.namespace``."""
     node = cfg.namespace.strip("/")
+    ns = cfg.cameras[frame.camera_index].strip("/") if frame.camera_index < len(cfg.cameras) else ""
+    prefix = f"{node}/{ns}" if ns else node
     s, f = frame.stamp_ns, frame.camera_frame
     for name, (array, encoding) in frame_output_images(view, classes, cfg.ignore_label).items():
-        obag.write_image(output_topic(name, node), array, encoding, s, f)
-    cam = frame.camera
-    obag.write_view_points(output_topic("view_uncertainty", node), cam.position[None, :], cam.quaternion_xyzw[None, :],
-                           np.array([view.u_var]), np.array([view.u_exp]), s, frame.map_frame)
+        obag.write_image(output_topic(name, prefix), array, encoding, s, f)
+    obag.write_view_points(output_topic("view_uncertainty", prefix), frame.position_map[None, :],
+                           frame.quat_map[None, :], np.array([view.u_var]), np.array([view.u_exp]), s,
+                           frame.map_frame)
 
 
 def run(cfg: ReplayConfig) -> dict[str, Any]:
@@ -122,6 +125,7 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     if trained:
         source2 = FrameSource(cfg)
         source2.present, source2.anchor_count = source.present, source.anchor_count
+        source2.pose_type = source.pose_type
         with _progress(trained, "evaluate", cfg.quiet) as bar:
             for frame in source2.frames():
                 evaluator.add(frame, smap.render(frame.camera), trained=True)
@@ -136,8 +140,9 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     # Map, viewer files (semantic and uncertainty splats) and the bird's-eye picture.
     t3 = time.perf_counter()
     smap.save(cfg.out / "map.npz")
-    export_map(smap, classes, cfg.out, "map", formats=("semantic", "uncertainty"))
-    birdseye = _birdseye(smap, classes, cfg.out / "birdseye.png")
+    splat_to_map = Similarity.from_params(cfg.splat_to_map)
+    export_map(smap, classes, cfg.out, "map", formats=("semantic", "uncertainty"), splat_to_map=splat_to_map)
+    birdseye = _birdseye(smap, classes, cfg.out / "birdseye.png", splat_to_map)
 
     has_gt = input_cm.num_pixels > 0
     metrics: dict[str, Any] = {
@@ -183,10 +188,10 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     return metrics
 
 
-def _birdseye(smap: SemanticMap, classes: ClassSet, path: Path) -> str | None:
+def _birdseye(smap: SemanticMap, classes: ClassSet, path: Path, splat_to_map: Similarity) -> str | None:
     """Render the bird's-eye picture of the map; None (and a note on stderr) when nothing was observed."""
     try:
-        render_birdseye(smap, classes, path, title="Semantic map, view from above")
+        render_birdseye(smap, classes, path, title="Semantic map, view from above", splat_to_map=splat_to_map)
     except MapError as exc:
         print(f"css_replay: note: no bird's-eye picture: {exc}", file=sys.stderr)
         return None

@@ -1,22 +1,22 @@
-"""Frames from a bag: read, synchronise (the node's :class:`~css_ros.io.sync.FrameSynchronizer`) and
-decode (the node's :mod:`css_ros.io.frames` decoder) every usable frame of a rosbag2 bag."""
+"""Frames from a bag: read every message in log-time order and turn them into frames with the node's gate
+(:class:`~css_ros.io.frame_gate.FrameGate`: the same decoders, stamp matching, pose interpolation, extrinsics and
+splat_to_map as css_node). Time for the gate's waits is the bag's log time, so a replay is deterministic."""
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
 from ..engine.camera import Camera
-from ..errors import BagError, CameraError, InputError
+from ..engine.similarity import Similarity, parse_extrinsics
+from ..errors import BagError
 from ..io.bag import InputBag
-from ..io.frames import (FrameRejected, Intrinsics, check_size, decode_camera_info, decode_confidence, decode_image,
-                         decode_labels, decode_pose)
-from ..io.messages import stamp_to_ns
-from ..io.sync import FrameSynchronizer
-from ..io.topics import INPUT_TYPES, REQUIRED_BAG_KINDS
+from ..io.frame_gate import FrameGate, GateConfig, GateFrame
+from ..io.frames import FrameRejected, Intrinsics, decode_camera_info, resample_to
+from ..io.pose_history import PosePolicy
+from ..io.topics import INPUT_TYPES, POSE_TYPES, REQUIRED_BAG_KINDS, camera_bag_topics
 from .metrics import LabelRangeCounter
 
 if TYPE_CHECKING:
@@ -28,15 +28,17 @@ class Frame:
     """One synchronised, decoded frame.
 
     Attributes:
-        index: 0-based index among the usable frames of the bag.
+        index: 0-based index among the usable frames of the bag (all cameras, in emission order).
         stamp_ns: segmentation header stamp [ns]; every output of the frame carries it.
-        camera: intrinsics of the latest camera_info and T_map_cam from the pose.
+        camera: intrinsics (at the segmentation's resolution) and the optical pose in the splat frame.
         labels: (H, W) int32 input segmentation (class ids, ignore_label = no label).
         confidence: (H, W) float32 in [0, 1] or None.
-        gt: (H, W) int32 ground-truth labels or None.
-        rgb: (H, W, 3) uint8 camera image or None.
+        gt: (H, W) int32 ground-truth labels at the segmentation's resolution, or None.
+        rgb: (H, W, 3) uint8 camera image at the segmentation's resolution, or None.
         camera_frame: frame_id of the segmentation header (optical frame).
-        map_frame: frame_id of the pose header.
+        map_frame: the map frame (frame_id of the pose stream's poses).
+        camera_index: which camera (index into the configured namespaces).
+        position_map, quat_map: the optical frame's pose in the map frame [m], xyzw.
     """
 
     index: int
@@ -48,17 +50,32 @@ class Frame:
     rgb: np.ndarray | None
     camera_frame: str
     map_frame: str
+    camera_index: int = 0
+    position_map: np.ndarray | None = None
+    quat_map: np.ndarray | None = None
+
+
+def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str, ...],
+                       wait_for: tuple[str, ...]) -> GateConfig:
+    """The node's gate configuration from css_replay's options (the same names as the node parameters)."""
+    cams = tuple(c.strip("/") for c in cfg.cameras)
+    return GateConfig(cameras=cams, pose_type=pose_type, pose_per_camera=cfg.pose_per_camera,
+                      extrinsics=tuple(parse_extrinsics(cfg.camera_extrinsics, len(cams))),
+                      splat_to_map=Similarity.from_params(cfg.splat_to_map),
+                      pose_policy=PosePolicy(buffer=cfg.pose_buffer, wait=cfg.pose_wait,
+                                             max_extrapolation=cfg.max_pose_extrapolation, max_gap=cfg.max_pose_gap),
+                      sync_slop=cfg.sync_slop, queue_size=cfg.sync_queue, map_frame=cfg.map_frame,
+                      max_image_pixels=cfg.max_image_pixels, extra_label_kinds=extra_kinds, wait_for=wait_for)
 
 
 class FrameSource:
-    """Reads, synchronises (shared :class:`~css_ros.sync.FrameSynchronizer`) and decodes the frames of a bag.
+    """Reads a bag and yields its frames through the node's gate.
 
-    camera_info is not synchronised: the latest received one is used (frames before the first
-    camera_info message use the first one). Frames that cannot be used are skipped and counted in
+    camera_info is not synchronised: the latest valid one of each camera is used (frames before a camera's first
+    camera_info message use its first valid one). Frames that cannot be used are skipped and counted in
     :attr:`skips` by reason.
     """
 
-    SYNC_KINDS = ("segmentation", "pose", "image", "confidence", "gt")
     #: CLI option of each optional topic kind (for error messages).
     TOPIC_OPTIONS = {"image": "--image-topic", "confidence": "--confidence-topic", "gt": "--gt-topic"}
 
@@ -69,68 +86,117 @@ class FrameSource:
         self.skips: Counter[str] = Counter()
         self.sync_counts: dict[str, int] = {}
         self.undecodable: dict[str, int] = {}
+        #: kind -> present for every camera (camera 0's topics for the single-camera case)
         self.present: dict[str, bool] = {}
         self.anchor_count = 0
+        self.pose_type = cfg.pose_type
         self.camera_info_refused: Counter[str] = Counter()  # invalid camera_info messages (previous one kept)
         self.non_finite_confidence = 0  # confidence pixels that were NaN/inf and counted as 0
+        self.topics = camera_bag_topics(cfg.cameras, cfg.topics, cfg.pose_per_camera)
 
     def check(self) -> None:
-        """Open the bag once: check topics and types, count segmentation messages (raises BagError)."""
+        """Open the bag once: check topics and types, find the pose type, count segmentations (raises BagError)."""
         with InputBag(self.cfg.bag) as bag:
             topics = bag.topics()
-            for kind, topic in self.cfg.topics.items():
-                if topic and kind in self.cfg.explicit_topics and kind not in REQUIRED_BAG_KINDS \
-                        and topic not in topics:
-                    have = ", ".join(sorted(topics)) or "none"
-                    raise BagError(f"{self.TOPIC_OPTIONS.get(kind, kind)} {topic}: no such topic in bag "
-                                   f"{self.cfg.bag}; topics in the bag: {have} ('' disables it)")
-                required = kind in REQUIRED_BAG_KINDS
-                self.present[kind] = bool(topic) and bag.check_topic(topic, INPUT_TYPES[kind], required)
-            self.anchor_count = bag.topics()[self.cfg.topics["segmentation"]][1]
+            pose_topics = {t["pose"] for t in self.topics}
+            if self.pose_type == "auto":
+                found = {topics[t][0] for t in pose_topics if t in topics}
+                by_type = {v: k for k, v in POSE_TYPES.items()}
+                known = [by_type[f] for f in found if f in by_type]
+                self.pose_type = known[0] if len(known) == 1 else "pose_stamped"
+            present: dict[str, bool] = {}
+            for cam_topics in self.topics:
+                for kind, topic in cam_topics.items():
+                    if topic and kind in self.cfg.explicit_topics and kind not in REQUIRED_BAG_KINDS \
+                            and topic not in topics:
+                        have = ", ".join(sorted(topics)) or "none"
+                        raise BagError(f"{self.TOPIC_OPTIONS.get(kind, kind)} {topic}: no such topic in bag "
+                                       f"{self.cfg.bag}; topics in the bag: {have} ('' disables it)")
+                    required = kind in REQUIRED_BAG_KINDS
+                    msgtype = POSE_TYPES[self.pose_type] if kind == "pose" else INPUT_TYPES[kind]
+                    ok = bool(topic) and bag.check_topic(topic, msgtype, required)
+                    present[kind] = present.get(kind, True) and ok
+            self.present = present
+            self.anchor_count = sum(topics[t["segmentation"]][1] for t in self.topics)
 
     def frames(self) -> Iterator[Frame]:
-        """Yield the usable frames in stamp order (call :meth:`check` first)."""
-        cfg = self.cfg
-        kinds = [k for k in self.SYNC_KINDS if self.present.get(k)]
-        sync = FrameSynchronizer(kinds, slop_ns=int(round(cfg.sync_slop * 1e9)), anchor="segmentation",
-                                 queue_size=cfg.sync_queue)
-        topic_kind = {cfg.topics[k]: k for k in kinds}
-        cam_topic = cfg.topics["camera_info"]
+        """Yield the usable frames (call :meth:`check` first)."""
         exhausted = False
         try:
-            yield from self._iterate(bag_path=cfg.bag, sync=sync, topic_kind=topic_kind, cam_topic=cam_topic)
+            yield from self._iterate()
             exhausted = True
         finally:
-            self._finish(sync, exhausted)
+            self._finish(exhausted)
 
-    def _iterate(self, bag_path: Path, sync: FrameSynchronizer, topic_kind: dict[str, str], cam_topic: str) -> Iterator[Frame]:
+    def _warn(self, topic: str, reason: str, detail: str = "", dropped: bool = True) -> None:
+        if dropped:
+            self.skips[reason.replace(" ", "_")] += 1
+
+    def _count(self, key: str, n: int = 1) -> None:
+        if key == "confidence_pixels_non_finite":
+            self.non_finite_confidence += n
+
+    def _iterate(self) -> Iterator[Frame]:
+        cfg = self.cfg
+        extra = ("gt",) if self.present.get("gt") else ()
+        wait_for = tuple(k for k in ("image", "gt") if self.present.get(k))
+        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for), self._warn,
+                                     self._count, lambda cam: bool(self.present.get("confidence")))
+        routes: dict[str, list[tuple[int, str]]] = {}
+        for cam, cam_topics in enumerate(self.topics):
+            for kind, topic in cam_topics.items():
+                if topic and (self.present.get(kind) or kind in REQUIRED_BAG_KINDS):
+                    if kind == "pose" and not cfg.pose_per_camera and cam > 0:
+                        continue
+                    routes.setdefault(topic, []).append((cam, kind))
         index = 0
-        with InputBag(bag_path) as bag:
+        with InputBag(cfg.bag) as bag:
             self.undecodable = bag.undecodable  # shared dict, filled while reading
-            first = bag.messages([cam_topic])
-            intrinsics = None
-            for m in first:  # frames before the first camera_info use the first valid one
-                intrinsics = self._camera_info(m.msg, count=False) or intrinsics
-                if intrinsics is not None:
-                    break
-            first.close()
-            if intrinsics is None:
-                raise BagError(f"bag {bag_path}: no valid message on {cam_topic}")
-            for m in bag.messages([*topic_kind, cam_topic]):
-                if m.topic == cam_topic:
-                    intrinsics = self._camera_info(m.msg, count=True) or intrinsics  # keep the last valid one
-                    continue
-                kind = topic_kind[m.topic]
-                try:
-                    stamp = stamp_to_ns(m.msg.header.stamp)
-                except (AttributeError, TypeError, ValueError):
-                    self.skips[f"bad_header_{kind}"] += 1
-                    continue
-                for synced in sync.push(kind, stamp, m.msg):
-                    frame = self._decode(index, synced.stamp_ns, synced.items, intrinsics)
+            for cam, cam_topics in enumerate(self.topics):
+                first = bag.messages([cam_topics["camera_info"]])
+                intrinsics = None
+                for m in first:  # frames before the first camera_info use the first valid one
+                    intrinsics = self._camera_info(m.msg, count=False)
+                    if intrinsics is not None:
+                        break
+                first.close()
+                if intrinsics is None:
+                    raise BagError(f"bag {cfg.bag}: no valid message on {cam_topics['camera_info']}")
+                gate.set_camera_info(cam, intrinsics)
+            for m in bag.messages(list(routes)):
+                now = m.log_time_ns * 1e-9
+                out: list[GateFrame] = []
+                for cam, kind in routes[m.topic]:
+                    try:
+                        m.msg.header.stamp.sec  # noqa: B018 - a header is needed by every kind
+                    except AttributeError:
+                        self.skips[f"bad_header_{kind}"] += 1
+                        continue
+                    if kind == "camera_info":
+                        intr = self._camera_info(m.msg, count=True)
+                        if intr is not None:
+                            gate.set_camera_info(cam, intr)
+                    elif kind == "pose":
+                        out += gate.on_pose(m.msg, now, cam)
+                    elif kind == "segmentation":
+                        out += gate.on_segmentation(cam, m.msg, now)
+                    elif kind == "confidence":
+                        out += gate.on_confidence(cam, m.msg, now)
+                    elif kind == "image":
+                        out += gate.on_image(cam, m.msg, now)
+                    elif kind == "gt":
+                        out += gate.on_extra(cam, "gt", m.msg, now, m.topic)
+                out += gate.poll(now)
+                for gf in out:
+                    frame = self._frame(index, gf)
                     if frame is not None:
                         index += 1
                         yield frame
+            for gf in gate.flush():
+                frame = self._frame(index, gf)
+                if frame is not None:
+                    index += 1
+                    yield frame
 
     def _camera_info(self, msg: Any, count: bool) -> Intrinsics | None:
         """The decoded camera_info, or None (counted under ``camera_info_refused``) when invalid."""
@@ -141,53 +207,46 @@ class FrameSource:
                 self.camera_info_refused[exc.reason] += 1
             return None
 
-    def _finish(self, sync: FrameSynchronizer, exhausted: bool) -> None:
-        """Turn the synchroniser's diagnostics into skip counts (pending anchors only at the end of the bag)."""
-        self.sync_counts = dict(sync.counts)
-        if sync.counts.get("unmatched"):
-            self.skips["unmatched_missing_pose_or_other_topic"] += sync.counts["unmatched"]
-        pending = sync.pending().get("segmentation", 0)
-        if exhausted and pending:
-            self.skips["unmatched_at_end_of_bag"] += pending
-        for k, v in sync.counts.items():
-            if k.startswith(("stale_segmentation", "overflow_segmentation")):
-                self.skips[k] += v
+    def _finish(self, exhausted: bool) -> None:
+        """Turn the gate's diagnostics into counts (frames still waiting only at the end of the bag)."""
+        gate = getattr(self, "gate", None)
+        if gate is not None:
+            self.sync_counts = {f"pose_{k}": v for k, v in gate.frames_by_how.items()}
+            if not exhausted and gate.waiting():
+                pass
         for topic, n in self.undecodable.items():
             self.skips[f"undecodable_{topic}"] += n
 
-    def _decode(self, index: int, stamp_ns: int, items: dict[str, Any], intrinsics: Intrinsics) -> Frame | None:
-        """Decode one synchronised frame with the shared decoder (:mod:`css_ros.io.frames`); None = skipped."""
-        seg_msg, pose_msg = items["segmentation"], items["pose"]
+    def _frame(self, index: int, gf: GateFrame) -> Frame | None:
+        """A gate frame as css_replay's Frame (GT and colour image brought to the segmentation's resolution)."""
+        shape = gf.labels.shape
+        gt = gf.extras.get("gt")
+        rgb = gf.image
         try:
-            labels = decode_labels(seg_msg)
-            check_size(labels, intrinsics, "segmentation")
-            gt = confidence = rgb = None
-            if "gt" in items:
-                gt = decode_labels(items["gt"], "gt")
-                check_size(gt, intrinsics, "gt")
-            if "confidence" in items:
-                confidence, non_finite = decode_confidence(items["confidence"])
-                check_size(confidence, intrinsics, "confidence")
-                self.non_finite_confidence += non_finite
-            if "image" in items:
-                rgb = decode_image(items["image"])
-                check_size(rgb, intrinsics, "image")
-            position, quat = decode_pose(pose_msg)
-            camera = Camera.from_pose(intrinsics.K, intrinsics.width, intrinsics.height, position, quat)
+            if gt is not None and gt.shape != shape:
+                if not _same_aspect(gt.shape, shape):
+                    raise FrameRejected("size mismatch with camera_info", "gt")
+                gt = resample_to(gt, shape, labels=True)
+            if rgb is not None and rgb.shape[:2] != shape:
+                if not _same_aspect(rgb.shape[:2], shape):
+                    raise FrameRejected("size mismatch with camera_info", "image")
+                rgb = resample_to(rgb, shape)
         except FrameRejected as exc:
             self.skips[exc.reason.replace(" ", "_")] += 1
             return None
-        except CameraError:
-            self.skips["invalid_pose"] += 1
-            return None
         if self.label_range.num_classes:
-            self.label_range.update("segmentation", labels)
+            self.label_range.update("segmentation", gf.labels)
             if gt is not None:
                 self.label_range.update("gt", gt)
-        return Frame(
-            index=index, stamp_ns=int(stamp_ns), camera=camera, labels=labels, confidence=confidence,
-            gt=gt, rgb=rgb, camera_frame=str(seg_msg.header.frame_id), map_frame=str(pose_msg.header.frame_id),
-        )
+        return Frame(index=index, stamp_ns=gf.stamp_ns, camera=gf.camera, labels=gf.labels,
+                     confidence=gf.confidence, gt=gt, rgb=rgb, camera_frame=gf.frame_id, map_frame=gf.map_frame,
+                     camera_index=gf.camera_index, position_map=gf.position_map, quat_map=gf.quat_map)
+
+
+def _same_aspect(a: tuple[int, ...], b: tuple[int, ...]) -> bool:
+    """True when (H, W) sizes ``a`` and ``b`` differ by one factor (within a pixel of rounding)."""
+    f = b[1] / a[1]
+    return abs(a[0] * f - b[0]) <= 1.0
 
 
 def check_label_range(counter: LabelRangeCounter, max_share: float, allow: bool) -> str | None:

@@ -10,6 +10,7 @@ import numpy as np
 from ..engine.camera import Camera
 from ..engine.classes import ClassSet
 from ..engine.semantic_map import SemanticMap
+from ..engine.similarity import Similarity
 from ..engine.spec import DEFAULT_MIN_EVIDENCE
 from ..errors import MapError
 from .files import atomic_binary
@@ -70,7 +71,8 @@ def birdseye_camera(means: np.ndarray, width: int, margin: float = 0.05) -> tupl
 
 def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.PathLike[str], width: int = 800,
                     min_evidence: float = DEFAULT_MIN_EVIDENCE, observed_only: bool = True,
-                    max_height: float | None = None, title: str | None = None, dpi: int = 100) -> BirdseyeView:
+                    max_height: float | None = None, title: str | None = None, dpi: int = 100,
+                    splat_to_map: Similarity | None = None) -> BirdseyeView:
     """Render the map's labels from straight above and write a PNG with a legend of class names.
 
     Args:
@@ -83,6 +85,8 @@ def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.Pat
             would otherwise hide what was seen under them).
         max_height: also leave out Gaussians whose centre z exceeds this (m), e.g. an indoor ceiling.
         title: figure title.
+        splat_to_map: the similarity taking the splat into the map frame (z up); None: the splat is in it.
+            The picture looks down the map's -z; ``BirdseyeView.camera`` is in the map frame.
     Raises:
         MapError: class count mismatch, or no Gaussian left to render.
     """
@@ -91,16 +95,22 @@ def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.Pat
 
     if classes.num_classes != smap.num_classes:
         raise MapError(f"{classes.num_classes} classes given for a map of {smap.num_classes} classes")
+    sim = splat_to_map if splat_to_map is not None and not splat_to_map.is_identity else None
+    means_map = smap.model.means.astype(np.float64) if sim is None else sim.apply(smap.model.means)
     keep = np.ones(smap.model.num_gaussians, dtype=bool)
     if observed_only:
         keep &= smap.gaussian_semantics(min_evidence).observed
     if max_height is not None:
-        keep &= smap.model.means[:, 2] <= max_height
+        keep &= means_map[:, 2] <= max_height
     if not np.any(keep):
         raise MapError("bird's-eye view: no Gaussian left to render (none observed / all above max_height)")
     sub = _submap(smap, keep)
-    camera, extent = birdseye_camera(sub.model.means.astype(np.float64), int(width))
-    view = sub.render(camera)
+    camera, extent = birdseye_camera(means_map[keep], int(width))
+    if sim is None:
+        view = sub.render(camera)
+    else:
+        pos, quat = sim.inverse().apply_pose(camera.position, camera.quaternion_xyzw)
+        view = sub.render(Camera.from_pose(camera.K, camera.width, camera.height, pos, quat))
     labels = view.labels
     rgb = np.empty(labels.shape + (3,), dtype=np.uint8)
     rgb[...] = np.asarray(EMPTY_RGB, dtype=np.uint8)

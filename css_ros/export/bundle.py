@@ -10,6 +10,7 @@ from .plys import write_point_cloud, write_semantic_splat, write_uncertainty_spl
 if TYPE_CHECKING:
     from ..engine.classes import ClassSet
     from ..engine.semantic_map import SemanticMap
+    from ..engine.similarity import Similarity
 
 #: The files css_export can write (see :func:`export_map`).
 FORMATS = ("semantic", "uncertainty", "points")
@@ -17,16 +18,22 @@ FORMATS = ("semantic", "uncertainty", "points")
 
 def export_map(smap: "SemanticMap", classes: "ClassSet", out: Path, stem: str, formats: Sequence[str] = FORMATS,
                uncertainty: Literal["variance", "evidence"] = "variance", cmap: str | None = None,
-               min_evidence: float | None = None, drop_unobserved: bool = False) -> list[Path]:
+               min_evidence: float | None = None, drop_unobserved: bool = False,
+               splat_to_map: "Similarity | None" = None) -> list[Path]:
     """Write the chosen viewer files of ``smap`` into ``out``; return the paths written.
 
     - ``semantic``: ``<stem>_semantic.ply``, the splat coloured by class (unobserved: grey, label 255);
     - ``uncertainty``: ``<stem>_uncertainty_<quantity>.ply`` coloured by the label's variance or the
       evidence through a colour map, and ``..._colorbar.png`` beside it;
     - ``points``: ``<stem>_points.ply``, x y z rgb label expectation variance for point-cloud tools.
+
+    With ``splat_to_map`` the files are written in the map frame (the splat moved by the similarity, see
+    :meth:`~css_ros.engine.similarity.Similarity.transform_model`).
     """
     sem = smap.gaussian_semantics() if min_evidence is None else smap.gaussian_semantics(min_evidence)
     model = smap.model
+    if splat_to_map is not None and not splat_to_map.is_identity:
+        model = splat_to_map.transform_model(model)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     if "semantic" in formats or "points" in formats:

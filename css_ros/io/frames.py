@@ -139,3 +139,23 @@ def decode_pose(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     if not lo <= norm <= hi:
         raise FrameRejected("invalid pose", f"quaternion {quat.tolist()} has norm {norm:.4g} outside [{lo}, {hi}]")
     return position, quat / norm
+
+
+def resample_to(image: np.ndarray, shape: tuple[int, int], labels: bool = False) -> np.ndarray:
+    """``image`` (H, W[, 3]) resampled to ``shape`` (h, w), same field of view (pixel centres at integers).
+
+    Integer down-sampling factors average blocks (colour images) or take each block's centre-most pixel (labels);
+    other factors take the nearest source pixel centre. Used where a segmentation runs at another resolution
+    than the camera: the colour image (PSNR) and css_replay's GT are brought to the segmentation's resolution.
+    """
+    h, w = shape
+    H, W = image.shape[:2]
+    if (H, W) == (h, w):
+        return image
+    if not labels and H % h == 0 and W % w == 0:
+        fy, fx = H // h, W // w
+        blocks = image.reshape(h, fy, w, fx, *image.shape[2:]).astype(np.float64)
+        return np.round(blocks.mean(axis=(1, 3))).astype(image.dtype)
+    ys = np.clip(np.floor((np.arange(h) + 0.5) * H / h).astype(np.int64), 0, H - 1)
+    xs = np.clip(np.floor((np.arange(w) + 0.5) * W / w).astype(np.int64), 0, W - 1)
+    return image[ys[:, None], xs[None, :]]

@@ -12,6 +12,12 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
 POSE_ARRAY_TYPE = "geometry_msgs/msg/PoseArray"
 POINTCLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
+#: pose_type (node parameter, css_replay option) -> message type of the pose stream.
+POSE_TYPES: dict[str, str] = {
+    "pose_stamped": POSE_STAMPED_TYPE,
+    "pose_with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "odometry": "nav_msgs/msg/Odometry",
+}
 
 NODE_NAME = "css_node"
 
@@ -68,3 +74,28 @@ FRAME_OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rende
 def output_topic(name: str, node_name: str = NODE_NAME) -> str:
     """Absolute name of a node output, e.g. ``/css_node/semantic``."""
     return f"/{node_name.strip('/')}/{name}"
+
+
+def camera_bag_topics(cameras: list[str] | tuple[str, ...], topics: dict[str, str],
+                      pose_per_camera: bool = False) -> list[dict[str, str]]:
+    """Absolute bag topics per camera: kind -> topic (the node's names under each namespace).
+
+    ``topics`` holds the one-camera names (css_replay's ``--<kind>-topic`` options; '' disables a kind); with
+    the single un-namespaced camera they are used as they are. Camera ``ns`` reads ``/<ns>/<relative name>``
+    (GT ``/<ns>/segmentation_gt``); the pose topic is shared unless ``pose_per_camera``.
+    """
+    cams = [c.strip("/") for c in cameras]
+    if cams == [""]:
+        return [dict(topics)]
+    out = []
+    for ns in cams:
+        per: dict[str, str] = {}
+        for kind, default in BAG_TOPICS.items():
+            if not topics.get(kind):
+                per[kind] = ""
+            elif kind == "pose" and not pose_per_camera:
+                per[kind] = topics["pose"]
+            else:
+                per[kind] = f"/{ns}{default}" if ns else topics[kind]
+        out.append(per)
+    return out

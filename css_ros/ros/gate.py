@@ -1,48 +1,45 @@
-"""The input gate of css_node: decoded, checked and synchronised inputs -> FrameJobs / CandidateJobs.
+"""The input gate of css_node: messages -> FrameJobs (through the shared :class:`~css_ros.io.frame_gate.FrameGate`)
+and requests -> CandidateJobs / PointQueryJobs.
 
-No rclpy here: messages are duck-typed (``header.stamp.sec/nanosec``, ``header.frame_id`` and the
-fields :mod:`css_ros.io.frames` reads), so the gate is unit-tested with simple objects. Every decode
-goes through :mod:`css_ros.io.frames`, so css_node and css_replay accept and refuse the same messages
-with the same drop reasons (the keys of the warnings and of ``warn[topic: reason]`` in diagnostics).
+No rclpy here: messages are duck-typed, so the gate is unit-tested with simple objects. Frames go through
+:mod:`css_ros.io.frame_gate` (which css_replay uses too), so node and replay keep the same frames with the same
+interpolated poses and drop the others for the same reasons (the keys of the warnings and of
+``warn[topic: reason]`` in diagnostics).
 
-Policies (docs/reliability.md):
-
-- camera_info: the latest valid one is used; an invalid one (or one above ``max_image_pixels``) is
-  refused and the previous one stays; frames before the first valid one are dropped.
-- stamps: inputs stamped more than ``max_stamp_future`` s ahead of the node clock are dropped; a
-  segmentation not newer than the last frame is dropped as out of order, except that
-  :data:`STAMP_RESET_COUNT` consecutive ones are taken as a clock reset (bag restarted) and accepted.
-- sizes: every image of a frame must have the camera_info's size.
+Policies (docs/reliability.md): camera_info latest valid one per camera; poses interpolated at the segmentation
+stamp (pose_buffer, pose_wait, max_pose_extrapolation, max_pose_gap); inputs stamped more than
+``max_stamp_future`` s ahead of the node clock are dropped; a segmentation not newer than its camera's last frame
+is dropped as out of order, except that :data:`STAMP_RESET_COUNT` consecutive ones are taken as a clock reset.
+Candidate poses and query points arrive in the map frame and are taken into the splat frame here.
 """
 from __future__ import annotations
 
 import time
-from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..engine.camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
-from ..io.frames import (FrameRejected, Intrinsics, check_size, decode_camera_info, decode_confidence, decode_image,
-                         decode_labels, decode_pose)
+from ..engine.similarity import Similarity, parse_extrinsics
 from ..errors import InputError
-from ..io.messages import stamp_to_ns
+from ..io.frame_gate import STAMP_RESET_COUNT, FrameGate, GateConfig, GateFrame
+from ..io.frames import FrameRejected, decode_pose
 from ..io.point_queries import request_points
-from ..io.sync import FrameSynchronizer
 from ..io.topics import INPUT_TOPICS
-from .params import NodeParams
+from .params import NodeParams, pose_policy
 from .work import CandidateJob, FrameJob, PointQueryJob, WarnLimiter
 
-#: Consecutive segmentations older than the last frame after which the node assumes the clock was reset.
-STAMP_RESET_COUNT = 5
-CONFIDENCE_TOPIC = INPUT_TOPICS["confidence"]
+__all__ = ["STAMP_RESET_COUNT", "InputGate", "NanAnswer", "gate_config"]
 
 
-def body_to_optical(quats_xyzw: np.ndarray, q_body_optical: np.ndarray) -> np.ndarray:
-    """Orientation of the optical frame: R_map_optical = R_map_body @ R_body_optical; (M, 4) -> (M, 4) xyzw."""
-    R = quaternion_xyzw_to_matrix(quats_xyzw) @ quaternion_xyzw_to_matrix(q_body_optical)
-    return matrix_to_quaternion_xyzw(R)
+def gate_config(p: NodeParams) -> GateConfig:
+    """The shared gate's configuration from the node parameters (validated by check_params)."""
+    cams = tuple(c.strip("/") for c in p.cameras)
+    return GateConfig(cameras=cams, pose_type=p.pose_type, pose_per_camera=p.pose_per_camera,
+                      extrinsics=tuple(parse_extrinsics(p.camera_extrinsics, len(cams))),
+                      splat_to_map=Similarity.from_params(p.splat_to_map), pose_policy=pose_policy(p),
+                      sync_slop=p.sync_slop, queue_size=p.queue_size, map_frame=p.map_frame,
+                      max_image_pixels=p.max_image_pixels, max_stamp_future=p.max_stamp_future)
 
 
 @dataclass
@@ -77,231 +74,57 @@ class InputGate:
         warn: the node's WarnLimiter (counts and rate-limits every refusal).
         count: ``count(key, n=1)`` adds to a node counter.
         now_ns: the node clock [ns] (0 or less: unknown, the future check is skipped).
-        confidence_published: True while segmentation_confidence has a publisher.
+        confidence_published: ``confidence_published(camera_index)``: True while that camera's
+            segmentation_confidence has a publisher (a bare callable without argument is accepted for one camera).
         log_warning: unconditional warnings (clock reset).
+        monotonic: the clock [s] on which frames wait for their pose (time.monotonic; tests pass their own).
     """
 
     def __init__(self, params: NodeParams, warn: WarnLimiter, count: Callable[..., None],
-                 now_ns: Callable[[], int], confidence_published: Callable[[], bool],
-                 log_warning: Callable[[str], None]) -> None:
+                 now_ns: Callable[[], int], confidence_published: Callable[..., bool],
+                 log_warning: Callable[[str], None], monotonic: Callable[[], float] = time.monotonic) -> None:
         self.p = params
         self.warn = warn
         self.count = count
-        self.now_ns = now_ns
-        self.confidence_published = confidence_published
-        self.log_warning = log_warning
-        self.camera_info: Intrinsics | None = None
-        self._q_b2o = np.asarray(params.body_to_optical_quaternion, dtype=np.float64)
-        self._slop_ns = int(round(params.sync_slop * 1e9))
-        self._images: deque[tuple[int, np.ndarray]] = deque(maxlen=params.queue_size)
-        self.last_frame_ns: int | None = None
-        self._stale_run = 0
-        self.kinds: tuple[str, ...] = ("segmentation", "pose", "confidence") if params.use_confidence \
-            else ("segmentation", "pose")
-        self.sync = self._make_sync()
-        #: last messages pushed per non-anchor kind (re-offered to the synchroniser after a clock reset)
-        self._recent: dict[str, deque[tuple[int, Any]]] = {
-            k: deque(maxlen=params.queue_size) for k in self.kinds if k != "segmentation"}
-
-    # ------------------------------------------------------------------ checks
-    def _make_sync(self) -> FrameSynchronizer:
-        self._sync_counts: Counter[str] = Counter()
-        return FrameSynchronizer(self.kinds, slop_ns=self._slop_ns, anchor="segmentation",
-                                 queue_size=self.p.queue_size)
-
-    def stamp_ok(self, topic: str, stamp_ns: int) -> bool:
-        """False (warned) when ``stamp_ns`` is more than max_stamp_future s ahead of the node clock."""
-        if self.p.max_stamp_future > 0:
-            now = self.now_ns()
-            if now > 0 and stamp_ns > now + self.p.max_stamp_future * 1e9:
-                self.warn(topic, "stamp in the future",
-                          f"{(stamp_ns - now) * 1e-9:.3f} s ahead of the node clock (max_stamp_future)")
-                return False
-        return True
-
-    def size_ok(self, topic: str, array: np.ndarray) -> bool:
-        """Image size check against the latest camera_info (deferred to the frame if none yet)."""
-        if self.camera_info is None:
-            return True
+        self.monotonic = monotonic
         try:
-            check_size(array, self.camera_info, "image")
-        except FrameRejected as exc:
-            self.warn(topic, exc.reason, f"{exc}; frame dropped")
-            return False
-        return True
+            confidence_published(0)
+            published = confidence_published
+        except TypeError:
+            published = lambda cam: confidence_published()  # noqa: E731 - one-camera form
+        self.frames = FrameGate(gate_config(params), warn, count,
+                                lambda cam: params.use_confidence and bool(published(cam)), now_ns, log_warning)
+
+    @property
+    def camera_info(self) -> Any:
+        """The first camera's latest valid intrinsics (None before the first camera_info)."""
+        return self.frames.cams[0].info
+
+    def _jobs(self, frames: list[GateFrame]) -> list[FrameJob]:
+        return [FrameJob(f, time.monotonic()) for f in frames]
+
+    # ------------------------------------------------------------------ inputs (camera index first)
+    def on_camera_info(self, msg: Any, cam: int = 0) -> bool:
+        return self.frames.on_camera_info(cam, msg)
+
+    def on_image(self, msg: Any, cam: int = 0) -> list[FrameJob]:
+        return self._jobs(self.frames.on_image(cam, msg, self.monotonic()))
+
+    def on_confidence(self, msg: Any, cam: int = 0) -> list[FrameJob]:
+        return self._jobs(self.frames.on_confidence(cam, msg, self.monotonic()))
+
+    def on_segmentation(self, msg: Any, cam: int = 0) -> list[FrameJob]:
+        return self._jobs(self.frames.on_segmentation(cam, msg, self.monotonic()))
+
+    def on_pose(self, msg: Any, cam: int = 0) -> list[FrameJob]:
+        return self._jobs(self.frames.on_pose(msg, self.monotonic(), cam))
+
+    def poll(self) -> list[FrameJob]:
+        """Frames whose wait for a pose or confidence ended (called on a timer)."""
+        return self._jobs(self.frames.poll(self.monotonic()))
 
     def frame_id_check(self, topic: str, frame_id: str) -> None:
-        """Warn (not dropped) when a pose's frame_id is not map_frame: there is no tf here."""
-        if frame_id and frame_id.lstrip("/") != self.p.map_frame:
-            self.warn(topic, "frame_id differs from map_frame",
-                      f"'{frame_id}' != '{self.p.map_frame}' (no tf here): used as map frame", dropped=False)
-
-    def optical(self, quat: np.ndarray) -> np.ndarray:
-        """The optical frame's orientation for a received (normalised) quaternion."""
-        return body_to_optical(quat, self._q_b2o) if self.p.body_to_optical else quat
-
-    # ------------------------------------------------------------------ inputs
-    def on_camera_info(self, msg: Any) -> bool:
-        """Keep a valid camera_info; refuse (warned, previous one kept) an invalid one."""
-        try:
-            self.camera_info = decode_camera_info(msg, self.p.max_image_pixels)
-        except FrameRejected as exc:
-            self.warn(INPUT_TOPICS["camera_info"], exc.reason, f"{exc}; keeping the previous one")
-            return False
-        return True
-
-    def on_image(self, msg: Any) -> list[FrameJob]:
-        """Colour image (PSNR diagnostics only): kept for the frame with the nearest stamp."""
-        topic = INPUT_TOPICS["image"]
-        stamp = stamp_to_ns(msg.header.stamp)
-        try:
-            rgb = decode_image(msg)
-        except FrameRejected as exc:
-            self.warn(topic, exc.reason, f"{exc}; ignored")
-            return []
-        if self.size_ok(topic, rgb) and self.stamp_ok(topic, stamp):
-            self._images.append((stamp, rgb))
-        return []
-
-    def on_confidence(self, msg: Any) -> list[FrameJob]:
-        """Confidence image: non-finite pixels count as 0 (counted), values clipped to [0, 1]."""
-        topic = CONFIDENCE_TOPIC
-        stamp = stamp_to_ns(msg.header.stamp)
-        try:
-            conf, non_finite = decode_confidence(msg)
-        except FrameRejected as exc:
-            self.warn(topic, exc.reason, f"{exc}; dropped")
-            return []
-        if non_finite:
-            self.count("confidence_pixels_non_finite", non_finite)
-            self.warn(topic, "non-finite confidence values", f"{non_finite} pixels counted as 0; frame kept",
-                      dropped=False)
-        if not self.size_ok(topic, conf) or not self.stamp_ok(topic, stamp):
-            return []
-        if "confidence" not in self.kinds:
-            return []
-        return self._push("confidence", stamp, conf)
-
-    def on_pose(self, msg: Any) -> list[FrameJob]:
-        topic = INPUT_TOPICS["pose"]
-        stamp = stamp_to_ns(msg.header.stamp)
-        try:
-            position, quat = decode_pose(msg)
-        except FrameRejected as exc:
-            self.warn(topic, exc.reason, f"{exc}; dropped")
-            return []
-        self.frame_id_check(topic, msg.header.frame_id)
-        if not self.stamp_ok(topic, stamp):
-            return []
-        return self._push("pose", stamp, (position, quat, self.optical(quat)))
-
-    def on_segmentation(self, msg: Any) -> list[FrameJob]:
-        topic = INPUT_TOPICS["segmentation"]
-        stamp = stamp_to_ns(msg.header.stamp)
-        self.count("segmentations_received")
-        try:
-            labels = decode_labels(msg)
-        except FrameRejected as exc:
-            self.warn(topic, exc.reason, f"{exc}; frame dropped")
-            return []
-        if not self.size_ok(topic, labels) or not self.stamp_ok(topic, stamp):
-            return []
-        if self.last_frame_ns is not None and stamp <= self.last_frame_ns:
-            self._stale_run += 1
-            if self._stale_run < STAMP_RESET_COUNT:
-                self.warn(topic, "stamp out of order",
-                          f"{(self.last_frame_ns - stamp) * 1e-9:.3f} s older than the last frame; dropped")
-                return []
-            self._clock_reset(stamp)
-        else:
-            self._stale_run = 0
-        jobs: list[FrameJob] = []
-        if "confidence" in self.kinds and not self.confidence_published():
-            # Nobody publishes confidence: complete the frame with "no confidence" (weight 1).
-            jobs += self._push("confidence", stamp, None)
-        return jobs + self._push("segmentation", stamp, (labels, msg.header.frame_id, time.monotonic()))
-
-    def _clock_reset(self, stamp: int) -> None:
-        self.log_warning(
-            f"[segmentation] {self._stale_run} consecutive stamps older than the last frame: assuming the "
-            f"clock was reset (bag restarted?), accepting the new stamps")
-        self.count("clock_resets")
-        old_last = self.last_frame_ns or 0
-        self.last_frame_ns = None
-        self._stale_run = 0
-        self._images.clear()
-        self.sync = self._make_sync()
-        # The poses / confidences of the new time line were refused as stale: offer them again
-        # (those still stamped after the old last frame belong to the old time line).
-        for kind, recent in self._recent.items():
-            for t, payload in sorted(recent, key=lambda e: e[0]):
-                if stamp - self._slop_ns <= t < old_last:
-                    self.sync.push(kind, t, payload)
-        self._sync_counts = Counter(self.sync.counts)
-
-    def _push(self, kind: str, stamp: int, payload: Any) -> list[FrameJob]:
-        if kind != "segmentation":
-            self._recent[kind].append((stamp, payload))
-        frames = self.sync.push(kind, stamp, payload)
-        self._report_sync()
-        jobs = []
-        for frame in frames:
-            job = self._frame_job(frame)
-            if job is not None:
-                jobs.append(job)
-        return jobs
-
-    def _report_sync(self) -> None:
-        """Report what the synchroniser dropped (stale, unmatched, overflow) under the topic concerned."""
-        counts = self.sync.counts
-        for key, value in counts.items():
-            n = value - self._sync_counts.get(key, 0)
-            if n <= 0 or key == "frames" or key.startswith("reordered_"):
-                continue
-            if key == "unmatched":
-                others = "pose" + (" or segmentation_confidence" if "confidence" in self.kinds
-                                   and self.confidence_published() else "")
-                self.warn("segmentation", "no matching stamp",
-                          f"no {others} within sync_slop={self.p.sync_slop:g} s of the segmentation; frame dropped")
-            elif key == "overflow_confidence" and not self.confidence_published():
-                continue  # placeholders of segmentations that never matched a pose
-            else:
-                what, _, k = key.partition("_")
-                name = INPUT_TOPICS.get(k, k)
-                reason = {"stale": "stamp older than the last frame",
-                          "overflow": "synchroniser buffer full"}.get(what, what)
-                self.warn(name, reason, "dropped")
-        self._sync_counts = Counter(counts)
-
-    def _frame_job(self, frame: Any) -> FrameJob | None:
-        info = self.camera_info
-        labels, frame_id, t_recv = frame.items["segmentation"]
-        position, quat_in, quat_opt = frame.items["pose"]
-        if info is None:
-            self.warn("segmentation", "no camera_info received yet", "frame dropped")
-            return None
-        confidence = frame.items.get("confidence")
-        try:
-            check_size(labels, info, "segmentation")
-        except FrameRejected as exc:
-            self.warn("segmentation", exc.reason, f"{exc}; frame dropped")
-            return None
-        if confidence is not None:
-            try:
-                check_size(confidence, info, "segmentation_confidence")
-            except FrameRejected as exc:
-                self.warn(CONFIDENCE_TOPIC, exc.reason, f"{exc}; frame dropped")
-                return None
-        self.last_frame_ns = frame.stamp_ns
-        best = None
-        for stamp, rgb in self._images:
-            d = abs(stamp - frame.stamp_ns)
-            if d <= self._slop_ns and (best is None or d < best[0]):
-                best = (d, rgb)
-        image = best[1] if best is not None and best[1].shape[:2] == labels.shape else None
-        self.count("frames_synchronised")
-        return FrameJob(frame.stamp_ns, frame_id, labels, confidence, image, info.K, position, quat_in, quat_opt,
-                        t_recv)
+        self.frames.frame_id_check(topic, frame_id)
 
     # ------------------------------------------------------------------ candidate requests
     def on_candidates(self, msg: Any) -> CandidateJob | NanAnswer:
@@ -325,19 +148,19 @@ class InputGate:
                       f"{m} > max_candidates={self.p.max_candidates}: answered with NaN scores", dropped=False)
             return NanAnswer(msg.header, positions, quats, "too many candidates")
         self.frame_id_check(topic, msg.header.frame_id)
-        optical = np.full((m, 4), np.nan)
+        valid_q = np.full((m, 4), np.nan)
         bad = 0
         for i, pose in enumerate(msg.poses):
             try:
-                _, q = decode_pose(_Stamped(pose))
+                _, valid_q[i] = decode_pose(_Stamped(pose))
             except FrameRejected:
                 bad += 1
-                continue
-            optical[i] = self.optical(q)
         if bad:
             self.warn(topic, "invalid candidate poses", f"{bad} of {m} non-finite, out of bounds or non-unit: "
                       "scored NaN", dropped=False)
-        return CandidateJob(msg.header, info.K, info.width, info.height, positions, quats, optical, time.monotonic())
+        pos_splat, q_splat = self.frames.map_poses_to_splat(positions, valid_q)
+        return CandidateJob(msg.header, info.K, info.width, info.height, positions, quats, pos_splat, q_splat,
+                            time.monotonic())
 
 
     def on_point_query(self, msg: Any, num_classes: int) -> PointQueryJob:
@@ -354,7 +177,8 @@ class InputGate:
         except (InputError, AttributeError, TypeError, ValueError) as exc:
             self.warn(topic, "unreadable point query", f"{exc}: answered with an empty cloud", dropped=False)
             xyz = np.zeros((0, 3))
-        job = PointQueryJob(msg.header, xyz, num_classes, self.p.ignore_label, time.monotonic())
+        job = PointQueryJob(msg.header, xyz, num_classes, self.p.ignore_label, time.monotonic(),
+                            xyz_splat=self.frames.map_points_to_splat(xyz))
         self.frame_id_check(topic, msg.header.frame_id)
         if len(xyz) > self.p.max_query_points:
             self.warn(topic, "too many points", f"{len(xyz)} > max_query_points={self.p.max_query_points}: "

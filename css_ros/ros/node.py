@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from geometry_msgs.msg import PoseArray, PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -18,6 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from diagnostic_msgs.msg import DiagnosticArray
 
+from ..engine.similarity import Similarity
 from ..errors import MapError
 from ..io.topics import INPUT_TOPICS, NODE_NAME
 from .diagnostics import Stats, StatusReporter
@@ -32,6 +34,11 @@ from .worker import MapWorker
 SERVICE_QUEUE_DEPTH = 64
 #: Seconds the worker gets to finish its current frame / slice at shutdown before the final checkpoint.
 WORKER_STOP_TIMEOUT_S = 10.0
+#: pose_type -> rclpy message class.
+POSE_MESSAGES = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
+                 "odometry": Odometry}
+#: Period [s] of the timer that releases frames whose wait for a pose has ended (at most pose_wait / 4).
+POSE_POLL_PERIOD_S = 0.05
 
 
 def declare_params(node: Node) -> NodeParams:
@@ -82,9 +89,11 @@ class CssNode(Node):
         self.outputs = OutputPublisher(self, p, self.classes)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
-        self._confidence_topic = self.resolve_topic_name(INPUT_TOPICS["confidence"])
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
-                              lambda: self.count_publishers(self._confidence_topic) > 0, log.warning)
+                              self._confidence_published, log.warning)
+        frames = self.gate.frames
+        self._confidence_topics = [self.resolve_topic_name(frames.topic(i, "confidence"))
+                                   for i in range(len(p.cameras))]
 
         if p.input_qos == "reliable":
             qos_in = QoSProfile(depth=p.queue_size, reliability=ReliabilityPolicy.RELIABLE,
@@ -95,11 +104,25 @@ class CssNode(Node):
         qos_req = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # camera_info first: when several messages are ready the executor takes them in this order.
         t = INPUT_TOPICS
-        self.create_subscription(CameraInfo, t["camera_info"], self.gate.on_camera_info, qos_in)
-        self.create_subscription(PoseStamped, t["pose"], self._enqueue(self.gate.on_pose), qos_in)
-        self.create_subscription(Image, t["image"], self._enqueue(self.gate.on_image), qos_in)
-        self.create_subscription(Image, t["confidence"], self._enqueue(self.gate.on_confidence), qos_in)
-        self.create_subscription(Image, t["segmentation"], self._enqueue(self.gate.on_segmentation), qos_in)
+        pose_msg = POSE_MESSAGES[p.pose_type]
+        for i in range(len(p.cameras)):
+            self.create_subscription(CameraInfo, frames.topic(i, "camera_info"),
+                                     lambda m, i=i: self.gate.on_camera_info(m, i), qos_in)
+        if p.pose_per_camera:
+            for i in range(len(p.cameras)):
+                self.create_subscription(pose_msg, frames.topic(i, "pose"),
+                                         self._enqueue(lambda m, i=i: self.gate.on_pose(m, i)), qos_in)
+        else:
+            self.create_subscription(pose_msg, t["pose"], self._enqueue(self.gate.on_pose), qos_in)
+        for i in range(len(p.cameras)):
+            self.create_subscription(Image, frames.topic(i, "image"),
+                                     self._enqueue(lambda m, i=i: self.gate.on_image(m, i)), qos_in)
+            self.create_subscription(Image, frames.topic(i, "confidence"),
+                                     self._enqueue(lambda m, i=i: self.gate.on_confidence(m, i)), qos_in)
+            self.create_subscription(Image, frames.topic(i, "segmentation"),
+                                     self._enqueue(lambda m, i=i: self.gate.on_segmentation(m, i)), qos_in)
+        self.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)),
+                          lambda: self._enqueue(lambda _m: self.gate.poll())(None))
         self.create_subscription(PoseArray, t["candidates"], self._on_candidates, qos_req)
         self.create_subscription(PointCloud2, t["point_queries"], self._on_point_query, qos_req)
 
@@ -118,13 +141,18 @@ class CssNode(Node):
         self._log_start()
 
     # ------------------------------------------------------------------ wiring
+    def _confidence_published(self, cam: int) -> bool:
+        return self.count_publishers(self._confidence_topics[cam]) > 0
+
     def _enqueue(self, handler: Any) -> Any:
         def callback(msg: Any) -> None:
             for job in handler(msg):
                 if self.queue.put_frame(job) is not None:
                     self.stats.count("frames_dropped_busy")
-                    self.warn("worker", "busy", "mapping slower than the input: oldest pending frame dropped "
-                                                "(newest frames win)")
+                    ns = self.p.cameras[job.camera_index].strip("/") or "/"
+                    self.stats.count(f"camera[{ns}].frames_dropped_busy")
+                    self.warn("worker", "busy", f"mapping slower than the input: oldest pending frame of camera "
+                                                f"{ns} dropped (newest frames win)")
         return callback
 
     def _on_candidates(self, msg: Any) -> None:
@@ -202,13 +230,24 @@ class CssNode(Node):
     def _log_start(self) -> None:
         p, m = self.p, self.smap.model
         names = ", ".join(f"{i}:{n}" for i, n in enumerate(self.classes.names))
-        ins = ", ".join(self.resolve_topic_name(t) for t in INPUT_TOPICS.values())
-        outs = ", ".join(self.resolve_topic_name(f"~/{t}") for t in self.outputs.pubs)
+        frames = self.gate.frames
+        in_names = [frames.topic(0, "pose")] if not p.pose_per_camera else []
+        for i in range(len(p.cameras)):
+            in_names += [frames.topic(i, k) for k in ("camera_info", "image", "segmentation", "confidence")]
+            in_names += [frames.topic(i, "pose")] if p.pose_per_camera else []
+        in_names += [INPUT_TOPICS["candidates"], INPUT_TOPICS["point_queries"]]
+        ins = ", ".join(self.resolve_topic_name(t) for t in in_names)
+        outs = ", ".join(self.resolve_topic_name(t) for t in self.outputs.topic_names())
         log = self.get_logger()
         log.info(f"model {self.model_path}: {m.num_gaussians} Gaussians, SH degree {m.sh_degree}, fingerprint "
                  f"{m.fingerprint[:12]}; {self.smap.num_classes} classes [{names}]; backend {p.backend}; "
                  f"{self.resume_status}")
-        log.info(f"inputs ({p.input_qos} QoS; candidates reliable): {ins}")
+        log.info(f"inputs ({p.input_qos} QoS; candidates reliable): {ins}; pose_type {p.pose_type}, poses "
+                 f"interpolated at the segmentation stamp (pose_buffer {p.pose_buffer:g} s, pose_wait "
+                 f"{p.pose_wait:g} s); {len(p.cameras)} camera(s)"
+                 + ("" if not p.camera_extrinsics else " with extrinsics")
+                 + ("" if Similarity.from_params(p.splat_to_map).is_identity else
+                    f"; splat_to_map scale {p.splat_to_map[0]:g}"))
         log.info(f"outputs: {outs}; services: {self.resolve_topic_name('~/save_map')}, "
                  f"{self.resolve_topic_name('~/reset_map')}, {self.resolve_topic_name('~/load_map')}; checkpoint "
                  + (f"{self.checkpoint_path} every {p.checkpoint_period:g} s" if self.checkpoint_path else "disabled")

@@ -11,6 +11,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..engine.classes import ClassSet
+from ..engine.similarity import Similarity
 from ..io.clouds import pack_cloud
 from ..io.outputs import frame_output_images
 from ..io.point_queries import answer_columns
@@ -29,36 +30,59 @@ class OutputPublisher:
     """Creates the enabled ``~/<output>`` publishers and publishes the worker's results.
 
     Every per-frame output carries the frame's input stamp; images the input frame_id, the view point the
-    map frame. ``~/candidate_scores`` and ``~/point_query_results`` are always published (they answer
-    requests); ``~/semantic_cloud`` unless ``cloud_period`` is 0.
+    map frame. Camera i's frame outputs are ``~/<ns_i>/<name>`` (the un-namespaced camera keeps ``~/<name>``).
+    ``~/candidate_scores`` and ``~/point_query_results`` are always published (they answer requests);
+    ``~/semantic_cloud`` unless ``cloud_period`` is 0. Everything 3D is in the map frame (``splat_to_map``).
     """
 
     def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10) -> None:
         self.p = params
         self.classes = classes
         self.clock = node.get_clock()
+        self.splat_to_map = Similarity.from_params(params.splat_to_map)
         self.pubs: dict[str, Any] = {}
+        #: per camera: output name -> publisher (the per-frame outputs)
+        self.camera_pubs: list[dict[str, Any]] = []
         for name, msgtype in OUTPUT_TOPICS.items():
-            if name in FRAME_OUTPUTS and not getattr(params, f"publish_{name}"):
+            if name in FRAME_OUTPUTS:
                 continue
             if name == "semantic_cloud" and params.cloud_period <= 0:
                 continue
-            typ = PointCloud2 if msgtype == POINTCLOUD2_TYPE else Image
-            self.pubs[name] = node.create_publisher(typ, f"~/{name}", CLOUD_QOS if name == "semantic_cloud" else depth)
+            self.pubs[name] = node.create_publisher(PointCloud2, f"~/{name}",
+                                                    CLOUD_QOS if name == "semantic_cloud" else depth)
+        for ns in params.cameras:
+            ns = ns.strip("/")
+            pubs = {}
+            for name in FRAME_OUTPUTS:
+                if not getattr(params, f"publish_{name}"):
+                    continue
+                typ = PointCloud2 if OUTPUT_TOPICS[name] == POINTCLOUD2_TYPE else Image
+                pubs[name] = node.create_publisher(typ, f"~/{ns}/{name}" if ns else f"~/{name}", depth)
+            self.camera_pubs.append(pubs)
+
+    def topic_names(self) -> list[str]:
+        """Relative names (``~/...``) of every publisher, for the start-up log."""
+        names = [f"~/{n}" for n in self.pubs]
+        for ns, pubs in zip(self.p.cameras, self.camera_pubs):
+            ns = ns.strip("/")
+            names += [f"~/{ns}/{n}" if ns else f"~/{n}" for n in pubs]
+        return names
 
     def publish_frame(self, job: FrameJob, view: Any) -> None:
-        header = rc.header_msg(job.stamp_ns, job.frame_id)
+        frame = job.frame
+        pubs = self.camera_pubs[frame.camera_index]
+        header = rc.header_msg(frame.stamp_ns, frame.frame_id)
         wanted = [n for n in ("semantic", "semantic_color", "expectation", "variance", "rendered_image")
-                  if n in self.pubs]
+                  if n in pubs]
         if wanted:
             images = frame_output_images(view, self.classes, self.p.ignore_label)
             for name in wanted:
                 array, encoding = images[name]
-                self.pubs[name].publish(rc.image_msg(array, encoding, header))
-        if "view_uncertainty" in self.pubs:
-            cloud = rc.view_points_msg(rc.header_msg(job.stamp_ns, self.p.map_frame), job.position[None],
-                                       job.quat_in[None], np.array([view.u_var]), np.array([view.u_exp]))
-            self.pubs["view_uncertainty"].publish(cloud)
+                pubs[name].publish(rc.image_msg(array, encoding, header))
+        if "view_uncertainty" in pubs:
+            cloud = rc.view_points_msg(rc.header_msg(frame.stamp_ns, self.p.map_frame), frame.position_map[None],
+                                       frame.quat_map[None], np.array([view.u_var]), np.array([view.u_exp]))
+            pubs["view_uncertainty"].publish(cloud)
 
     def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
                        u_exp: np.ndarray) -> None:
@@ -74,7 +98,8 @@ class OutputPublisher:
     def publish_cloud(self, smap: Any, min_evidence: float) -> int:
         """Publish ``~/semantic_cloud`` (map frame, stamped now) from the map; returns its number of points."""
         sem = smap.gaussian_semantics(min_evidence)
-        cols = semantic_cloud_columns(smap.model.means, sem.label, sem.expectation, sem.variance, sem.evidence,
+        means = smap.model.means if self.splat_to_map.is_identity else self.splat_to_map.apply(smap.model.means)
+        cols = semantic_cloud_columns(means, sem.label, sem.expectation, sem.variance, sem.evidence,
                                       sem.observed, self.classes.palette, self.p.cloud_voxel_size,
                                       self.p.cloud_max_points)
         header = rc.header_msg(self.clock.now().nanoseconds, self.p.map_frame)

@@ -15,10 +15,12 @@ from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN
                            DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from ..engine.backends import BACKENDS
 from ..errors import ConfigError
+from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsics
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
+from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
+                               DEFAULT_POSE_WAIT_S, PosePolicy)
+from ..io.topics import POSE_TYPES
 
-#: Quaternion (x, y, z, w) of the optical frame in a REP-103 body frame (camera.body_to_optical_rotation()).
-BODY_TO_OPTICAL_XYZW = (-0.5, 0.5, -0.5, 0.5)
 DEFAULT_MODEL = "bags/demo/model.ply"
 DEFAULT_CLASSES = "bags/demo/classes.yaml"
 #: ``{fingerprint}`` is replaced by the first 16 hex digits of the model fingerprint: one map file per model.
@@ -53,18 +55,37 @@ class NodeParams:
     backend: str = _p("numba", "", "rasteriser backend: numba (CPU), cuda (GPU, the cuda extra) or torch")
     # --- inputs
     input_qos: str = _p("sensor_data", "", "QoS of the sensor inputs: sensor_data (best effort) or reliable")
-    queue_size: int = _p(10, "messages", "subscription depth and synchroniser buffer per input")
-    sync_slop: float = _p(0.05, "s", "maximum stamp difference between segmentation, pose and confidence of "
-                          "one frame")
+    queue_size: int = _p(30, "messages", "subscription depth, and buffered images / confidences / frames waiting "
+                         "for a pose, per input and camera")
+    sync_slop: float = _p(0.05, "s", "maximum stamp difference between a segmentation and its confidence and "
+                          "colour image")
     max_stamp_future: float = _p(10.0, "s", "drop inputs stamped more than this ahead of the node clock (0: off)")
     max_image_pixels: int = _p(DEFAULT_MAX_IMAGE_PIXELS, "px", "largest camera_info width x height accepted; "
                                "larger ones are refused (the previous one stays)")
     use_confidence: bool = _p(True, "", "synchronise segmentation_confidence whenever it has a publisher")
-    body_to_optical: bool = _p(False, "", "poses are of a body frame (x fwd, y left, z up): apply "
-                               "body_to_optical_quaternion")
-    body_to_optical_quaternion: list[float] = _p(list(BODY_TO_OPTICAL_XYZW), "",
-                                                 "rotation (x, y, z, w) of the optical frame in the body frame")
-    map_frame: str = _p("map", "", "frame of the splat model; frame_id of ~/view_uncertainty")
+    # --- poses, cameras and frames (docs/reliability.md "Poses by time"; README "On your robot")
+    pose_type: str = _p("pose_stamped", "", "message type on pose: pose_stamped (geometry_msgs/PoseStamped), "
+                        "pose_with_covariance (geometry_msgs/PoseWithCovarianceStamped) or odometry "
+                        "(nav_msgs/Odometry, its pose.pose)")
+    pose_buffer: float = _p(DEFAULT_POSE_BUFFER_S, "s", "pose history kept; a frame takes its pose interpolated "
+                            "at the segmentation stamp")
+    pose_wait: float = _p(DEFAULT_POSE_WAIT_S, "s", "longest wait of a frame for a pose after its stamp (or for "
+                          "its confidence); then it is extrapolated (max_pose_extrapolation) or dropped")
+    max_pose_extrapolation: float = _p(DEFAULT_MAX_POSE_EXTRAPOLATION_S, "s", "largest extrapolation past the "
+                                       "newest (or before the oldest) pose; beyond it the frame is dropped")
+    max_pose_gap: float = _p(DEFAULT_MAX_POSE_GAP_S, "s", "two poses further apart than this are not "
+                             "interpolated across (relocalisation jump, lost stream): the frame is dropped")
+    cameras: list[str] = _p([""], "", "camera namespaces: camera i reads <ns>/image, <ns>/segmentation, "
+                            "<ns>/segmentation_confidence, <ns>/camera_info and publishes under ~/<ns>/ "
+                            "('' = the un-namespaced topics)")
+    pose_per_camera: bool = _p(False, "", "each camera has its own <ns>/pose (default: all share pose)")
+    camera_extrinsics: list[float] = _p([], "m, quaternion", "7 numbers per camera (x y z qx qy qz qw): the "
+                                        "camera's optical frame in the frame the pose describes (e.g. base_link); "
+                                        "empty: the pose is the optical frame's")
+    splat_to_map: list[float] = _p(list(IDENTITY_SIMILARITY), "scale, m, quaternion", "8 numbers (s x y z qx qy "
+                                   "qz qw): the similarity x_map = s R x_splat + t taking splat coordinates into "
+                                   "the map frame (css_align estimates it)")
+    map_frame: str = _p("map", "", "frame of poses, requests and 3D outputs; frame_id of ~/view_uncertainty")
     # --- processing and outputs
     max_pending_frames: int = _p(2, "frames", "synchronised frames waiting for the worker; the oldest is "
                                  "dropped when full (newest wins)")
@@ -173,6 +194,10 @@ def coerce(name: str, value: Any, default: Any) -> Any:
             values = list(value)
         except TypeError:
             raise bad() from None
+        if default and all(isinstance(v, str) for v in default):
+            if not all(isinstance(v, str) for v in values):
+                raise bad()
+            return [str(v) for v in values]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
             raise bad()
         return [float(v) for v in values]
@@ -221,9 +246,31 @@ def check_params(p: NodeParams) -> None:
         raise bad("num_classes", "must be >= 0")
     if not 0 <= p.ignore_label <= 65535:
         raise bad("ignore_label", "must be in 0..65535")
-    q = p.body_to_optical_quaternion
-    if len(q) != 4 or not all(math.isfinite(v) for v in q) or abs(math.sqrt(sum(v * v for v in q)) - 1) > 1e-3:
-        raise bad("body_to_optical_quaternion", "expected a unit quaternion [x, y, z, w]")
+    if p.pose_type not in POSE_TYPES:
+        raise bad("pose_type", f"expected one of {', '.join(POSE_TYPES)}")
+    for name in ("pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap"):
+        if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
+            raise bad(name, "must be finite and >= 0")
+    for name in ("pose_buffer", "max_pose_gap"):
+        if getattr(p, name) <= 0:
+            raise bad(name, "must be > 0")
+    if not p.cameras:
+        raise bad("cameras", "needs at least one namespace ('' = the un-namespaced topics)")
+    names = [c.strip("/") for c in p.cameras]
+    if len(set(names)) != len(names):
+        raise bad("cameras", "namespaces must be distinct")
+    bad_ns = [c for c in names if c and not all(part.replace("_", "a").isalnum() and not part[0].isdigit()
+                                                 for part in c.split("/"))]
+    if bad_ns:
+        raise bad("cameras", f"not a valid ROS namespace: {bad_ns[0]!r}")
+    parse_extrinsics(p.camera_extrinsics, len(p.cameras))   # ConfigError naming camera_extrinsics
+    Similarity.from_params(p.splat_to_map, "splat_to_map")  # ConfigError naming splat_to_map
+
+
+def pose_policy(p: NodeParams) -> PosePolicy:
+    """The pose lookup rules of these parameters."""
+    return PosePolicy(buffer=p.pose_buffer, wait=p.pose_wait, max_extrapolation=p.max_pose_extrapolation,
+                      max_gap=p.max_pose_gap)
 
 
 def checkpoint_file(template: str, fingerprint: str) -> str:

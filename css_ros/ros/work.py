@@ -9,6 +9,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..io.frame_gate import GateFrame
+
 
 class WarnLimiter:
     """Counts bad inputs per (topic, reason) and logs at most one warning per key and ``period`` seconds."""
@@ -46,18 +48,22 @@ class WarnLimiter:
 
 @dataclass
 class FrameJob:
-    """A synchronised observed frame waiting for the worker."""
+    """A frame from the gate (:class:`~css_ros.io.frame_gate.GateFrame`) waiting for the worker.
 
-    stamp_ns: int
-    frame_id: str
-    labels: np.ndarray            # (H, W) int class ids
-    confidence: np.ndarray | None  # (H, W) float32 in [0, 1]
-    image: np.ndarray | None      # (H, W, 3) uint8 RGB (diagnostics only)
-    K: np.ndarray                 # (3, 3) px
-    position: np.ndarray          # (3,) m, as received
-    quat_in: np.ndarray           # (4,) xyzw, as received (normalised)
-    quat_optical: np.ndarray      # (4,) xyzw of the optical frame
-    t_received: float             # time.monotonic() of the segmentation [s]
+    ``t_received``: time.monotonic() [s] at which it left the gate (frame latency is measured from the
+    segmentation's arrival, ``frame.t_arrival``).
+    """
+
+    frame: GateFrame
+    t_received: float
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.frame.stamp_ns
+
+    @property
+    def camera_index(self) -> int:
+        return self.frame.camera_index
 
 
 @dataclass
@@ -72,9 +78,10 @@ class CandidateJob:
     K: np.ndarray
     width: int
     height: int
-    positions: np.ndarray         # (M, 3) m
-    quats_in: np.ndarray          # (M, 4) as received
-    quats_optical: np.ndarray     # (M, 4); rows of invalid poses are NaN
+    positions: np.ndarray         # (M, 3) m, map frame, as received
+    quats_in: np.ndarray          # (M, 4) xyzw, as received
+    positions_splat: np.ndarray   # (M, 3) optical frame origin in the splat frame
+    quats_splat: np.ndarray       # (M, 4) optical frame in the splat frame; rows of invalid poses are NaN
     t_received: float             # time.monotonic() [s]
     next_index: int = 0
     u_var: np.ndarray = field(default=None)  # type: ignore[assignment]
@@ -101,10 +108,11 @@ class PointQueryJob:
     """
 
     header: Any
-    xyz: np.ndarray               # (M, 3) m, map frame
+    xyz: np.ndarray               # (M, 3) m, map frame (echoed in the answer)
     num_classes: int
     ignore_label: int
     t_received: float             # time.monotonic() [s]
+    xyz_splat: np.ndarray | None = None  # (M, 3) the same points in the splat frame (None: the same as xyz)
     next_index: int = 0
     labels: np.ndarray = field(default=None)       # type: ignore[assignment]  (M,) int32
     expectation: np.ndarray = field(default=None)  # type: ignore[assignment]  (M, C) float32
@@ -113,6 +121,8 @@ class PointQueryJob:
 
     def __post_init__(self) -> None:
         m = len(self.xyz)
+        if self.xyz_splat is None:
+            self.xyz_splat = self.xyz
         self.labels = np.full(m, self.ignore_label, np.int32)
         self.expectation = np.full((m, self.num_classes), np.nan, np.float32)
         self.variance = np.full((m, self.num_classes), np.nan, np.float32)
@@ -134,28 +144,48 @@ RequestJob = CandidateJob | PointQueryJob
 class WorkQueue:
     """Bounded queues between the executor (producers) and the worker thread (consumer).
 
-    Frames: newest wins (the oldest pending frame is dropped when full). Requests (candidate views and
-    point queries) have their own queue and are served between frames, one slice per turn: when both are waiting the worker
-    alternates, so neither stream starves the other. A request partly scored goes back to the head of
-    its queue (:meth:`resume_request`).
+    Frames: one queue per camera, newest wins (a camera's oldest pending frame is dropped when it holds
+    ``max_frames``); cameras are served round-robin, so a 30 Hz camera cannot starve a 5 Hz one. Requests
+    (candidate views and point queries) have their own queue and are served between frames, one slice per turn:
+    when both are waiting the worker alternates, so neither stream starves the other. A request partly scored
+    goes back to the head of its queue (:meth:`resume_request`).
     """
 
     def __init__(self, max_frames: int, max_requests: int = 8) -> None:
-        self.frames: deque[FrameJob] = deque()
+        self.camera_frames: dict[int, deque[FrameJob]] = {}
         self.requests: deque[RequestJob] = deque()
         self.max_frames = max_frames
         self.max_requests = max_requests
         self._cond = threading.Condition()
         self._last_was_frame = False
+        self._next_camera = 0
         self.closed = False
 
-    def put_frame(self, job: FrameJob) -> FrameJob | None:
-        """Queue a frame; returns the frame dropped to make room, if any."""
+    @property
+    def frames(self) -> list[FrameJob]:
+        """Every pending frame (all cameras)."""
         with self._cond:
-            dropped = self.frames.popleft() if len(self.frames) >= self.max_frames else None
-            self.frames.append(job)
+            return [j for q in self.camera_frames.values() for j in q]
+
+    def put_frame(self, job: FrameJob) -> FrameJob | None:
+        """Queue a frame; returns the frame of the same camera dropped to make room, if any."""
+        with self._cond:
+            q = self.camera_frames.setdefault(job.camera_index, deque())
+            dropped = q.popleft() if len(q) >= self.max_frames else None
+            q.append(job)
             self._cond.notify()
         return dropped
+
+    def _pop_frame(self) -> FrameJob | None:
+        cams = sorted(c for c, q in self.camera_frames.items() if q)
+        if not cams:
+            return None
+        cam = next((c for c in cams if c >= self._next_camera), cams[0])
+        self._next_camera = cam + 1
+        return self.camera_frames[cam].popleft()
+
+    def _has_frames(self) -> bool:
+        return any(self.camera_frames.values())
 
     def put_request(self, job: RequestJob) -> RequestJob | None:
         """Queue a request; returns the (oldest) request dropped to make room, if any."""
@@ -174,16 +204,16 @@ class WorkQueue:
     def get(self, timeout: float) -> FrameJob | RequestJob | None:
         """Next job (None after ``timeout`` s or when closed)."""
         with self._cond:
-            if not self.frames and not self.requests and not self.closed:
+            if not self._has_frames() and not self.requests and not self.closed:
                 self._cond.wait(timeout)
             if self.closed:
                 return None
-            if self.requests and (not self.frames or self._last_was_frame):
+            if self.requests and (not self._has_frames() or self._last_was_frame):
                 self._last_was_frame = False
                 return self.requests.popleft()
-            if self.frames:
+            if self._has_frames():
                 self._last_was_frame = True
-                return self.frames.popleft()
+                return self._pop_frame()
             return None
 
     def drain_requests(self) -> list[RequestJob]:
@@ -200,4 +230,4 @@ class WorkQueue:
 
     def sizes(self) -> tuple[int, int]:
         with self._cond:
-            return len(self.frames), len(self.requests)
+            return sum(len(q) for q in self.camera_frames.values()), len(self.requests)

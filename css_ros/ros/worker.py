@@ -25,6 +25,7 @@ from ..engine.camera import Camera
 from ..engine.semantic_map import SemanticMap
 from ..errors import CameraError, MapError
 from ..evaluation.metrics import psnr
+from ..io.frames import resample_to
 from .params import NodeParams
 from .work import CandidateJob, FrameJob, PointQueryJob, RequestJob, WarnLimiter, WorkQueue
 
@@ -162,12 +163,9 @@ class MapWorker:
     # ------------------------------------------------------------------ frames
     def process_frame(self, job: FrameJob) -> None:
         p = self.p
-        try:
-            cam = Camera.from_pose(job.K, job.labels.shape[1], job.labels.shape[0], job.position, job.quat_optical)
-        except CameraError as exc:
-            self.warn("pose", "invalid camera", f"{exc}; frame dropped")
-            return
-        labels = job.labels
+        frame = job.frame
+        cam = frame.camera
+        labels = frame.labels
         valid = labels != p.ignore_label
         out_of_range = int(np.count_nonzero(valid & (labels >= self.C)))
         if out_of_range:
@@ -177,18 +175,22 @@ class MapWorker:
                       dropped=False)
         with self.map_lock:
             if p.output_scale == 1.0:
-                view = self.smap.observe(cam, labels, confidence=job.confidence)
+                view = self.smap.observe(cam, labels, confidence=frame.confidence)
             else:
-                self.smap.update(cam, labels, confidence=job.confidence)
+                self.smap.update(cam, labels, confidence=frame.confidence)
                 view = self.smap.render(cam.scaled(p.output_scale))
             self.policy.changed()
             self.map_version += 1
         self.sink.publish_frame(job, view)
-        if job.image is not None and view.rgb.shape == job.image.shape:
-            self.last_psnr = psnr(view.rgb, job.image)
+        image = frame.image
+        if image is not None and image.shape[:2] != view.rgb.shape[:2]:
+            image = resample_to(image, view.rgb.shape[:2])
+        if image is not None and view.rgb.shape == image.shape:
+            self.last_psnr = psnr(view.rgb, image)
         self.last_u = (float(view.u_var), float(view.u_exp))
         self.stats.count("frames_processed")
-        self.stats.frame_latency((time.monotonic() - job.t_received) * 1e3)
+        self.stats.count(f"camera[{p.cameras[frame.camera_index].strip('/') or '/'}].frames_processed")
+        self.stats.frame_latency((time.monotonic() - frame.t_arrival) * 1e3)
 
     # ------------------------------------------------------------------ candidate requests
     def process_slice(self, job: CandidateJob) -> None:
@@ -201,10 +203,10 @@ class MapWorker:
         start, stop = job.next_index, min(m, job.next_index + self.p.candidate_slice)
         cams, scored = [], []
         for i in range(start, stop):
-            if not np.all(np.isfinite(job.quats_optical[i])):
+            if not np.all(np.isfinite(job.quats_splat[i])):
                 continue
             try:
-                cam = Camera.from_pose(job.K, job.width, job.height, job.positions[i], job.quats_optical[i])
+                cam = Camera.from_pose(job.K, job.width, job.height, job.positions_splat[i], job.quats_splat[i])
                 cams.append(cam.scaled(self.p.candidate_scale))
                 scored.append(i)
             except CameraError as exc:
@@ -225,10 +227,10 @@ class MapWorker:
             self.finish_request(job, "time budget exceeded")
             return
         start, stop = job.next_index, min(len(job.xyz), job.next_index + self.p.point_query_slice)
-        rows = start + np.flatnonzero(np.all(np.isfinite(job.xyz[start:stop]), axis=1))
+        rows = start + np.flatnonzero(np.all(np.isfinite(job.xyz_splat[start:stop]), axis=1))
         if len(rows):
             with self.map_lock:
-                q = self.smap.query_points(job.xyz[rows], self.p.query_background_weight)
+                q = self.smap.query_points(job.xyz_splat[rows], self.p.query_background_weight)
             job.labels[rows], job.expectation[rows], job.variance[rows] = q.labels, q.expectation, q.variance
         job.next_index = stop
         self.stats.count("query_points_evaluated", len(rows))
