@@ -13,14 +13,21 @@ from css_ros.engine.camera import body_to_optical_rotation, quaternion_xyzw_to_m
 from css_ros.errors import CssError
 from css_ros.io.paths import resolve_data_path
 from css_ros.io.frames import FrameRejected, decode_pose
-from css_ros.ros.gate import body_to_optical
-from css_ros.ros.params import BODY_TO_OPTICAL_XYZW, NodeParams, check_params
+from css_ros.engine.camera import Camera
+from css_ros.engine.similarity import Similarity
+from css_ros.io.frame_gate import GateFrame
+from css_ros.ros.params import NodeParams, check_params
 from css_ros.ros.work import FrameJob, WarnLimiter, WorkQueue
 
+#: camera_extrinsics of an optical frame at a REP-103 body's origin (the former body_to_optical: true).
+BODY_TO_OPTICAL_EXTRINSICS = [0.0, 0.0, 0.0, -0.5, 0.5, -0.5, 0.5]
 
-def _frame(i: int) -> FrameJob:
-    z = np.zeros(1)
-    return FrameJob(i, "cam", np.zeros((1, 1), np.uint8), None, None, np.eye(3), z, z, z, 0.0)
+
+def _frame(i: int, cam: int = 0) -> FrameJob:
+    z = np.zeros(3)
+    camera = Camera(K=np.eye(3), width=1, height=1, T_map_cam=np.eye(4))
+    return FrameJob(GateFrame(cam, i, "cam", "map", np.zeros((1, 1), np.int32), None, None, camera, z,
+                              np.array([0.0, 0, 0, 1]), "exact", 0.0), 0.0)
 
 
 def test_work_queue_newest_frames_win():
@@ -40,6 +47,18 @@ def test_work_queue_alternates_so_nothing_starves():
     kinds = ["f" if isinstance(j, FrameJob) else "r" for j in order]
     # A request never waits behind more than one frame, and frames keep flowing between requests.
     assert kinds == ["f", "r", "f", "r", "f", "r"]
+
+
+def test_work_queue_serves_cameras_round_robin():
+    """A camera sending 6x as many frames does not starve the other: each get alternates between cameras."""
+    q = WorkQueue(max_frames=2)
+    for i in range(12):
+        q.put_frame(_frame(i, cam=0))
+        if i % 6 == 0:
+            q.put_frame(_frame(100 + i, cam=1))
+    got = [q.get(0) for _ in range(4)]
+    assert [j.camera_index for j in got] == [0, 1, 0, 1]
+    assert [j.stamp_ns for j in got] == [10, 100, 11, 106]   # newest wins per camera (2 kept each)
 
 
 def test_work_queue_close_wakes_consumer():
@@ -77,15 +96,17 @@ def test_warn_limiter_reports_suppressed_after_period():
     assert len(lines) == 2 and "+3 similar" in lines[1]
 
 
-def test_body_to_optical_matches_rep103():
+def test_body_to_optical_extrinsics_match_rep103():
+    """The README's migration of body_to_optical: these extrinsics are REP-103's optical frame in the body."""
+    ext = Similarity.rigid_from_params(BODY_TO_OPTICAL_EXTRINSICS)
     # Body frame = map frame (identity): the optical axes in the map are z fwd = +x, x right = -y, y down = -z.
-    q = body_to_optical(np.array([0.0, 0.0, 0.0, 1.0]), np.array(BODY_TO_OPTICAL_XYZW))
+    _, q = ext.compose_pose(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
     R = quaternion_xyzw_to_matrix(q)
     np.testing.assert_allclose(R, body_to_optical_rotation(), atol=1e-12)
     np.testing.assert_allclose(R[:, 2], [1, 0, 0], atol=1e-12)
     # A body yawed by 90 degrees (facing +y) looks along +y.
     yaw = np.array([0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
-    R = quaternion_xyzw_to_matrix(body_to_optical(yaw, np.array(BODY_TO_OPTICAL_XYZW)))
+    R = quaternion_xyzw_to_matrix(ext.compose_pose(np.zeros(3), yaw)[1])
     np.testing.assert_allclose(R[:, 2], [0, 1, 0], atol=1e-12)
     np.testing.assert_allclose(R[:, 1], [0, 0, -1], atol=1e-12)
 
@@ -106,7 +127,13 @@ def test_pose_quaternion_rule(q, ok):
 
 @pytest.mark.parametrize("field, value", [("input_qos", "fast"), ("backend", "opencl"), ("prior", 0.0),
                                           ("queue_size", 0), ("sync_slop", -1.0), ("output_scale", float("nan")),
-                                          ("body_to_optical_quaternion", [0.0, 0.0, 0.0, 2.0])])
+                                          ("camera_extrinsics", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
+                                          ("camera_extrinsics", [0.0, 1.0]),
+                                          ("splat_to_map", [0.0, 0, 0, 0, 0, 0, 0, 1]),
+                                          ("splat_to_map", [float("inf"), 0, 0, 0, 0, 0, 0, 1]),
+                                          ("pose_type", "tf"), ("pose_wait", float("nan")), ("max_pose_gap", 0.0),
+                                          ("cameras", ["front", "front"]), ("cameras", []),
+                                          ("cameras", ["1bad"])])
 def test_check_params_rejects(field, value):
     p = NodeParams()
     setattr(p, field, value)

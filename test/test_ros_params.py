@@ -48,7 +48,8 @@ def test_defaults_come_from_the_engine_and_frame_decoder():
 
 @pytest.mark.parametrize("name, value, default, expected", [
     ("prior", 1, 0.5, 1.0), ("queue_size", 3.0, 10, 3), ("warmup", False, True, False),
-    ("body_to_optical_quaternion", (0, 0, 0, 1), [0.0], [0.0, 0.0, 0.0, 1.0]), ("map_frame", "odom", "map", "odom")])
+    ("splat_to_map", (2, 0, 0, 0, 0, 0, 0, 1), [1.0], [2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
+    ("cameras", ("front", "left"), [""], ["front", "left"]), ("map_frame", "odom", "map", "odom")])
 def test_coerce_accepts(name, value, default, expected):
     out = coerce(name, value, default)
     assert out == expected and type(out) is type(expected)
@@ -56,8 +57,8 @@ def test_coerce_accepts(name, value, default, expected):
 
 @pytest.mark.parametrize("name, value, default", [
     ("prior", "lots", 0.5), ("prior", True, 0.5), ("queue_size", 2.5, 10), ("queue_size", True, 10),
-    ("warmup", 1, True), ("map_frame", 3, "map"), ("body_to_optical_quaternion", "abcd", [0.0]),
-    ("body_to_optical_quaternion", [0, "x"], [0.0])])
+    ("warmup", 1, True), ("map_frame", 3, "map"), ("splat_to_map", "abcd", [0.0]),
+    ("splat_to_map", [0, "x"], [0.0]), ("cameras", [1, 2], [""])])
 def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, default):
     with pytest.raises(ConfigError, match=f"parameter {name}="):
         coerce(name, value, default)
@@ -69,8 +70,9 @@ def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, defa
                                           ("candidate_slice", 0), ("candidate_time_budget", float("inf")),
                                           ("checkpoint_retry_max", -1.0), ("num_classes", -1),
                                           ("ignore_label", 70000),
-                                          ("body_to_optical_quaternion", [0.0, 0.0, 0.0, 2.0]),
-                                          ("body_to_optical_quaternion", [0.0, 1.0])])
+                                          ("camera_extrinsics", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
+                                          ("splat_to_map", [-1.0, 0, 0, 0, 0, 0, 0, 1]),
+                                          ("pose_type", "odom"), ("pose_buffer", 0.0)])
 def test_check_params_rejects(field, value):
     p = NodeParams()
     setattr(p, field, value)

@@ -5,6 +5,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from css_ros.engine.camera import Camera
+from css_ros.io.frame_gate import GateFrame
 import pytest
 
 import ros_helpers as rh
@@ -58,14 +61,16 @@ def make_worker(model, ckpt: Path | None = None, **params) -> tuple[MapWorker, S
 
 def frame(stamp: int) -> FrameJob:
     q = rh.IDENTITY.copy()
-    return FrameJob(stamp, "cam", rh.wall_labels().astype(np.int32), None, None, rh.K, np.zeros(3), q, q,
-                    time.monotonic())
+    labels = rh.wall_labels().astype(np.int32)
+    cam = Camera.from_pose(rh.K, labels.shape[1], labels.shape[0], np.zeros(3), q)
+    return FrameJob(GateFrame(0, stamp, "cam", "map", labels, None, None, cam, np.zeros(3), q, "exact",
+                              time.monotonic()), time.monotonic())
 
 
 def request(m: int, t_received: float | None = None) -> CandidateJob:
     positions = np.zeros((m, 3))
     quats = np.tile(rh.IDENTITY, (m, 1))
-    return CandidateJob("hdr", rh.K, rh.WIDTH, rh.HEIGHT, positions, quats, quats.copy(),
+    return CandidateJob("hdr", rh.K, rh.WIDTH, rh.HEIGHT, positions, quats, positions.copy(), quats.copy(),
                         time.monotonic() if t_received is None else t_received)
 
 

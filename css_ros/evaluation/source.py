@@ -11,7 +11,7 @@ import numpy as np
 
 from ..engine.camera import Camera
 from ..engine.similarity import Similarity, parse_extrinsics
-from ..errors import BagError
+from ..errors import BagError, InputError
 from ..io.bag import InputBag
 from ..io.frame_gate import FrameGate, GateConfig, GateFrame
 from ..io.frames import FrameRejected, Intrinsics, decode_camera_info, resample_to
