@@ -102,7 +102,7 @@ def test_torch_twin_imports_no_numba_code():
 @pytest.mark.parametrize("modules", [
     "css_ros",
     "css_ros.engine",
-    "css_ros.io, css_ros.io.bag, css_ros.io.frames, css_ros.io.sync, css_ros.io.topics, css_ros.io.outputs",
+    "css_ros.io, css_ros.io.bag, css_ros.io.frames, css_ros.io.frame_gate, css_ros.io.topics, css_ros.io.outputs",
     "css_ros.evaluation, css_ros.evaluation.cli, css_ros.evaluation.replay",
 ])
 def test_ros_free_layers_do_not_import_rclpy_or_torch(modules):

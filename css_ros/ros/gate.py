@@ -14,6 +14,7 @@ Candidate poses and query points arrive in the map frame and are taken into the 
 """
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -87,11 +88,10 @@ class InputGate:
         self.warn = warn
         self.count = count
         self.monotonic = monotonic
-        try:
-            confidence_published(0)
-            published = confidence_published
-        except TypeError:
+        if len(inspect.signature(confidence_published).parameters) == 0:
             published = lambda cam: confidence_published()  # noqa: E731 - one-camera form
+        else:
+            published = confidence_published
         self.frames = FrameGate(gate_config(params), warn, count,
                                 lambda cam: params.use_confidence and bool(published(cam)), now_ns, log_warning)
 
