@@ -188,6 +188,8 @@ def coerce(name: str, value: Any, default: Any) -> Any:
             raise bad()
         return value
     if isinstance(default, list):
+        if value is None or (isinstance(value, (list, tuple)) and len(value) == 0):
+            return []  # ROS has no typed empty array: an empty list arrives as "not set"
         if isinstance(value, (str, bytes)):
             raise bad()
         try:
