@@ -349,15 +349,21 @@ def build_parser() -> argparse.ArgumentParser:
         prog="css_make_demo",
         description="Generate the procedural demo room (3DGS PLY), a robot trajectory and a rosbag2 bag with "
                     "RGB, noisy segmentation, confidence, ground truth, camera info and poses.")
-    p.add_argument("--out", type=Path, default=Path("bags") / "demo", help="output directory (default: bags/demo)")
-    p.add_argument("--num-gaussians", type=int, default=DEFAULTS["num_gaussians"], metavar="N",
+    p.add_argument("--out", type=Path, default=None,
+                   help="output directory (default: bags/demo; with --robot: bags/robot_demo)")
+    p.add_argument("--robot", action="store_true",
+                   help="the robot-like demo: nav_msgs/Odometry of base_link at 100 Hz, two cameras (front, left) "
+                        "with extrinsics and their own stamps, segmentation 0.25 s late, the splat in its own "
+                        "scaled and rotated frame, and a css_node.yaml with the matching parameters")
+    p.add_argument("--num-gaussians", type=int, default=None, metavar="N",
                    help=f"Gaussians in the room ({DEFAULTS['num_gaussians']})")
-    p.add_argument("--frames", type=int, default=DEFAULTS["frames"], metavar="F",
-                   help=f"frames along the trajectory ({DEFAULTS['frames']})")
-    p.add_argument("--width", type=int, default=DEFAULTS["width"], metavar="W",
-                   help=f"image width in pixels ({DEFAULTS['width']})")
-    p.add_argument("--height", type=int, default=DEFAULTS["height"], metavar="H",
-                   help=f"image height in pixels ({DEFAULTS['height']})")
+    p.add_argument("--frames", type=int, default=None, metavar="F",
+                   help=f"frames along the trajectory ({DEFAULTS['frames']}; with --robot "
+                        f"{ROBOT_DEFAULTS['frames']} per camera)")
+    p.add_argument("--width", type=int, default=None, metavar="W",
+                   help=f"image width in pixels ({DEFAULTS['width']}; with --robot {ROBOT_DEFAULTS['width']})")
+    p.add_argument("--height", type=int, default=None, metavar="H",
+                   help=f"image height in pixels ({DEFAULTS['height']}; with --robot {ROBOT_DEFAULTS['height']})")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of scene sampling, noise and path (0)")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (mcap)")
     p.add_argument("--backend", choices=("numba", "torch"), default="numba", help="rasteriser backend (numba)")
@@ -385,6 +391,24 @@ def size_estimate(num_gaussians: int, frames: int, width: int, height: int) -> s
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; returns the process exit code (0 ok, 2 usage/CssError)."""
     args = build_parser().parse_args(argv)
+    defaults = ROBOT_DEFAULTS if args.robot else DEFAULTS
+    for name in ("num_gaussians", "frames", "width", "height"):
+        if getattr(args, name) is None:
+            setattr(args, name, defaults[name])
+    if args.out is None:
+        args.out = Path("bags") / ("robot_demo" if args.robot else "demo")
+    if args.robot:
+        try:
+            info = make_robot_demo(args.out, num_gaussians=args.num_gaussians, frames=args.frames,
+                                   width=args.width, height=args.height, seed=args.seed, overwrite=args.overwrite,
+                                   progress=not args.quiet)
+        except (CssError, ValueError) as exc:
+            print(f"css_make_demo: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"wrote {args.out}: {info['frames_per_camera']} frames per camera ({', '.join(info['cameras'])}), "
+              f"{info['odometry_messages']} odometry messages over {info['duration_s']:.0f} s; replay it with "
+              f"css_replay {args.out / 'bag'}")
+        return 0
     if not args.quiet:
         print(size_estimate(args.num_gaussians, args.frames, args.width, args.height), file=sys.stderr)
     try:
@@ -399,6 +423,8 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"in {stats.seconds:.0f} s")
     return 0
 
+
+from .robot_demo import ROBOT_DEFAULTS, make_robot_demo  # noqa: E402 - robot_demo imports this module's helpers
 
 if __name__ == "__main__":
     sys.exit(main())

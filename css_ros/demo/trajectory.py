@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-__all__ = ["LATE_PHASE_START", "Trajectory", "WAYPOINTS", "look_at_rotation", "robot_trajectory"]
+__all__ = ["LATE_PHASE_START", "Trajectory", "WAYPOINTS", "look_at_rotation", "robot_trajectory", "waypoint_spline"]
 
 #: Waypoints (x [m], y [m], camera height [m], yaw [deg, 0 = +x, ccw], pitch [deg, negative = looking down]).
 WAYPOINTS: tuple[tuple[float, float, float, float, float], ...] = (
@@ -90,6 +90,26 @@ def look_at_rotation(forward: np.ndarray, up: np.ndarray | None = None) -> np.nd
     return np.stack([x, y, f], axis=-1)
 
 
+def waypoint_spline(seed: int = 0) -> tuple[PchipInterpolator, np.ndarray]:
+    """The path through :data:`WAYPOINTS` as a function of time: (spline t [s] -> (x, y, height, yaw, pitch)
+    [m, deg], waypoint times [s]).
+
+    ``seed`` perturbs the waypoints slightly (+-4 cm, +-2 deg); seed 0 is the shipped demo. Translation, turning
+    and pitching take time (0.5 m/s, 35 deg/s, 20 deg/s), whichever is longest, at least 1 s per waypoint.
+    """
+    wp = np.array(WAYPOINTS, dtype=np.float64)
+    if seed:
+        rng = np.random.default_rng(seed)
+        wp[:, :2] += rng.uniform(-0.04, 0.04, (len(wp), 2))
+        wp[:, 3:] += rng.uniform(-2.0, 2.0, (len(wp), 2))
+    d_xy = np.linalg.norm(np.diff(wp[:, :2], axis=0), axis=1)
+    d_yaw = np.abs(np.diff(wp[:, 3]))
+    d_pitch = np.abs(np.diff(wp[:, 4]))
+    dt = np.maximum.reduce([d_xy / _SPEED, d_yaw / _TURN, d_pitch / _PITCH, np.full_like(d_xy, 1.0)])
+    t_wp = np.concatenate([[0.0], np.cumsum(dt)])
+    return PchipInterpolator(t_wp, wp, axis=0), t_wp  # C1, no overshoot between waypoints
+
+
 def robot_trajectory(num_frames: int, seed: int = 0, sway: bool = True) -> Trajectory:
     """Sample the demo path at ``num_frames`` instants equally spaced in time.
 
@@ -102,18 +122,7 @@ def robot_trajectory(num_frames: int, seed: int = 0, sway: bool = True) -> Traje
     """
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
-    wp = np.array(WAYPOINTS, dtype=np.float64)
-    if seed:
-        rng = np.random.default_rng(seed)
-        wp[:, :2] += rng.uniform(-0.04, 0.04, (len(wp), 2))
-        wp[:, 3:] += rng.uniform(-2.0, 2.0, (len(wp), 2))
-    # time stamps of the waypoints: translation, turning and pitching take time, whichever is longest
-    d_xy = np.linalg.norm(np.diff(wp[:, :2], axis=0), axis=1)
-    d_yaw = np.abs(np.diff(wp[:, 3]))
-    d_pitch = np.abs(np.diff(wp[:, 4]))
-    dt = np.maximum.reduce([d_xy / _SPEED, d_yaw / _TURN, d_pitch / _PITCH, np.full_like(d_xy, 1.0)])
-    t_wp = np.concatenate([[0.0], np.cumsum(dt)])
-    spline = PchipInterpolator(t_wp, wp, axis=0)  # C1, no overshoot between waypoints
+    spline, t_wp = waypoint_spline(seed)
     times = np.linspace(0.0, t_wp[-1], num_frames)
     s = spline(times)
     x, y, z, yaw, pitch = (s[:, i] for i in range(5))
