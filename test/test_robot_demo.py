@@ -111,7 +111,8 @@ def test_css_replay_maps_every_frame_of_both_cameras_as_with_the_splat_in_the_ma
     splat_to_map().transform_model(model).to_ply(tmp_path / "map_frame.ply")
     ref = _replay(demo / "bag", tmp_path / "map", "--model", str(tmp_path / "map_frame.ply"), "--splat-to-map",
                   "1", "0", "0", "0", "0", "0", "0", "1")
-    # the input is identical; the renders agree up to float32 storage of the moved splat (a few argmax ties flip)
+    # The input is identical; the renders agree except where the two frames differ on purpose (docs/spec.md "The
+    # splat in the map"): the near-plane cull is in splat units (0.01 splat = 2.5 cm here), plus float32 storage.
     for metric in ("miou", "pixel_accuracy"):
         assert m["segmentation"]["input"][metric] == ref["segmentation"]["input"][metric]
-        assert abs(m["segmentation"]["css"][metric] - ref["segmentation"]["css"][metric]) < 1e-3
+        assert abs(m["segmentation"]["css"][metric] - ref["segmentation"]["css"][metric]) < 5e-3
