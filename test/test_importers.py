@@ -312,6 +312,12 @@ def test_end_to_end_import_then_replay_matches_demo(tmp_path, capsys):
     stdout = capsys.readouterr().out
     assert f"imported {N_E2E} frames of {N_E2E} cameras (mono8 labels)" in stdout
     assert (out / "model.ply").is_file() and (out / "classes.yaml").is_file()
+    # the demo's frame is already z-up: the up found from the cameras is +z to within their mean pitch/roll
+    from css_ros.engine.similarity import Similarity
+    from css_ros.io.params_file import read_params_file
+
+    up = Similarity.from_params(read_params_file(out / "css_node.yaml")["splat_to_map"])
+    assert up.scale == 1.0 and np.degrees(np.arccos(np.clip(up.R[2, 2], -1, 1))) < 15.0
     with InputBag(out / "bag") as bag:
         topics = bag.topics()
         assert {t: n for t, (_, n) in topics.items()} == {t: N_E2E for t in BAG_TOPICS.values()}

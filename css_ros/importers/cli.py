@@ -7,16 +7,20 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 from tqdm import tqdm
 
 from ..engine.classes import ClassSet
 from ..console import run_console
+from ..engine.similarity import Similarity
 from ..errors import CssError
+from ..io.params_file import PARAMS_FILE_NAME
 from .colmap import load_colmap
 from .inria import load_inria
 from .labels import LabelDecoder, load_remap
 from .nerfstudio import load_nerfstudio
 from .pairing import pair_frames
+from .align import UP_AXES, up_alignment
 from .views import ImportFormatError, PosedView
 from .writer import write_dataset
 
@@ -37,7 +41,12 @@ examples:
   css_import data/sparse/0 --model splat.ply --labels seg/ --num-classes 20 --rate 5 --out data/room
   css_import transforms.json --model splat.ply --labels seg_color/ --classes classes.yaml \\
       --remap remap.yaml --out data/scene
-  css_replay data/train/bag          # then evaluate (reads data/train/model.ply and classes.yaml)
+  css_replay data/train/bag          # then evaluate (reads data/train/model.ply, classes.yaml, css_node.yaml)
+
+up direction: the trainer's frame is rarely z-up (COLMAP: arbitrary; INRIA: as COLMAP). css_import finds the up
+direction from the cameras (--up-axis auto), writes the poses in a z-up map frame and OUT/css_node.yaml with the
+splat_to_map that puts the splat there (css_replay and css_node read it). To align with a robot's map, use
+css_align instead.
 """
 
 
@@ -66,6 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ignore-distortion", action="store_true",
                    help="accept cameras with lens distortion and use their pinhole part (only for nearly "
                         "undistorted images)")
+    p.add_argument("--up-axis", choices=("auto", *UP_AXES, "none"), default="auto",
+                   help="the splat's up direction: auto (default) = the mean of the cameras' -y axes; the bag's "
+                        "poses are written in a z-up map frame and OUT/css_node.yaml holds the splat_to_map that "
+                        "takes the splat there; none = keep the trainer's frame")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frame rate of the bag stamps (default 10)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="import the first N labelled frames")
     p.add_argument("--link-model", action="store_true", help="symlink the model into OUT instead of copying it")
@@ -104,6 +117,15 @@ def load_views(path: Path, fmt: str | None, ignore_distortion: bool) -> list[Pos
     return load_colmap(path, ignore_distortion)
 
 
+def to_map_frame(view: PosedView, splat_to_map: Similarity) -> PosedView:
+    """The view with its pose moved from the splat's frame into the map frame."""
+    if splat_to_map.is_identity:
+        return view
+    T = splat_to_map.matrix() @ view.T_map_cam
+    T[:3, :3] /= splat_to_map.scale
+    return PosedView(view.name, view.K, view.width, view.height, T)
+
+
 def run(args: argparse.Namespace) -> str:
     """Import; returns the summary printed at the end."""
     if args.classes is not None and str(args.classes) != "":
@@ -121,13 +143,16 @@ def run(args: argparse.Namespace) -> str:
     if args.max_frames is not None and args.max_frames < 1:
         raise ImportFormatError("--max-frames must be >= 1")
     views = load_views(args.poses, args.format, args.ignore_distortion)
+    up = up_alignment(np.array([v.T_map_cam[:3, :3] for v in views]), args.up_axis)
+    views = [to_map_frame(v, up) for v in views]
     pairing = pair_frames(views, args.labels, args.gt, args.confidence, args.images)
     frames = pairing.frames[: args.max_frames] if args.max_frames else pairing.frames
     decoder = LabelDecoder(palette=classes.palette, remap=load_remap(args.remap) if args.remap else {},
                            ignore_label=args.ignore_label, unknown_colors=args.unknown_colors)
     with tqdm(total=len(frames), desc="css_import", unit="frame", disable=args.quiet, file=sys.stderr) as bar:
         s = write_dataset(args.out, frames, args.model, classes, classes_file, decoder, rate_hz=args.rate,
-                          ignore_label=args.ignore_label, link_model=args.link_model, progress=bar.update)
+                          ignore_label=args.ignore_label, link_model=args.link_model, progress=bar.update,
+                          node_params={"splat_to_map": [float(x) for x in up.to_params()]})
     lines = [f"imported {s.frames} frames of {len(views)} cameras ({s.segmentation_encoding} labels) -> {s.bag}"]
     if pairing.without_labels:
         lines.append(f"note: {len(pairing.without_labels)} cameras have no label file and were left out "
@@ -138,6 +163,9 @@ def run(args: argparse.Namespace) -> str:
         share = s.out_of_range_pixels / max(s.labelled_pixels, 1)
         lines.append(f"warning: {s.out_of_range_pixels} labelled pixels ({100 * share:.2f} %) hold ids >= "
                      f"{classes.num_classes} (not a class of {s.classes.name}); use --remap")
+    if not up.is_identity:
+        lines.append(f"the map frame is z-up: poses rotated by splat_to_map {up.to_params()[4:]} (qx qy qz qw), "
+                     f"in {args.out / PARAMS_FILE_NAME} (--up-axis to choose the up direction)")
     lines.append(f"next: css_replay {s.bag}")
     return "\n".join(lines)
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..engine.classes import ClassSet
 from ..io.bag import BagWriter
+from ..io.params_file import PARAMS_FILE_NAME, write_params_file
 from ..io.topics import BAG_TOPICS
 from .labels import LabelDecoder, read_confidence, read_rgb
 from .pairing import ImportFrame
@@ -53,7 +54,8 @@ def stamps_ns(n: int, rate_hz: float) -> np.ndarray:
 def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | Path, classes: ClassSet,
                   classes_file: str | Path | None, decoder: LabelDecoder, rate_hz: float = 10.0,
                   ignore_label: int = 255, link_model: bool = False,
-                  progress: Callable[[int], None] | None = None) -> ImportSummary:
+                  progress: Callable[[int], None] | None = None,
+                  node_params: dict | None = None) -> ImportSummary:
     """Write OUT/model.ply, OUT/classes.yaml and OUT/bag (see the module docstring).
 
     Args:
@@ -67,6 +69,7 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
         ignore_label: "no label" id (not counted as out of range).
         link_model: symlink the model instead of copying it.
         progress: called with 1 after each frame.
+        node_params: css_node parameters (e.g. ``splat_to_map``) written to ``OUT/css_node.yaml``.
 
     Raises:
         ImportFormatError: an image whose size differs from its camera, ids that do not fit the encoding.
@@ -115,6 +118,9 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
         shutil.copyfile(classes_file, classes_out)
     elif classes_file is None:
         classes.to_yaml(classes_out)
+    if node_params:
+        write_params_file(out / PARAMS_FILE_NAME, node_params,
+                          comment="css_import: the node parameters of this import (css_replay reads this file)")
     return ImportSummary(frames=len(frames), labelled_pixels=labelled, out_of_range_pixels=out_of_range,
                          unknown_color_pixels=decoder.unknown_color_pixels, segmentation_encoding=enc,
                          bag=out / "bag", model=model_out, classes=classes_out)
