@@ -10,6 +10,7 @@ observed frame the only transfers are the labels/weights in and one (H, W, 8) fl
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
@@ -67,8 +68,9 @@ class CudaBackend:
     def __init__(self, model: "GaussianModel", device: int | None = None, tile_size: int = TILE_SIZE) -> None:
         self.cuda = import_cuda()
         self.simulated = simulator_enabled()
-        if device is not None and not self.simulated:  # pragma: no cover - GPU only
-            self.cuda.select_device(int(device))
+        self.device = None if device is None else int(device)
+        self._thread = threading.local()
+        self._bind()
         self.ops = make_ops(device)
         from . import kernels  # compiles lazily, at the first launch
 
@@ -89,6 +91,14 @@ class CudaBackend:
         self._host: np.ndarray | None = None
         self._host_dirty = True
         self._device_newer = False
+
+    def _bind(self) -> None:
+        """Make ``device`` current in the calling thread (numba's CUDA context is per thread: a node
+        that launches from an executor thread must select it there too); once per thread."""
+        if self.device is None or self.simulated or getattr(self._thread, "bound", False):
+            return
+        self.cuda.select_device(self.device)  # pragma: no cover - GPU only
+        self._thread.bound = True  # pragma: no cover - GPU only
 
     # ------------------------------------------------------------------ concentrations
     def _device_concentrations(self, host: np.ndarray) -> Any:
@@ -120,6 +130,7 @@ class CudaBackend:
 
     def prepare_views(self, cameras: Sequence["Camera"], want_color: bool) -> CudaFrame:
         """Project, depth-sort and tile-bin V views of one image size in a fixed number of launches."""
+        self._bind()
         ops, k = self.ops, self.k
         cams = list(cameras)
         width, height = int(cams[0].width), int(cams[0].height)
@@ -140,7 +151,7 @@ class CudaBackend:
         cam_dev = ops.upload(cam_rows)
         cap = self._capacity.get(n_views, max(1, min(n_views * n, 4 * n)))
         while True:
-            counter = ops.zeros(1, np.int32)
+            counter = ops.zeros(1, np.int64)  # int64: cannot wrap (V N < 2^63)
             packed = ops.empty((cap, k.PACK_COLS), np.float64)
             bbox = ops.empty((cap, 4), np.int32)
             ids = ops.empty(cap, np.int32)
@@ -196,6 +207,7 @@ class CudaBackend:
     def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
         """concentrations[n, c] += sum_i kappa_in y_i^c on the device (labels (H, W) int32, -1 = none;
         weights (H, W) float32). The host array is brought up to date lazily (``host_view``)."""
+        self._bind()
         conc = self._device_concentrations(concentrations)
         if frame.num_pairs == 0:
             return
@@ -219,6 +231,7 @@ class CudaBackend:
 
     def _render(self, frame: CudaFrame, conc: Any, e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
                 score: bool, want_probs: bool) -> tuple[Any, Any, Any]:
+        self._bind()
         ops = self.ops
         num_classes = int(conc.shape[1])
         n_views = len(frame.cameras)
