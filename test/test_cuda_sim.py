@@ -24,6 +24,10 @@ from scenes import camera, edge_case_scene, random_scene  # noqa: E402
 
 C = 4
 W, H = 16, 12
+# The GPU pixel walk is float32 (alpha, transmittance, kappa * weight, the per-tile sums) and the map's
+# running sums float64: kappa carries ~1e-6 relative error (float32 rounding over a few dozen
+# compositing steps), so concentrations are compared with KAPPA_RTOL and a tiny absolute floor.
+KAPPA_RTOL, KAPPA_ATOL = 2e-5, 1e-7
 CAMS = [dict(width=W, height=H, f=12.0),
         dict(width=13, height=11, f=10.0, position=(0.3, -0.2, -0.5), quat=(0.05, -0.08, 0.02, 0.995)),
         dict(width=W, height=H, f=12.5, cx=3.0, cy=9.0)]
@@ -55,8 +59,8 @@ def test_update_matches_brute_force_and_numba(case):
     kap, _ = reference(model, cam)
     ref = update_reference(kap, np.full((model.num_gaussians, C), 1e-3), lab, C, confidence=conf)
     assert kap.max() > 0.1 and np.abs(ref - 1e-3).max() > 0.5   # the scene is really seen
-    np.testing.assert_allclose(gpu.concentrations, ref, rtol=1e-9, atol=1e-10)
-    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(gpu.concentrations, ref, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
 
 
 @pytest.mark.parametrize("case", range(len(CAMS)))
@@ -104,7 +108,7 @@ def test_observe_sequence_and_host_coherence():
         np.testing.assert_allclose(a.expectation, b.expectation, atol=1e-6)
         np.testing.assert_allclose(a.variance, b.variance, rtol=1e-5, atol=1e-9)
         np.testing.assert_array_equal(a.labels, b.labels)
-    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
     gpu.reset()
     assert np.all(gpu.concentrations == 1e-3)
     fresh = SemanticMap(model, C, backend="cuda")

@@ -223,6 +223,10 @@ def batch_size(bytes_per_gaussian: int, threads: int, budget: int = SHARED_BUDGE
 
 FULL_MASK = 0xFFFFFFFF
 WARP = 32
+# Early termination threshold of the float32 walk. Two alpha = 0.99 (clamped) layers leave T = 1e-4
+# (1 + 2e-16) in float64, which continues, but 9.99998e-5 in float32, which would stop: a slack of
+# 2e-5 relative (above float32 rounding over a few dozen steps) keeps the float64 decision there.
+T_MIN_WALK = T_MIN * (1.0 - 2e-5)
 STAGE_COLS = 7  # staged geometry per Gaussian, float32: u, v, conic a, b, c, opacity, qmax
 
 
@@ -329,7 +333,7 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
                     alpha = pixel_alpha(s_g, k, fu, fv)
                     if alpha > float32(0.0):
                         test_t = trans * (float32(1.0) - alpha)
-                        if test_t < float32(T_MIN):
+                        if test_t < float32(T_MIN_WALK):
                             done = True
                         else:
                             contrib = alpha * trans * w
@@ -445,7 +449,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
                     if alpha == float32(0.0):
                         continue
                     test_t = trans * (float32(1.0) - alpha)
-                    if test_t < float32(T_MIN):
+                    if test_t < float32(T_MIN_WALK):
                         done = True
                         break
                     w1 = alpha * trans
