@@ -29,6 +29,7 @@ import numpy as np
 from numba import cuda, float32, float64, int32
 
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3
+from ...errors import CssError
 from .arrays import simulator_enabled
 from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, VAR_FLOOR
 
@@ -357,14 +358,18 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     return update_kernel
 
 
+MAX_RENDER_CLASSES = 80  # per-pixel E and Var sums of every class in shared memory: 2 C x 64 x 4 B <= 40 KiB
+
+
 def render_layout(num_classes: int, tile: int) -> tuple[int, int]:
-    """(staged Gaussians per batch, shared bytes per block) of the render kernel: per-pixel per-class
-    E and Var sums (2 C x tile^2 float32) plus the staged rows (geometry, colour, S, E.., Var..)."""
+    """(staged Gaussians per batch, static shared bytes per block) of the render kernel: per-pixel
+    per-class E and Var sums (2 C x tile^2 float32) plus the staged rows (geometry, colour, S, row);
+    the class moments are read from global memory (every lane of a warp reads the same row: one
+    broadcast transaction, L1-resident for the block's batch)."""
     nt = tile * tile
     acc = 2 * num_classes * nt * 4
-    row = 4 * STAGE_COLS + 4 + 4 * (2 * num_classes + 4)
-    batch = batch_size(row, nt, max(row, SHARED_BUDGET - acc))
-    return batch, acc + batch * row + 16
+    row = 4 * STAGE_COLS + 4 * 4 + 4
+    return nt, acc + nt * row
 
 
 @lru_cache(maxsize=None)
@@ -388,9 +393,11 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
     if nt % WARP:
         raise ValueError(f"tile {tile}: the render kernel needs tile * tile to be a multiple of {WARP}")
     C = num_classes
-    na = 2 * C + 4               # staged row: E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}
-    nm = 2 * C + 1               # moments row: E.., Var.., S
+    if C > MAX_RENDER_CLASSES:
+        raise CssError(f"backend 'cuda' renders at most {MAX_RENDER_CLASSES} classes (its per-pixel class sums "
+                       f"live in shared memory); {C} asked: use backend 'numba'")
     batch, _ = render_layout(C, tile)
+    n_acc = 2 * C  # shared array shapes must be compile-time constants
 
     @cuda.jit
     def render_kernel(offsets, keys, num_pairs, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
@@ -406,10 +413,10 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
         inside = u < width and v < height
         done = not inside
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
-        s_a = cuda.shared.array((batch, na), float32)
+        s_a = cuda.shared.array((batch, 4), float32)  # r, g, b, S
         s_row = cuda.shared.array(batch, int32)
-        acc = cuda.shared.array((2 * C, nt), float32)
-        for c in range(2 * C):
+        acc = cuda.shared.array((n_acc, nt), float32)
+        for c in range(n_acc):
             acc[c, tid] = float32(0.0)
         cr = float32(0.0)
         cg = float32(0.0)
@@ -427,21 +434,12 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
             if tid < n:
                 j = keys[b0 + tid] % num_pairs
                 stage_geometry(s_g, tid, packed, j)
-                s_row[tid] = pair_row[j]
-                s_a[tid, C] = colors[j, 0]
-                s_a[tid, C + 1] = colors[j, 1]
-                s_a[tid, C + 2] = colors[j, 2]
-            cuda.syncthreads()
-            for idx in range(tid, n * nm, nt):
-                k = idx // nm
-                c = idx - k * nm
-                val = mom[s_row[k], c]
-                if c < C:
-                    s_a[k, c] = val
-                elif c < 2 * C:
-                    s_a[k, c + 4] = val
-                else:
-                    s_a[k, C + 3] = val
+                row = pair_row[j]
+                s_row[tid] = row
+                s_a[tid, 0] = colors[j, 0]
+                s_a[tid, 1] = colors[j, 1]
+                s_a[tid, 2] = colors[j, 2]
+                s_a[tid, 3] = mom[row, 2 * C]
             cuda.syncthreads()
             if not done:
                 for k in range(n):
@@ -454,13 +452,14 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
                         break
                     w1 = alpha * trans
                     w2 = w1 * w1
+                    row = s_row[k]
                     for c in range(C):
-                        acc[c, tid] += w1 * s_a[k, c]
-                        acc[C + c, tid] += w2 * s_a[k, C + 4 + c]
-                    cr += w1 * s_a[k, C]
-                    cg += w1 * s_a[k, C + 1]
-                    cb += w1 * s_a[k, C + 2]
-                    ev += w1 * s_a[k, C + 3]
+                        acc[c, tid] += w1 * mom[row, c]
+                        acc[C + c, tid] += w2 * mom[row, C + c]
+                    cr += w1 * s_a[k, 0]
+                    cg += w1 * s_a[k, 1]
+                    cb += w1 * s_a[k, 2]
+                    ev += w1 * s_a[k, 3]
                     trans = test_t
         best = 0
         best_e = acc[0, tid]
