@@ -171,3 +171,30 @@ def test_projection_capacity_grows_for_large_batches():
     frame = gpu._backend.prepare_views(views, want_color=False)
     assert frame.num_pairs > 5 * 6
     np.testing.assert_allclose(gpu.score_views(views), SemanticMap(model, 2).score_views(views), rtol=1e-5)
+
+
+def test_broken_kernel_stack_is_one_line_css_error(monkeypatch):
+    """A CUDA stack that fails at the first launch (as numba-cuda 0.30 with numpy 2.5 did:
+    AttributeError row_stack) is reported when the map is created, as one CssError naming the fix."""
+    from css_ros.engine.cuda import kernels
+    from css_ros.errors import CssError
+
+    class Broken:
+        def __getitem__(self, launch):
+            def run(*args):
+                raise AttributeError("module 'numpy' has no attribute 'row_stack'")
+            return run
+
+    monkeypatch.setattr(kernels, "moments_kernel", Broken())
+    with pytest.raises(CssError) as err:
+        SemanticMap(random_scene(0, n=10), 2, backend="cuda")
+    msg = str(err.value)
+    assert "\n" not in msg and "row_stack" in msg and "numpy<2.4" in msg and "backend 'numba'" in msg
+
+
+def test_too_many_classes_for_render_is_css_error():
+    from css_ros.errors import CssError
+
+    smap = SemanticMap(random_scene(0, n=10), 81, backend="cuda")
+    with pytest.raises(CssError, match="at most 80 classes"):
+        smap.render(camera(width=W, height=H, f=12.0))

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
+from ...errors import CssError
 from ..buffers import RenderBuffers
 from ..spec import TILE_SIZE
 from .arrays import import_cuda, make_ops, simulator_enabled
@@ -75,6 +76,7 @@ class CudaBackend:
         from . import kernels  # compiles lazily, at the first launch
 
         self.k = kernels
+        self._probe()
         self.tile = int(tile_size)
         ops = self.ops
         scales = np.asarray(model.scales, dtype=np.float64)
@@ -91,6 +93,24 @@ class CudaBackend:
         self._host: np.ndarray | None = None
         self._host_dirty = True
         self._device_newer = False
+
+    def _probe(self) -> None:
+        """Compile and run the smallest kernel once, so that a broken stack (numba-cuda vs numpy,
+        driver, toolkit) fails here, at start, as one CssError naming cause and fix, not as a
+        traceback at the first frame."""
+        try:
+            conc = self.ops.upload(np.ones((1, 2)), np.float64)
+            out = self.ops.empty((1, 5), np.float32)
+            self.k.moments_kernel[1, 1](conc, self.ops.upload(np.zeros(1, np.int32)), out)
+            got = self.ops.download(out)
+        except Exception as exc:  # any failure of the CUDA stack: reported in one line
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+            raise CssError(f"backend 'cuda' cannot run kernels ({type(exc).__name__}: {first[:200]}); fix: "
+                           "numba-cuda 0.30.4 with numpy<2.4 and a CUDA build of torch or cupy "
+                           "(pip install -e '.[cuda]', docs/cuda.md), or use backend 'numba'") from exc
+        if not np.allclose(got[0], [0.5, 0.5, 1 / 12, 1 / 12, 2.0]):
+            raise CssError(f"backend 'cuda': the probe kernel returned {got[0].tolist()} instead of the Dirichlet "
+                           "moments of (1, 1); the GPU stack is broken: use backend 'numba'")
 
     def _bind(self) -> None:
         """Make ``device`` current in the calling thread (numba's CUDA context is per thread: a node
