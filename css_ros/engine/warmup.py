@@ -47,7 +47,7 @@ def _warm_up(backend: str, num_classes: int) -> float:
     model = GaussianModel(means=np.column_stack([xy, np.full(n, 2.0)]), sh=sh,
                           opacity_logits=np.full(n, 2.0), log_scales=np.full((n, 3), np.log(0.1)),
                           rotations=np.tile([1.0, 0, 0, 0], (n, 1)))
-    smap = SemanticMap(model, num_classes=max(1, int(num_classes)), backend=backend)
+    smap = SemanticMap(model, num_classes=max(1, int(num_classes)), backend=backend)  # type: ignore[arg-type]  # checked by make_backend
     cam = Camera(K=intrinsics_from_fov(WARMUP_WIDTH, WARMUP_HEIGHT, 60.0), width=WARMUP_WIDTH,
                  height=WARMUP_HEIGHT, T_map_cam=np.eye(4))
     labels = np.zeros((WARMUP_HEIGHT, WARMUP_WIDTH), dtype=np.int32)

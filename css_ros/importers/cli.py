@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -11,7 +10,6 @@ from tqdm import tqdm
 
 from ..engine.classes import ClassSet
 from ..console import run_console
-from ..errors import CssError
 from .colmap import load_colmap
 from .inria import load_inria
 from .labels import LabelDecoder, load_remap

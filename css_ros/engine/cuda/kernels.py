@@ -25,7 +25,6 @@ import math
 from functools import lru_cache
 from typing import Any
 
-import numpy as np
 from numba import cuda, float32, float64, int32
 
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3

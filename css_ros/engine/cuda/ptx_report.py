@@ -150,7 +150,7 @@ def report(classes: list[int], ccs: list[tuple[int, int]], tile: int) -> list[Ke
                 if (name, cc) in seen:
                     continue
                 seen.add((name, cc))
-                config.FORCE_CUDA_CC = cc  # without libnvrtc, numba picks the architecture from here
+                config.FORCE_CUDA_CC = cc  # type: ignore[attr-defined]  # without libnvrtc: the target
                 ptx, _ = cuda.compile_ptx(func, sig, cc=cc)
                 stats.append(KernelStats(name, cc, threads, *assemble(ptx, cc, home)))
     return stats

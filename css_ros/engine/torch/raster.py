@@ -3,7 +3,6 @@ cross-check of the compiled path. Tiles are evaluated densely (tile pixels x til
 stays bounded by the longest tile list, never pixels x Gaussians."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterator, Sequence
 
