@@ -198,3 +198,31 @@ def test_too_many_classes_for_render_is_css_error():
     smap = SemanticMap(random_scene(0, n=10), 81, backend="cuda")
     with pytest.raises(CssError, match="at most 80 classes"):
         smap.render(camera(width=W, height=H, f=12.0))
+
+
+def test_read_access_does_not_reupload_the_map():
+    """concentrations_readonly downloads once after an update and leaves the device copy valid (no
+    re-upload of the whole map); it cannot be written; writes go through ``concentrations``."""
+    model = random_scene(0, n=60)
+    cam = camera(**CAMS[0])
+    lab, conf = labels_and_confidence(cam, 0)
+    gpu = SemanticMap(model, C, backend="cuda")
+    cpu = SemanticMap(model, C)
+    gpu.update(cam, lab, conf)
+    cpu.update(cam, lab, conf)
+    backend = gpu._backend
+    uploads = []
+    original = backend.ops.copy_into
+    backend.ops.copy_into = lambda dst, host: (uploads.append(host.shape), original(dst, host))[1]
+    view = gpu.concentrations_readonly
+    np.testing.assert_allclose(view, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    with pytest.raises(ValueError):
+        view[0, 0] = 1.0
+    gpu.update(cam, lab, conf)                 # the device copy is still the valid one
+    cpu.update(cam, lab, conf)
+    assert uploads == []
+    np.testing.assert_allclose(gpu.concentrations_readonly, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    gpu.concentrations[0, :] = 7.0             # write access: uploaded before the next kernel
+    gpu.update(cam, lab, conf)
+    assert uploads == [(model.num_gaussians, C)]
+    assert gpu.concentrations_readonly[0, 0] >= 7.0

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 import numpy as np
 
 from ...errors import CssError
+from ..backends import RasterBackend
 from ..buffers import RenderBuffers
 from ..spec import TILE_SIZE
 from .arrays import import_cuda, make_ops, simulator_enabled
@@ -55,7 +56,7 @@ class CudaFrame:
     rows: Any
 
 
-class CudaBackend:
+class CudaBackend(RasterBackend):
     """numba-cuda rasteriser (SPEC §3-6) with the model and the concentrations on the GPU.
 
     Args:
@@ -132,12 +133,23 @@ class CudaBackend:
         self._host, self._host_dirty = host, False
         return self._conc
 
-    def host_view(self, host: np.ndarray) -> np.ndarray:
-        """Bring ``host`` up to date with the device (if the device is newer) and hand it out; it may be
-        written afterwards, so the next kernel that needs the concentrations uploads it again."""
+    def _download_if_newer(self, host: np.ndarray) -> None:
         if self._device_newer and host is self._host and self._conc is not None:
             host[...] = self.ops.download(self._conc)
         self._device_newer = False
+
+    def host_read(self, host: np.ndarray) -> np.ndarray:
+        """``host`` brought up to date with the device (one download if an update happened since), as a
+        read-only view: the device copy stays valid, nothing is uploaded again."""
+        self._download_if_newer(host)
+        view = host.view()
+        view.flags.writeable = False  # a write through it would silently miss the device copy
+        return view
+
+    def host_write(self, host: np.ndarray) -> np.ndarray:
+        """``host`` brought up to date and handed out for writing: the next kernel that needs the
+        concentrations uploads it again (the whole (N, C) array: writes are rare, e.g. load / reset)."""
+        self._download_if_newer(host)
         self._host_dirty = True
         return host
 
