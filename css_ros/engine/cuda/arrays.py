@@ -81,6 +81,19 @@ class NumpyOps:
     def sort(self, x: Any) -> Any:
         return self.xp.sort(x)
 
+    def sort_stable(self, x: Any) -> tuple[Any, Any]:
+        """(sorted x, the permutation), stable."""
+        perm = self.xp.argsort(x, kind="stable")
+        return x[perm], perm
+
+    def float32_bits(self, x: Any) -> Any:
+        """int64 bit patterns of x rounded to float32 (for x > 0 they order as the values)."""
+        return x.astype(np.float32).view(np.int32).astype(np.int64)
+
+    def scalars(self, *xs: Any) -> list[int]:
+        """Several one-element device values -> Python ints in one transfer."""
+        return [int(v) for v in self.download(self.xp.stack([self.xp.asarray(x) for x in xs]))]
+
     def cumsum(self, x: Any) -> Any:
         """Inclusive prefix sum, int64."""
         return self.xp.cumsum(x, dtype=np.int64)
@@ -143,6 +156,16 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
 
     def sort(self, x: Any) -> Any:
         return self.torch.sort(x).values
+
+    def sort_stable(self, x: Any) -> tuple[Any, Any]:
+        res = self.torch.sort(x, stable=True)  # device-wide radix sort (CUB) for integer keys
+        return res.values, res.indices
+
+    def float32_bits(self, x: Any) -> Any:
+        return x.to(self.torch.float32).view(self.torch.int32).to(self.torch.int64)
+
+    def scalars(self, *xs: Any) -> list[int]:
+        return [int(v) for v in self.torch.stack([x.reshape(()) for x in xs]).cpu().tolist()]
 
     def cumsum(self, x: Any) -> Any:
         return self.torch.cumsum(x, 0, dtype=self.torch.int64)

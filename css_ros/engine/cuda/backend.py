@@ -34,8 +34,9 @@ class CudaFrame:
 
     Attributes:
         cameras: the V cameras. width, height: image size [px]. tiles_x, tiles_per_view: tile grid.
-        num_pairs: M. offsets: (V T + 1,) i64 ranges of each (view, tile) in ``keys``.
-        keys: (max(P, 1),) i64 sorted (view * T + tile) * M + pair. packed: (M, 8) f64 rows
+        num_pairs: M. offsets: (V T + 1,) i64 ranges of each (view, tile) in ``order``.
+        order: (max(P, 1),) i32 pair index of each key, keys sorted by (view * T + tile) << 32 | depth32.
+        packed: (>= M, 8) f64 rows
         (u, v, a, b, c, opacity, qmax, depth). colors: (M, 3) f32. ids: (M,) i32 model rows.
         pair_row: (M,) i32 row of each pair in ``rows``. rows: (R,) i32 model rows whose moments
         the render needs (each once).
@@ -48,7 +49,7 @@ class CudaFrame:
     tiles_per_view: int
     num_pairs: int
     offsets: Any
-    keys: Any
+    order: Any
     packed: Any
     colors: Any
     ids: Any
@@ -186,41 +187,36 @@ class CudaBackend(RasterBackend):
             counter = ops.zeros(1, np.int64)  # int64: cannot wrap (V N < 2^63)
             packed = ops.empty((cap, k.PACK_COLS), np.float64)
             bbox = ops.empty((cap, 4), np.int32)
-            ids = ops.empty(cap, np.int32)
-            views = ops.empty(cap, np.int32)
-            ntiles = ops.empty(cap, np.int32)
+            ids = ops.zeros(cap, np.int32)       # rows past the count: valid model rows ...
+            views = ops.zeros(cap, np.int32)
+            ntiles = ops.zeros(cap, np.int32)    # ... that emit no keys
             colors = ops.empty((cap, 3), np.float32)
             blocks, threads = self._launch_1d(n_views * n)
             if n_views * n:
                 k.project_kernel[blocks, threads](self.means, self.cov3d, self.opacities, self.max_std, self.sh,
                                                   cam_dev, float(width), float(height), self.tile, bool(want_color),
                                                   cap, counter, packed, bbox, ids, views, ntiles, colors)
-            m = ops.scalar(counter[0])
+            ends = ops.cumsum(ntiles)
+            m, total = ops.scalars(counter[0], ends[cap - 1])  # the frame's one device -> host sync
             if m <= cap:
                 break
             cap = m
         self._capacity[n_views] = cap
-        # (view, depth, id) order: stable sorts, least significant key first (slot order is arbitrary)
-        order = ops.argsort_stable(ids[:m])
-        order = order[ops.argsort_stable(packed[:m, 7][order])]
-        if n_views > 1:
-            order = order[ops.argsort_stable(views[:m][order])]
-        packed, bbox, ids, views = packed[order], bbox[order], ids[order], views[order]
-        colors, ntiles = colors[order], ntiles[order]
-        ends = ops.cumsum(ntiles)
-        total = ops.scalar(ends[m - 1]) if m else 0
         keys = ops.empty(max(total, 1), np.int64)
+        order = ops.empty(max(total, 1), np.int32)
         if m:
             blocks, threads = self._launch_1d(m)
-            k.emit_keys_kernel[blocks, threads](bbox, views, ends - ntiles, m, self.tile, tiles_x,
-                                                tiles_per_view, keys)
-            keys[:total] = ops.sort(keys[:total])
-            bounds = ops.arange(n_views * tiles_per_view + 1) * m
-            offsets = ops.searchsorted(keys[:total], bounds)
+            k.emit_keys_kernel[blocks, threads](bbox, views, ends - ntiles, ops.float32_bits(packed[:m, 7]), m,
+                                                self.tile, tiles_x, tiles_per_view, keys, order)
+            sorted_keys, perm = ops.sort_stable(keys[:total])  # one radix sort of (view, tile | depth32)
+            order = order[perm]
+            bounds = ops.arange(n_views * tiles_per_view + 1) * (1 << 32)
+            offsets = ops.searchsorted(sorted_keys, bounds)
         else:
             offsets = ops.zeros(n_views * tiles_per_view + 1, np.int64)
+        ids = ids[:max(m, 1)]
         if n_views == 1:
-            rows, pair_row = ids, ops.arange(m, np.int32)
+            rows, pair_row = ids, ops.arange(max(m, 1), np.int32)
         else:
             flag = ops.zeros(n, np.int32)
             flag[ids] = 1
@@ -229,10 +225,9 @@ class CudaBackend(RasterBackend):
             row_of[rows] = ops.arange(rows.shape[0], np.int32)
             pair_row = row_of[ids]
             rows = rows.to(ids.dtype) if hasattr(rows, "to") else rows.astype(np.int32)
-        if m == 0:  # kernels never read these, but device arrays must not be empty
-            packed, colors = ops.zeros((1, k.PACK_COLS), np.float64), ops.zeros((1, 3), np.float32)
-            ids, pair_row = ops.zeros(1, np.int32), ops.zeros(1, np.int32)
-        return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, keys, packed, colors,
+        if m == 0:
+            rows = rows[:0]
+        return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, order, packed, colors,
                          ids, pair_row, rows)
 
     # ------------------------------------------------------------------ update
@@ -247,7 +242,7 @@ class CudaBackend(RasterBackend):
         lab = ops.upload(labels, np.int32)
         wts = ops.upload(weights, np.float32)
         kernel = self.k.make_update_kernel(int(conc.shape[1]), self.tile)
-        kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.keys, frame.num_pairs, frame.packed,
+        kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.order, frame.packed,
                                                             frame.ids, lab, wts, frame.tiles_x, conc)
         self._device_newer = True
 
@@ -278,7 +273,7 @@ class CudaBackend(RasterBackend):
                           np.float32)
         kernel = self.k.make_render_kernel(num_classes, self.tile, bool(score), bool(want_probs))
         kernel[n_views * frame.tiles_per_view, self.tile * self.tile](
-            frame.offsets, frame.keys, frame.num_pairs, frame.packed, frame.colors, frame.pair_row, mom,
+            frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom,
             float(e_bg), float(v_bg), float(s_bg), ops.upload(np.asarray(bg_rgb, dtype=np.float64)),
             frame.width, frame.height, frame.tiles_x, frame.tiles_per_view, out, probs, scores)
         return out, probs, scores

@@ -6,10 +6,10 @@ Pipeline per batch of views (one view for ``observe`` / ``render``, all candidat
 
 1. :func:`project_kernel`: one thread per (view, Gaussian): EWA projection, SPEC §3 culls, exact
    alpha >= 1/255 box, view-dependent colour; kept pairs are appended through an atomic counter.
-2. (array library) stable sorts to (view, depth, id) order, then per kept pair the number of
-   tiles its box overlaps, prefix sum.
-3. :func:`emit_keys_kernel`: one key ``(view * T + tile) * M + j`` per (pair j, tile); one device
-   sort of these keys gives every tile its front-to-back list, searchsorted its range.
+2. (array library) prefix sum of the number of tiles each kept pair's box overlaps.
+3. :func:`emit_keys_kernel`: one key ``(view * T + tile) << 32 | depth32`` and its pair index per
+   (pair, tile); one stable device radix sort of these keys gives every tile its front-to-back list
+   (equal float32 depths keep their emission order), searchsorted its range.
 4. :func:`moments_kernel`: E, Var, S per visible Gaussian in float32, once per frame.
 5. update / render kernels (:func:`make_update_kernel`, :func:`make_render_kernel`): one block per
    tile, one thread per pixel; the tile's list is staged through shared memory in batches, pixels
@@ -25,7 +25,7 @@ import math
 from functools import lru_cache
 from typing import Any
 
-from numba import cuda, float32, float64, int32
+from numba import cuda, float32, float64, int32, int64
 
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ...errors import CssError
@@ -182,16 +182,21 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
 
 
 @cuda.jit
-def emit_keys_kernel(bbox, view, first, num_pairs, tile, tiles_x, tiles_per_view, keys):  # pragma: no cover
-    """keys[first[j] + k] = (view_j * T + tile_k) * M + j for the k-th tile of pair j's box (M = num_pairs)."""
+def emit_keys_kernel(bbox, view, first, depth_bits, num_pairs, tile, tiles_x, tiles_per_view, keys,
+                     pairs):  # pragma: no cover
+    """For the k-th tile of pair j's box: keys[first[j] + k] = (view_j * T + tile_k) << 32 | depth32_j and
+    pairs[first[j] + k] = j. depth32 is the bit pattern of the float32 depth (positive floats order as
+    their bits), so one radix sort of the keys orders by (view, tile, depth)."""
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
     for j in range(start, num_pairs, stride):
         pos = first[j]
-        base = view[j] * tiles_per_view
+        base = int64(view[j]) * int64(tiles_per_view)  # int64 before the shift (numpy int32 would wrap)
+        low = int64(depth_bits[j])
         for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
             for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
-                keys[pos] = (base + ty * tiles_x + tx) * num_pairs + j
+                keys[pos] = ((base + int64(ty) * int64(tiles_x) + int64(tx)) << int64(32)) | low
+                pairs[pos] = j
                 pos += 1
 
 
@@ -277,7 +282,7 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants).
 
     Launch: grid = tiles of the view, block = tile * tile threads (a multiple of 32). Kernel arguments:
-    offsets (T + 1,) i64 tile ranges in ``keys``; keys (P,) i64 sorted; num_pairs M; packed (M, 8) f64;
+    offsets (T + 1,) i64 tile ranges in ``order``; order (P,) i32 pair of each sorted key; packed (M, 8) f64;
     ids (M,) i32 model rows; labels (H, W) i32 (-1 = none); weights (H, W) f32; tiles_x;
     concentrations (N, C) f64, to which sum_i kappa_in * weight_i is added at [n, label_i].
 
@@ -293,7 +298,7 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     batch = batch_size(4 * STAGE_COLS + 4 + 4 * C, nt)
 
     @cuda.jit
-    def update_kernel(offsets, keys, num_pairs, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
+    def update_kernel(offsets, order, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
         t = cuda.blockIdx.x
         tid = cuda.threadIdx.x
         lane = tid % WARP
@@ -321,7 +326,7 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
                 break  # every labelled pixel of the tile has terminated
             n = min(batch, end - b0)
             if tid < n:
-                j = keys[b0 + tid] % num_pairs
+                j = order[b0 + tid]
                 stage_geometry(s_g, tid, packed, j)
                 s_id[tid] = ids[j]
             for idx in range(tid, batch * C, nt):
@@ -376,7 +381,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
     """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode).
 
     Launch: grid = views * tiles, block = tile * tile threads (a multiple of 32). Kernel arguments:
-    offsets (V T + 1,) i64; keys (P,) i64 sorted; num_pairs M; packed (M, 8) f64; colors (M, 3) f32;
+    offsets (V T + 1,) i64; order (P,) i32 pair of each sorted key; packed (M, 8) f64; colors (M, 3) f32;
     pair_row (M,) i32 row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; e_bg, v_bg, s_bg
     background moments; bg_rgb (3,) f64; width, height [px]; tiles_x, tiles_per_view; outputs:
 
@@ -399,7 +404,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
     n_acc = 2 * C  # shared array shapes must be compile-time constants
 
     @cuda.jit
-    def render_kernel(offsets, keys, num_pairs, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
+    def render_kernel(offsets, order, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
                       width, height, tiles_x, tiles_per_view, out, probs_out, scores):  # pragma: no cover
         b = cuda.blockIdx.x
         tid = cuda.threadIdx.x
@@ -431,7 +436,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
                 break
             n = min(batch, end - b0)
             if tid < n:
-                j = keys[b0 + tid] % num_pairs
+                j = order[b0 + tid]
                 stage_geometry(s_g, tid, packed, j)
                 row = pair_row[j]
                 s_row[tid] = row

@@ -98,12 +98,13 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
         ("project", k.project_kernel.py_func,
          (f64_2, f64_2, f64_1, f64_1, float32[:, :, ::1], f64_2, float64, float64, int64, boolean, int64, i64_1,
           f64_2, i32_2, i32_1, i32_1, i32_1, f32_2), 256),
-        ("emit_keys", k.emit_keys_kernel.py_func, (i32_2, i32_1, i64_1, int64, int64, int64, int64, i64_1), 256),
+        ("emit_keys", k.emit_keys_kernel.py_func, (i32_2, i32_1, i64_1, i64_1, int64, int64, int64, int64, i64_1,
+                                                   i32_1), 256),
         ("moments", k.moments_kernel.py_func, (f64_2, i32_1, f32_2), 256),
         (f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func,
-         (i64_1, i64_1, int64, f64_2, i32_1, i32_2, f32_2, int64, f64_2), nt),
+         (i64_1, i32_1, f64_2, i32_1, i32_2, f32_2, int64, f64_2), nt),
     ]
-    render_sig = (i64_1, i64_1, int64, f64_2, f32_2, i32_1, f32_2, float64, float64, float64, f64_1, int64, int64,
+    render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, float64, float64, float64, f64_1, int64, int64,
                   int64, int64, f32_4, f32_4, f64_2)
     for score, probs, label in ((False, False, "render"), (False, True, "render_probs"), (True, False, "score")):
         out.append((f"{label}_C{num_classes}", k.make_render_kernel(num_classes, tile, score, probs).py_func,
