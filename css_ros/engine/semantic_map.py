@@ -192,14 +192,14 @@ class SemanticMap:
         :attr:`concentrations_readonly` when not writing."""
         return self._backend.host_write(self._concentrations)
 
+    @concentrations.setter
+    def concentrations(self, value: np.ndarray) -> None:
+        self._concentrations = value
+
     @property
     def concentrations_readonly(self) -> np.ndarray:
         """(N, C) float64 alpha, up to date, read-only (no re-upload to a device afterwards)."""
         return self._backend.host_read(self._concentrations)
-
-    @concentrations.setter
-    def concentrations(self, value: np.ndarray) -> None:
-        self._concentrations = value
 
     def reset(self) -> None:
         """Forget every observation: all concentrations back to the prior."""

@@ -70,6 +70,14 @@ class NumpyOps:
         """dst[...] = host (host -> device, same shape)."""
         dst[...] = self.xp.asarray(np.ascontiguousarray(host, dtype=dst.dtype))
 
+    def upload_frame(self, name: str, host: np.ndarray, dtype: Any) -> Any:
+        """Per-frame input (labels, weights); pinned and asynchronous on torch (see TorchOps)."""
+        return self.upload(host, dtype)
+
+    def download_frame(self, name: str, dev: Any) -> np.ndarray:
+        """The frame's result (one synchronising copy on a GPU)."""
+        return np.array(self.download(dev))
+
     def download(self, dev: Any) -> np.ndarray:
         """Device array -> host numpy array (a copy on a GPU)."""
         get = getattr(dev, "get", None)
@@ -128,6 +136,7 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         self.torch = torch
         self.name = "torch"
         self.device = torch.device("cuda", 0 if device is None else int(device))
+        self._pinned_cache: dict[tuple, Any] = {}
 
     def _dt(self, dtype: Any) -> Any:
         return getattr(self.torch, self._DTYPES[np.dtype(dtype)])
@@ -144,6 +153,32 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
     def upload(self, host: np.ndarray, dtype: Any = None) -> Any:
         a = np.ascontiguousarray(host if dtype is None else np.asarray(host, dtype=dtype))
         return self.torch.from_numpy(a).to(self.device)
+
+    def _pinned(self, name: str, shape: tuple, dtype: Any) -> Any:
+        """A page-locked host buffer kept per (name, shape, dtype): DMA without a staging copy."""
+        key = (name, tuple(shape), np.dtype(dtype))
+        buf = self._pinned_cache.get(key)
+        if buf is None:
+            buf = self.torch.empty(tuple(shape), dtype=self._dt(dtype)).pin_memory()
+            self._pinned_cache[key] = buf
+        return buf
+
+    def upload_frame(self, name: str, host: np.ndarray, dtype: Any) -> Any:
+        """Per-frame input (labels, weights) through a pinned buffer, copied asynchronously (the
+        frame's final download synchronises, so the buffer is free again by the next frame)."""
+        buf = self._pinned(name, host.shape, dtype)
+        buf.numpy()[...] = host
+        return buf.to(self.device, non_blocking=True)
+
+    def download_frame(self, name: str, dev: Any) -> np.ndarray:
+        """The frame's result through a pinned buffer: one synchronising copy, returned as a fresh array."""
+        buf = self._pinned(name, tuple(dev.shape), self._np_dtype(dev.dtype))
+        buf.copy_(dev, non_blocking=True)
+        self.torch.cuda.current_stream(self.device).synchronize()
+        return buf.numpy().copy()
+
+    def _np_dtype(self, tdtype: Any) -> Any:
+        return next(k for k, v in self._DTYPES.items() if getattr(self.torch, v) == tdtype)
 
     def copy_into(self, dst: Any, host: np.ndarray) -> None:
         dst.copy_(self.torch.from_numpy(np.ascontiguousarray(host)).to(dst.dtype))

@@ -239,8 +239,8 @@ class CudaBackend(RasterBackend):
         if frame.num_pairs == 0:
             return
         ops = self.ops
-        lab = ops.upload(labels, np.int32)
-        wts = ops.upload(weights, np.float32)
+        lab = ops.upload_frame("labels", labels, np.int32)
+        wts = ops.upload_frame("weights", weights, np.float32)
         kernel = self.k.make_update_kernel(int(conc.shape[1]), self.tile)
         kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.order, frame.packed,
                                                             frame.ids, lab, wts, frame.tiles_x, conc)
@@ -283,7 +283,7 @@ class CudaBackend(RasterBackend):
         """Composite colour, E, Var (argmax class), kappa_b and evidence; one transfer of (H, W, 8) f32."""
         conc = self._device_concentrations_for_read(concentrations)
         out, probs, _ = self._render(frame, conc, e_bg, v_bg, s_bg, bg_rgb, False, want_probs)
-        host = self.ops.download(out)[0]
+        host = self.ops.download_frame("render", out)[0]
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         return RenderBuffers(
             labels=np.ascontiguousarray(host[..., 0], dtype=np.int32),
