@@ -40,7 +40,8 @@ setup(
         # GPU backend (docs/cuda.md): kernels in numba-cuda; needs a CUDA build of torch (or cupy) on the GPU
         # machine for device-wide sorts. Its simulator (NUMBA_ENABLE_CUDASIM=1) runs the tests without a GPU.
         "cuda": ["numba-cuda==0.30.4"],
-        "test": ["pytest>=7", "pytest-timeout>=2.1", "torch==2.13.0", "numba-cuda==0.30.4"],
+        "test": ["pytest>=7", "pytest-timeout>=2.1", "torch==2.13.0", "numba-cuda==0.30.4", "ruff==0.17.5",
+                 "mypy==2.4.1"],
         # proves the package builds as an ament_python package (test/test_node_colcon.py)
         "colcon": ["colcon-core", "colcon-ros", "colcon-python-setup-py", "ros-jazzy-ament-package"],
         "all": [
@@ -55,6 +56,8 @@ setup(
             "colcon-ros",
             "colcon-python-setup-py",
             "ros-jazzy-ament-package",
+            "ruff==0.17.5",
+            "mypy==2.4.1",
         ],
     },
     zip_safe=True,

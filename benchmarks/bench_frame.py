@@ -427,7 +427,8 @@ def main(argv: list[str] | None = None) -> int:
         elif name == "500k":
             cfg["candidates"] = 0 if args.no_candidates else 16
             cfg["torch_frames"] = 0 if args.no_torch else 3
-        print(f"[{name}] {cfg['gaussians']} Gaussians (SH degree {cfg['sh_degree']}), {cfg['width']}x{cfg['height']}, {cfg['classes']} classes ...",
+        print(f"[{name}] {cfg['gaussians']} Gaussians (SH degree {cfg['sh_degree']}), "
+              f"{cfg['width']}x{cfg['height']}, {cfg['classes']} classes ...",
               flush=True)
         out = subprocess.run([sys.executable, __file__, "--frames", str(args.frames), "--warmup", str(args.warmup),
                               "--_child", json.dumps(cfg)], capture_output=True, text=True, env=env)

@@ -22,7 +22,7 @@ ALLOWED: dict[str, set[str]] = {
     "evaluation": {"engine", "io", "export"},
     "export": {"engine", "io"},
     "importers": {"engine", "io"},
-    "ros": {"engine", "io", "evaluation", "export"},
+    "ros": {"engine", "io", "export"},
     "demo": {"engine", "io", "evaluation", "ros"},
     "clients": {"engine", "io", "ros"},
 }

@@ -11,5 +11,6 @@ from .field3d import FieldIndex, FieldQuery, GaussianSemantics
 from .gaussians import GaussianModel
 from .semantic_map import RenderedView, SemanticMap, UpdateStats, image_uncertainty
 
-__all__ = ["Camera", "ClassSet", "FieldIndex", "FieldQuery", "GaussianModel", "GaussianSemantics", "RenderedView", "SemanticMap", "UpdateStats",
+__all__ = ["Camera", "ClassSet", "FieldIndex", "FieldQuery", "GaussianModel", "GaussianSemantics", "RenderedView",
+           "SemanticMap", "UpdateStats",
            "body_to_optical_rotation", "image_uncertainty", "intrinsics_from_fov"]

@@ -1,7 +1,8 @@
 """Rasteriser backends behind one small protocol; adding a backend is adding a registry entry."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Protocol, Sequence
+from abc import ABC, abstractmethod
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -13,23 +14,53 @@ if TYPE_CHECKING:
     from .buffers import RenderBuffers
 
 
-class RasterBackend(Protocol):
-    """What SemanticMap needs from a rasteriser. ``frame`` is the backend's own per-view state
-    (projection + tile bins), computed once by :meth:`prepare` and reused by update and render."""
+class RasterBackend(ABC):
+    """What SemanticMap needs from a rasteriser (the backend contract). ``frame`` is the backend's own
+    per-view state (projection + tile bins), computed once by :meth:`prepare` and reused by update and
+    render. The concentrations are SemanticMap's host array (N, C) float64; a backend that keeps a copy
+    on a device (cuda) overrides :meth:`host_read` / :meth:`host_write` to keep the two coherent;
+    :meth:`score_views` defaults to reducing :meth:`score_images`."""
 
+    @abstractmethod
     def prepare(self, camera: "Camera") -> Any: ...
+
+    @abstractmethod
 
     def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
         """concentrations[n, c] += sum_i kappa_in y_i^c (labels (H, W) int32, -1 = none; weights (H, W))."""
+
+    @abstractmethod
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
         """Composite colour, E, Var (argmax class), kappa_b and evidence from the current concentrations."""
 
+    @abstractmethod
+
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """(expectation, variance) images of several query views of one map state, in order: the
         inputs of U_var and U_exp. Exactly what ``render`` gives for them, possibly computed faster."""
+
+    def score_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                    s_bg: float) -> np.ndarray:
+        """(V, 2) float64 (U_var, U_exp) of SPEC §6 per view, from :meth:`score_images`."""
+        from .semantic_map import image_uncertainty  # the one definition of U_var / U_exp
+
+        scores = np.empty((len(cameras), 2))
+        for i, (expectation, variance) in enumerate(self.score_images(cameras, concentrations, e_bg, v_bg, s_bg)):
+            scores[i] = image_uncertainty(expectation, variance)
+        return scores
+
+    def host_read(self, host: np.ndarray) -> np.ndarray:
+        """``host`` up to date, for reading only (reading never forces a re-upload). Host-resident
+        backends hand out the array itself (a read-only view would make numba compile a second
+        specialisation of every kernel it reaches)."""
+        return host
+
+    def host_write(self, host: np.ndarray) -> np.ndarray:
+        """``host`` up to date and writable; a device copy is refreshed from it before the next kernel."""
+        return host
 
 
 def _numba_backend(model: "GaussianModel") -> RasterBackend:

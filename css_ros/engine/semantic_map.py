@@ -187,14 +187,19 @@ class SemanticMap:
     # ------------------------------------------------------------------ state
     @property
     def concentrations(self) -> np.ndarray:
-        """(N, C) float64 alpha. A backend that keeps them on a device (``host_view``) brings this
-        host array up to date first and treats it as possibly modified afterwards."""
-        host_view = getattr(self._backend, "host_view", None)
-        return self._concentrations if host_view is None else host_view(self._concentrations)
+        """(N, C) float64 alpha, for writing: a backend that keeps them on a device brings this host
+        array up to date first and treats it as modified afterwards (re-uploads it). Read through
+        :attr:`concentrations_readonly` when not writing."""
+        return self._backend.host_write(self._concentrations)
 
     @concentrations.setter
     def concentrations(self, value: np.ndarray) -> None:
         self._concentrations = value
+
+    @property
+    def concentrations_readonly(self) -> np.ndarray:
+        """(N, C) float64 alpha, up to date, read-only (no re-upload to a device afterwards)."""
+        return self._backend.host_read(self._concentrations)
 
     def reset(self) -> None:
         """Forget every observation: all concentrations back to the prior."""
@@ -298,14 +303,7 @@ class SemanticMap:
             (len(cameras), 2) float64, columns (U_var, U_exp), in the order of ``cameras``.
         """
         e_b, v_b, s_b = self._background_moments()
-        batched = getattr(self._backend, "score_views", None)  # all views in one launch (cuda)
-        if batched is not None:
-            return batched(list(cameras), self._concentrations, e_b, v_b, s_b)
-        scores = np.empty((len(cameras), 2))
-        images = self._backend.score_images(list(cameras), self._concentrations, e_b, v_b, s_b)
-        for i, (expectation, variance) in enumerate(images):
-            scores[i] = image_uncertainty(expectation, variance)
-        return scores
+        return self._backend.score_views(list(cameras), self._concentrations, e_b, v_b, s_b)
 
     # ------------------------------------------------------------------ the map in 3D (SPEC §9)
     def gaussian_semantics(self, min_evidence: float = DEFAULT_MIN_EVIDENCE) -> GaussianSemantics:
@@ -313,7 +311,7 @@ class SemanticMap:
 
         Unobserved Gaussians (S_n - C α_0 < ``min_evidence``) get ``ignore_label``.
         """
-        return gaussian_semantics(self.concentrations, self.prior, min_evidence, self.ignore_label)
+        return gaussian_semantics(self.concentrations_readonly, self.prior, min_evidence, self.ignore_label)
 
     def query_points(self, xyz: np.ndarray,
                      background_weight: float = DEFAULT_QUERY_BACKGROUND_WEIGHT) -> FieldQuery:
@@ -330,7 +328,7 @@ class SemanticMap:
         if self._field_index is None:
             self._field_index = FieldIndex.from_model(self.model)
         e_b, v_b, _ = self._background_moments()
-        return query_field(self._field_index, self.concentrations, xyz, background_weight, (e_b, v_b),
+        return query_field(self._field_index, self.concentrations_readonly, xyz, background_weight, (e_b, v_b),
                            self.unknown_threshold, self.ignore_label)
 
     # ------------------------------------------------------------------ persistence
@@ -348,7 +346,7 @@ class SemanticMap:
                 np.savez(
                     fh,
                     format_version=np.int64(MAP_FORMAT_VERSION),
-                    concentrations=self.concentrations,
+                    concentrations=self.concentrations_readonly,
                     prior=np.float64(self.prior),
                     background=np.float64(self.background),
                     num_classes=np.int64(self.num_classes),

@@ -11,7 +11,7 @@ from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIO
 from ..engine.backends import BACKENDS
 from ..engine.warmup import warm_up_kernels
 from ..console import run_console
-from ..errors import ConfigError, CssError
+from ..errors import ConfigError
 from ..io.paths import find_demo_bag
 from ..engine.similarity import Similarity, parse_extrinsics
 from ..io.params_file import PARAMS_FILE_NAME, read_params_file

@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
+from ..engine.photometric import psnr  # noqa: F401  (re-exported: the evaluation API)
 
 #: Default removal fractions of sparsification curves: 0.00, 0.01, ..., 0.99.
 DEFAULT_FRACTIONS: np.ndarray = np.round(np.arange(0.0, 1.0, 0.01), 2)
@@ -351,10 +352,3 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
     ry = rankdata(y) - (y.size + 1) / 2.0
     den = np.sqrt(np.sum(rx * rx) * np.sum(ry * ry))
     return float(np.sum(rx * ry) / den) if den > 0 else float("nan")
-
-
-def psnr(a: np.ndarray, b: np.ndarray, peak: float = 255.0) -> float:
-    """Peak signal-to-noise ratio in dB of two same-shape images (inf when identical)."""
-    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
-    mse = float(np.mean(d * d))
-    return float("inf") if mse == 0 else float(10.0 * np.log10(peak * peak / mse))

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -13,7 +12,6 @@ from tqdm import tqdm
 from ..engine.classes import ClassSet
 from ..console import run_console
 from ..engine.similarity import Similarity
-from ..errors import CssError
 from ..io.params_file import PARAMS_FILE_NAME
 from .colmap import load_colmap
 from .inria import load_inria

@@ -14,7 +14,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, ReaderError, Sto
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
-from ..errors import BagError, CssError
+from ..errors import BagError
 from .messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points
 from .topics import CAMERA_INFO_TYPE, IMAGE_TYPE, POINTCLOUD2_TYPE, POSE_STAMPED_TYPE
 

@@ -27,7 +27,7 @@ from .gate import InputGate, NanAnswer
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
 from .startup import load_engine, warm_up
-from .work import CandidateJob, WarnLimiter, WorkQueue
+from .work import WarnLimiter, WorkQueue
 from .worker import MapWorker
 
 #: Depth of the save_map / reset_map service queues: bursts up to this many calls are all answered.

@@ -24,7 +24,7 @@ import numpy as np
 from ..engine.camera import Camera
 from ..engine.semantic_map import SemanticMap
 from ..errors import CameraError, MapError
-from ..evaluation.metrics import psnr
+from ..engine.photometric import psnr
 from ..io.frames import resample_to
 from .params import NodeParams
 from .work import CandidateJob, FrameJob, PointQueryJob, RequestJob, WarnLimiter, WorkQueue

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
+from ..backends import RasterBackend
 from .projection import GaussianGeometry, ProjectionScratch, project
 from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
 
@@ -16,7 +17,7 @@ if TYPE_CHECKING:
     from ..gaussians import GaussianModel
 
 
-class NumbaBackend:
+class NumbaBackend(RasterBackend):
     """Compiled CPU path: numba projection, tile binning and per-pixel kernels.
 
     ``update`` records each pixel's contributions; a ``render`` of the same frame (as in

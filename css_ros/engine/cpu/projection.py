@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3, eval_sh
-from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN
+from ..spec import ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE
 
 if TYPE_CHECKING:
     from ..camera import Camera

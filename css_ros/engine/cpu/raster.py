@@ -396,7 +396,8 @@ def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb
                     if use_store and pix_cnt[q] >= 0:
                         off = pix_off[q]
                         c = pix_cnt[q]
-                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
+                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, eacc,
+                                     e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
                                      out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs)
                     else:
                         _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, eacc,

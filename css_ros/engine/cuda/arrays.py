@@ -70,6 +70,14 @@ class NumpyOps:
         """dst[...] = host (host -> device, same shape)."""
         dst[...] = self.xp.asarray(np.ascontiguousarray(host, dtype=dst.dtype))
 
+    def upload_frame(self, name: str, host: np.ndarray, dtype: Any) -> Any:
+        """Per-frame input (labels, weights); pinned and asynchronous on torch (see TorchOps)."""
+        return self.upload(host, dtype)
+
+    def download_frame(self, name: str, dev: Any) -> np.ndarray:
+        """The frame's result (one synchronising copy on a GPU)."""
+        return np.array(self.download(dev))
+
     def download(self, dev: Any) -> np.ndarray:
         """Device array -> host numpy array (a copy on a GPU)."""
         get = getattr(dev, "get", None)
@@ -80,6 +88,19 @@ class NumpyOps:
 
     def sort(self, x: Any) -> Any:
         return self.xp.sort(x)
+
+    def sort_stable(self, x: Any) -> tuple[Any, Any]:
+        """(sorted x, the permutation), stable."""
+        perm = self.xp.argsort(x, kind="stable")
+        return x[perm], perm
+
+    def float32_bits(self, x: Any) -> Any:
+        """int64 bit patterns of x rounded to float32 (for x > 0 they order as the values)."""
+        return x.astype(np.float32).view(np.int32).astype(np.int64)
+
+    def scalars(self, *xs: Any) -> list[int]:
+        """Several one-element device values -> Python ints in one transfer."""
+        return [int(v) for v in self.download(self.xp.stack([self.xp.asarray(x) for x in xs]))]
 
     def cumsum(self, x: Any) -> Any:
         """Inclusive prefix sum, int64."""
@@ -115,6 +136,7 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         self.torch = torch
         self.name = "torch"
         self.device = torch.device("cuda", 0 if device is None else int(device))
+        self._pinned_cache: dict[tuple, Any] = {}
 
     def _dt(self, dtype: Any) -> Any:
         return getattr(self.torch, self._DTYPES[np.dtype(dtype)])
@@ -132,6 +154,32 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         a = np.ascontiguousarray(host if dtype is None else np.asarray(host, dtype=dtype))
         return self.torch.from_numpy(a).to(self.device)
 
+    def _pinned(self, name: str, shape: tuple, dtype: Any) -> Any:
+        """A page-locked host buffer kept per (name, shape, dtype): DMA without a staging copy."""
+        key = (name, tuple(shape), np.dtype(dtype))
+        buf = self._pinned_cache.get(key)
+        if buf is None:
+            buf = self.torch.empty(tuple(shape), dtype=self._dt(dtype)).pin_memory()
+            self._pinned_cache[key] = buf
+        return buf
+
+    def upload_frame(self, name: str, host: np.ndarray, dtype: Any) -> Any:
+        """Per-frame input (labels, weights) through a pinned buffer, copied asynchronously (the
+        frame's final download synchronises, so the buffer is free again by the next frame)."""
+        buf = self._pinned(name, host.shape, dtype)
+        buf.numpy()[...] = host
+        return buf.to(self.device, non_blocking=True)
+
+    def download_frame(self, name: str, dev: Any) -> np.ndarray:
+        """The frame's result through a pinned buffer: one synchronising copy, returned as a fresh array."""
+        buf = self._pinned(name, tuple(dev.shape), self._np_dtype(dev.dtype))
+        buf.copy_(dev, non_blocking=True)
+        self.torch.cuda.current_stream(self.device).synchronize()
+        return buf.numpy().copy()
+
+    def _np_dtype(self, tdtype: Any) -> Any:
+        return next(k for k, v in self._DTYPES.items() if getattr(self.torch, v) == tdtype)
+
     def copy_into(self, dst: Any, host: np.ndarray) -> None:
         dst.copy_(self.torch.from_numpy(np.ascontiguousarray(host)).to(dst.dtype))
 
@@ -143,6 +191,16 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
 
     def sort(self, x: Any) -> Any:
         return self.torch.sort(x).values
+
+    def sort_stable(self, x: Any) -> tuple[Any, Any]:
+        res = self.torch.sort(x, stable=True)  # device-wide radix sort (CUB) for integer keys
+        return res.values, res.indices
+
+    def float32_bits(self, x: Any) -> Any:
+        return x.to(self.torch.float32).view(self.torch.int32).to(self.torch.int64)
+
+    def scalars(self, *xs: Any) -> list[int]:
+        return [int(v) for v in self.torch.stack([x.reshape(()) for x in xs]).cpu().tolist()]
 
     def cumsum(self, x: Any) -> Any:
         return self.torch.cumsum(x, 0, dtype=self.torch.int64)

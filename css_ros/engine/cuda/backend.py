@@ -10,11 +10,14 @@ observed frame the only transfers are the labels/weights in and one (H, W, 8) fl
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
+from ...errors import CssError
+from ..backends import RasterBackend
 from ..buffers import RenderBuffers
 from ..spec import TILE_SIZE
 from .arrays import import_cuda, make_ops, simulator_enabled
@@ -31,8 +34,9 @@ class CudaFrame:
 
     Attributes:
         cameras: the V cameras. width, height: image size [px]. tiles_x, tiles_per_view: tile grid.
-        num_pairs: M. offsets: (V T + 1,) i64 ranges of each (view, tile) in ``keys``.
-        keys: (max(P, 1),) i64 sorted (view * T + tile) * M + pair. packed: (M, 8) f64 rows
+        num_pairs: M. offsets: (V T + 1,) i64 ranges of each (view, tile) in ``order``.
+        order: (max(P, 1),) i32 pair index of each key, keys sorted by (view * T + tile) << 32 | depth32.
+        packed: (>= M, 8) f64 rows
         (u, v, a, b, c, opacity, qmax, depth). colors: (M, 3) f32. ids: (M,) i32 model rows.
         pair_row: (M,) i32 row of each pair in ``rows``. rows: (R,) i32 model rows whose moments
         the render needs (each once).
@@ -45,7 +49,7 @@ class CudaFrame:
     tiles_per_view: int
     num_pairs: int
     offsets: Any
-    keys: Any
+    order: Any
     packed: Any
     colors: Any
     ids: Any
@@ -53,7 +57,7 @@ class CudaFrame:
     rows: Any
 
 
-class CudaBackend:
+class CudaBackend(RasterBackend):
     """numba-cuda rasteriser (SPEC §3-6) with the model and the concentrations on the GPU.
 
     Args:
@@ -67,12 +71,14 @@ class CudaBackend:
     def __init__(self, model: "GaussianModel", device: int | None = None, tile_size: int = TILE_SIZE) -> None:
         self.cuda = import_cuda()
         self.simulated = simulator_enabled()
-        if device is not None and not self.simulated:  # pragma: no cover - GPU only
-            self.cuda.select_device(int(device))
+        self.device = None if device is None else int(device)
+        self._thread = threading.local()
+        self._bind()
         self.ops = make_ops(device)
         from . import kernels  # compiles lazily, at the first launch
 
         self.k = kernels
+        self._probe()
         self.tile = int(tile_size)
         ops = self.ops
         scales = np.asarray(model.scales, dtype=np.float64)
@@ -90,6 +96,32 @@ class CudaBackend:
         self._host_dirty = True
         self._device_newer = False
 
+    def _probe(self) -> None:
+        """Compile and run the smallest kernel once, so that a broken stack (numba-cuda vs numpy,
+        driver, toolkit) fails here, at start, as one CssError naming cause and fix, not as a
+        traceback at the first frame."""
+        try:
+            conc = self.ops.upload(np.ones((1, 2)), np.float64)
+            out = self.ops.empty((1, 5), np.float32)
+            self.k.moments_kernel[1, 1](conc, self.ops.upload(np.zeros(1, np.int32)), out)
+            got = self.ops.download(out)
+        except Exception as exc:  # any failure of the CUDA stack: reported in one line
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+            raise CssError(f"backend 'cuda' cannot run kernels ({type(exc).__name__}: {first[:200]}); fix: "
+                           "numba-cuda 0.30.4 with numpy<2.4 and a CUDA build of torch or cupy "
+                           "(pip install -e '.[cuda]', docs/cuda.md), or use backend 'numba'") from exc
+        if not np.allclose(got[0], [0.5, 0.5, 1 / 12, 1 / 12, 2.0]):
+            raise CssError(f"backend 'cuda': the probe kernel returned {got[0].tolist()} instead of the Dirichlet "
+                           "moments of (1, 1); the GPU stack is broken: use backend 'numba'")
+
+    def _bind(self) -> None:
+        """Make ``device`` current in the calling thread (numba's CUDA context is per thread: a node
+        that launches from an executor thread must select it there too); once per thread."""
+        if self.device is None or self.simulated or getattr(self._thread, "bound", False):
+            return
+        self.cuda.select_device(self.device)  # pragma: no cover - GPU only
+        self._thread.bound = True  # pragma: no cover - GPU only
+
     # ------------------------------------------------------------------ concentrations
     def _device_concentrations(self, host: np.ndarray) -> Any:
         """The device copy of the concentrations, uploaded first if the host array may differ."""
@@ -102,12 +134,23 @@ class CudaBackend:
         self._host, self._host_dirty = host, False
         return self._conc
 
-    def host_view(self, host: np.ndarray) -> np.ndarray:
-        """Bring ``host`` up to date with the device (if the device is newer) and hand it out; it may be
-        written afterwards, so the next kernel that needs the concentrations uploads it again."""
+    def _download_if_newer(self, host: np.ndarray) -> None:
         if self._device_newer and host is self._host and self._conc is not None:
             host[...] = self.ops.download(self._conc)
         self._device_newer = False
+
+    def host_read(self, host: np.ndarray) -> np.ndarray:
+        """``host`` brought up to date with the device (one download if an update happened since), as a
+        read-only view: the device copy stays valid, nothing is uploaded again."""
+        self._download_if_newer(host)
+        view = host.view()
+        view.flags.writeable = False  # a write through it would silently miss the device copy
+        return view
+
+    def host_write(self, host: np.ndarray) -> np.ndarray:
+        """``host`` brought up to date and handed out for writing: the next kernel that needs the
+        concentrations uploads it again (the whole (N, C) array: writes are rare, e.g. load / reset)."""
+        self._download_if_newer(host)
         self._host_dirty = True
         return host
 
@@ -120,6 +163,7 @@ class CudaBackend:
 
     def prepare_views(self, cameras: Sequence["Camera"], want_color: bool) -> CudaFrame:
         """Project, depth-sort and tile-bin V views of one image size in a fixed number of launches."""
+        self._bind()
         ops, k = self.ops, self.k
         cams = list(cameras)
         width, height = int(cams[0].width), int(cams[0].height)
@@ -140,44 +184,39 @@ class CudaBackend:
         cam_dev = ops.upload(cam_rows)
         cap = self._capacity.get(n_views, max(1, min(n_views * n, 4 * n)))
         while True:
-            counter = ops.zeros(1, np.int32)
+            counter = ops.zeros(1, np.int64)  # int64: cannot wrap (V N < 2^63)
             packed = ops.empty((cap, k.PACK_COLS), np.float64)
             bbox = ops.empty((cap, 4), np.int32)
-            ids = ops.empty(cap, np.int32)
-            views = ops.empty(cap, np.int32)
-            ntiles = ops.empty(cap, np.int32)
+            ids = ops.zeros(cap, np.int32)       # rows past the count: valid model rows ...
+            views = ops.zeros(cap, np.int32)
+            ntiles = ops.zeros(cap, np.int32)    # ... that emit no keys
             colors = ops.empty((cap, 3), np.float32)
             blocks, threads = self._launch_1d(n_views * n)
             if n_views * n:
                 k.project_kernel[blocks, threads](self.means, self.cov3d, self.opacities, self.max_std, self.sh,
                                                   cam_dev, float(width), float(height), self.tile, bool(want_color),
                                                   cap, counter, packed, bbox, ids, views, ntiles, colors)
-            m = ops.scalar(counter[0])
+            ends = ops.cumsum(ntiles)
+            m, total = ops.scalars(counter[0], ends[cap - 1])  # the frame's one device -> host sync
             if m <= cap:
                 break
             cap = m
         self._capacity[n_views] = cap
-        # (view, depth, id) order: stable sorts, least significant key first (slot order is arbitrary)
-        order = ops.argsort_stable(ids[:m])
-        order = order[ops.argsort_stable(packed[:m, 7][order])]
-        if n_views > 1:
-            order = order[ops.argsort_stable(views[:m][order])]
-        packed, bbox, ids, views = packed[order], bbox[order], ids[order], views[order]
-        colors, ntiles = colors[order], ntiles[order]
-        ends = ops.cumsum(ntiles)
-        total = ops.scalar(ends[m - 1]) if m else 0
         keys = ops.empty(max(total, 1), np.int64)
+        order = ops.empty(max(total, 1), np.int32)
         if m:
             blocks, threads = self._launch_1d(m)
-            k.emit_keys_kernel[blocks, threads](bbox, views, ends - ntiles, m, self.tile, tiles_x,
-                                                tiles_per_view, keys)
-            keys[:total] = ops.sort(keys[:total])
-            bounds = ops.arange(n_views * tiles_per_view + 1) * m
-            offsets = ops.searchsorted(keys[:total], bounds)
+            k.emit_keys_kernel[blocks, threads](bbox, views, ends - ntiles, ops.float32_bits(packed[:m, 7]), m,
+                                                self.tile, tiles_x, tiles_per_view, keys, order)
+            sorted_keys, perm = ops.sort_stable(keys[:total])  # one radix sort of (view, tile | depth32)
+            order = order[perm]
+            bounds = ops.arange(n_views * tiles_per_view + 1) * (1 << 32)
+            offsets = ops.searchsorted(sorted_keys, bounds)
         else:
             offsets = ops.zeros(n_views * tiles_per_view + 1, np.int64)
+        ids = ids[:max(m, 1)]
         if n_views == 1:
-            rows, pair_row = ids, ops.arange(m, np.int32)
+            rows, pair_row = ids, ops.arange(max(m, 1), np.int32)
         else:
             flag = ops.zeros(n, np.int32)
             flag[ids] = 1
@@ -186,24 +225,24 @@ class CudaBackend:
             row_of[rows] = ops.arange(rows.shape[0], np.int32)
             pair_row = row_of[ids]
             rows = rows.to(ids.dtype) if hasattr(rows, "to") else rows.astype(np.int32)
-        if m == 0:  # kernels never read these, but device arrays must not be empty
-            packed, colors = ops.zeros((1, k.PACK_COLS), np.float64), ops.zeros((1, 3), np.float32)
-            ids, pair_row = ops.zeros(1, np.int32), ops.zeros(1, np.int32)
-        return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, keys, packed, colors,
+        if m == 0:
+            rows = rows[:0]
+        return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, order, packed, colors,
                          ids, pair_row, rows)
 
     # ------------------------------------------------------------------ update
     def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
         """concentrations[n, c] += sum_i kappa_in y_i^c on the device (labels (H, W) int32, -1 = none;
         weights (H, W) float32). The host array is brought up to date lazily (``host_view``)."""
+        self._bind()
         conc = self._device_concentrations(concentrations)
         if frame.num_pairs == 0:
             return
         ops = self.ops
-        lab = ops.upload(labels, np.int32)
-        wts = ops.upload(weights, np.float32)
+        lab = ops.upload_frame("labels", labels, np.int32)
+        wts = ops.upload_frame("weights", weights, np.float32)
         kernel = self.k.make_update_kernel(int(conc.shape[1]), self.tile)
-        kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.keys, frame.num_pairs, frame.packed,
+        kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.order, frame.packed,
                                                             frame.ids, lab, wts, frame.tiles_x, conc)
         self._device_newer = True
 
@@ -219,6 +258,7 @@ class CudaBackend:
 
     def _render(self, frame: CudaFrame, conc: Any, e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
                 score: bool, want_probs: bool) -> tuple[Any, Any, Any]:
+        self._bind()
         ops = self.ops
         num_classes = int(conc.shape[1])
         n_views = len(frame.cameras)
@@ -233,7 +273,7 @@ class CudaBackend:
                           np.float32)
         kernel = self.k.make_render_kernel(num_classes, self.tile, bool(score), bool(want_probs))
         kernel[n_views * frame.tiles_per_view, self.tile * self.tile](
-            frame.offsets, frame.keys, frame.num_pairs, frame.packed, frame.colors, frame.pair_row, mom,
+            frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom,
             float(e_bg), float(v_bg), float(s_bg), ops.upload(np.asarray(bg_rgb, dtype=np.float64)),
             frame.width, frame.height, frame.tiles_x, frame.tiles_per_view, out, probs, scores)
         return out, probs, scores
@@ -243,7 +283,7 @@ class CudaBackend:
         """Composite colour, E, Var (argmax class), kappa_b and evidence; one transfer of (H, W, 8) f32."""
         conc = self._device_concentrations_for_read(concentrations)
         out, probs, _ = self._render(frame, conc, e_bg, v_bg, s_bg, bg_rgb, False, want_probs)
-        host = self.ops.download(out)[0]
+        host = self.ops.download_frame("render", out)[0]
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         return RenderBuffers(
             labels=np.ascontiguousarray(host[..., 0], dtype=np.int32),

@@ -6,10 +6,10 @@ Pipeline per batch of views (one view for ``observe`` / ``render``, all candidat
 
 1. :func:`project_kernel`: one thread per (view, Gaussian): EWA projection, SPEC §3 culls, exact
    alpha >= 1/255 box, view-dependent colour; kept pairs are appended through an atomic counter.
-2. (array library) stable sorts to (view, depth, id) order, then per kept pair the number of
-   tiles its box overlaps, prefix sum.
-3. :func:`emit_keys_kernel`: one key ``(view * T + tile) * M + j`` per (pair j, tile); one device
-   sort of these keys gives every tile its front-to-back list, searchsorted its range.
+2. (array library) prefix sum of the number of tiles each kept pair's box overlaps.
+3. :func:`emit_keys_kernel`: one key ``(view * T + tile) << 32 | depth32`` and its pair index per
+   (pair, tile); one stable device radix sort of these keys gives every tile its front-to-back list
+   (equal float32 depths keep their emission order), searchsorted its range.
 4. :func:`moments_kernel`: E, Var, S per visible Gaussian in float32, once per frame.
 5. update / render kernels (:func:`make_update_kernel`, :func:`make_render_kernel`): one block per
    tile, one thread per pixel; the tile's list is staged through shared memory in batches, pixels
@@ -25,11 +25,17 @@ import math
 from functools import lru_cache
 from typing import Any
 
-import numpy as np
-from numba import cuda, float32, float64, int32
+from numba import cuda, float32, float64, int32, int64
 
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3
+from ...errors import CssError
+from .arrays import simulator_enabled
 from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, VAR_FLOOR
+
+if simulator_enabled():  # the simulator has no warp intrinsics; add exact block-barrier versions
+    from .simwarp import install
+
+    install()
 
 CAM_COLS = 19   # per view: R_cam_map (9, row-major), t_cam_map (3), fx, fy, cx, cy, camera centre (3, map)
 PACK_COLS = 8   # per kept pair: u, v, conic a, b, c, opacity, qmax, depth
@@ -176,16 +182,21 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
 
 
 @cuda.jit
-def emit_keys_kernel(bbox, view, first, num_pairs, tile, tiles_x, tiles_per_view, keys):  # pragma: no cover
-    """keys[first[j] + k] = (view_j * T + tile_k) * M + j for the k-th tile of pair j's box (M = num_pairs)."""
+def emit_keys_kernel(bbox, view, first, depth_bits, num_pairs, tile, tiles_x, tiles_per_view, keys,
+                     pairs):  # pragma: no cover
+    """For the k-th tile of pair j's box: keys[first[j] + k] = (view_j * T + tile_k) << 32 | depth32_j and
+    pairs[first[j] + k] = j. depth32 is the bit pattern of the float32 depth (positive floats order as
+    their bits), so one radix sort of the keys orders by (view, tile, depth)."""
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
     for j in range(start, num_pairs, stride):
         pos = first[j]
-        base = view[j] * tiles_per_view
+        base = int64(view[j]) * int64(tiles_per_view)  # int64 before the shift (numpy int32 would wrap)
+        low = int64(depth_bits[j])
         for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
             for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
-                keys[pos] = (base + ty * tiles_x + tx) * num_pairs + j
+                keys[pos] = ((base + int64(ty) * int64(tiles_x) + int64(tx)) << int64(32)) | low
+                pairs[pos] = j
                 pos += 1
 
 
@@ -210,45 +221,104 @@ def moments_kernel(concentrations, rows, out):  # pragma: no cover
         out[r, 2 * num_classes] = total
 
 
-def batch_size(bytes_per_gaussian: int, threads: int) -> int:
-    """Gaussians staged per batch: one per thread, fewer if their shared rows exceed SHARED_BUDGET."""
-    return max(1, min(threads, SHARED_BUDGET // bytes_per_gaussian))
+def batch_size(bytes_per_gaussian: int, threads: int, budget: int = SHARED_BUDGET) -> int:
+    """Gaussians staged per batch: one per thread, fewer if their shared rows exceed ``budget`` bytes."""
+    return max(1, min(threads, budget // bytes_per_gaussian))
+
+
+FULL_MASK = 0xFFFFFFFF
+WARP = 32
+# Early termination threshold of the float32 walk. Two alpha = 0.99 (clamped) layers leave T = 1e-4
+# (1 + 2e-16) in float64, which continues, but 9.99998e-5 in float32, which would stop: a slack of
+# 2e-5 relative (above float32 rounding over a few dozen steps) keeps the float64 decision there.
+T_MIN_WALK = T_MIN * (1.0 - 2e-5)
+STAGE_COLS = 7  # staged geometry per Gaussian, float32: u, v, conic a, b, c, opacity, qmax
+
+
+@cuda.jit(device=True, inline=True)
+def warp_sum_f32(x):  # pragma: no cover
+    """Sum of ``x`` over the 32 lanes of a full warp (every lane gets it)."""
+    off = 16
+    while off > 0:
+        x += cuda.shfl_xor_sync(FULL_MASK, x, off)
+        off //= 2
+    return x
+
+
+@cuda.jit(device=True, inline=True)
+def warp_sum_f64(x):  # pragma: no cover
+    """float64 sum of ``x`` over the 32 lanes of a full warp (every lane gets it)."""
+    off = 16
+    while off > 0:
+        x += cuda.shfl_xor_sync(FULL_MASK, x, off)
+        off //= 2
+    return x
+
+
+@cuda.jit(device=True, inline=True)
+def stage_geometry(s_g, slot, packed, j):  # pragma: no cover
+    """Copy pair j's (u, v, a, b, c, opacity, qmax) into shared row ``slot`` as float32."""
+    for c in range(STAGE_COLS):
+        s_g[slot, c] = float32(packed[j, c])
+
+
+@cuda.jit(device=True, inline=True)
+def pixel_alpha(s_g, k, fu, fv):  # pragma: no cover
+    """float32 alpha of staged Gaussian k at pixel centre (fu, fv), 0 where the INRIA rules skip it
+    (q > qmax, i.e. alpha < 1/255 before the clamp; or alpha < 1/255)."""
+    dx = fu - s_g[k, 0]
+    dy = fv - s_g[k, 1]
+    q = s_g[k, 2] * dx * dx + float32(2.0) * s_g[k, 3] * dx * dy + s_g[k, 4] * dy * dy
+    if not (q <= s_g[k, 6]):
+        return float32(0.0)
+    alpha = min(float32(ALPHA_MAX), s_g[k, 5] * math.exp(float32(-0.5) * q))
+    if alpha < float32(ALPHA_MIN):
+        return float32(0.0)
+    return alpha
 
 
 @lru_cache(maxsize=None)
 def make_update_kernel(num_classes: int, tile: int) -> Any:
     """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants).
 
-    Launch: grid = tiles of the view, block = tile * tile threads. Kernel arguments: offsets (T + 1,)
-    i64 tile ranges in ``keys``; keys (P,) i64 sorted; num_pairs M; packed (M, 8) f64; ids (M,) i32
-    model rows; labels (H, W) i32 (-1 = none); weights (H, W) f32; tiles_x; concentrations (N, C) f64,
-    to which sum_i kappa_in * weight_i is added at [n, label_i].
+    Launch: grid = tiles of the view, block = tile * tile threads (a multiple of 32). Kernel arguments:
+    offsets (T + 1,) i64 tile ranges in ``order``; order (P,) i32 pair of each sorted key; packed (M, 8) f64;
+    ids (M,) i32 model rows; labels (H, W) i32 (-1 = none); weights (H, W) f32; tiles_x;
+    concentrations (N, C) f64, to which sum_i kappa_in * weight_i is added at [n, label_i].
+
+    The pixel walk is float32 (alpha, transmittance, kappa * weight); per staged Gaussian a warp
+    whose contributing lanes share one label sums them with shuffles and one lane adds the sum to
+    the block's float32 shared accumulator (else each lane adds its own); each nonzero (Gaussian,
+    class) sum of the tile then goes to the float64 map with one global atomic.
     """
     nt = tile * tile
-    batch = batch_size(7 * 8 + 4 + 8 * num_classes, nt)
+    if nt % WARP:
+        raise ValueError(f"tile {tile}: the update kernel needs tile * tile to be a multiple of {WARP}")
     C = num_classes
+    batch = batch_size(4 * STAGE_COLS + 4 + 4 * C, nt)
 
     @cuda.jit
-    def update_kernel(offsets, keys, num_pairs, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
+    def update_kernel(offsets, order, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
         t = cuda.blockIdx.x
         tid = cuda.threadIdx.x
+        lane = tid % WARP
         ty = t // tiles_x
         tx = t - ty * tiles_x
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
         height, width = labels.shape
         lab = -1
-        w = 0.0
+        w = float32(0.0)
         if u < width and v < height:
             lab = labels[v, u]
-            w = float64(weights[v, u])
-        done = not (lab >= 0 and w > 0.0)
-        s_g = cuda.shared.array((batch, 7), float64)
-        s_acc = cuda.shared.array((batch, C), float64)
+            w = weights[v, u]
+        done = not (lab >= 0 and w > float32(0.0))
+        s_g = cuda.shared.array((batch, STAGE_COLS), float32)
+        s_acc = cuda.shared.array((batch, C), float32)
         s_id = cuda.shared.array(batch, int32)
-        fu = float64(u)
-        fv = float64(v)
-        trans = 1.0
+        fu = float32(u)
+        fv = float32(v)
+        trans = float32(1.0)
         start = offsets[t]
         end = offsets[t + 1]
         for b0 in range(start, end, batch):
@@ -256,60 +326,85 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
                 break  # every labelled pixel of the tile has terminated
             n = min(batch, end - b0)
             if tid < n:
-                j = keys[b0 + tid] % num_pairs
-                for c in range(7):
-                    s_g[tid, c] = packed[j, c]
+                j = order[b0 + tid]
+                stage_geometry(s_g, tid, packed, j)
                 s_id[tid] = ids[j]
             for idx in range(tid, batch * C, nt):
-                s_acc[idx // C, idx % C] = 0.0
+                s_acc[idx // C, idx % C] = float32(0.0)
             cuda.syncthreads()
-            if not done:
-                for k in range(n):
-                    dx = fu - s_g[k, 0]
-                    dy = fv - s_g[k, 1]
-                    q = s_g[k, 2] * dx * dx + 2.0 * s_g[k, 3] * dx * dy + s_g[k, 4] * dy * dy
-                    if not (q <= s_g[k, 6]):
-                        continue
-                    alpha = min(ALPHA_MAX, s_g[k, 5] * math.exp(-0.5 * q))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    test_t = trans * (1.0 - alpha)
-                    if test_t < T_MIN:
-                        done = True
-                        break
-                    cuda.atomic.add(s_acc, (k, lab), alpha * trans * w)
-                    trans = test_t
+            for k in range(n):  # every lane walks every Gaussian: the warp shuffles need all 32
+                contrib = float32(0.0)
+                if not done:
+                    alpha = pixel_alpha(s_g, k, fu, fv)
+                    if alpha > float32(0.0):
+                        test_t = trans * (float32(1.0) - alpha)
+                        if test_t < float32(T_MIN_WALK):
+                            done = True
+                        else:
+                            contrib = alpha * trans * w
+                            trans = test_t
+                active = cuda.ballot_sync(FULL_MASK, contrib != float32(0.0))
+                if active != 0:
+                    lead = cuda.shfl_sync(FULL_MASK, lab, cuda.ffs(active) - 1)
+                    if cuda.all_sync(FULL_MASK, contrib == float32(0.0) or lab == lead):
+                        total = warp_sum_f32(contrib)
+                        if lane == 0:
+                            cuda.atomic.add(s_acc, (k, lead), total)
+                    elif contrib != float32(0.0):
+                        cuda.atomic.add(s_acc, (k, lab), contrib)
             cuda.syncthreads()
             for idx in range(tid, n * C, nt):
                 k = idx // C
                 c = idx - k * C
                 val = s_acc[k, c]
-                if val != 0.0:
-                    cuda.atomic.add(concentrations, (s_id[k], c), val)
+                if val != float32(0.0):
+                    cuda.atomic.add(concentrations, (s_id[k], c), float64(val))
     return update_kernel
+
+
+MAX_RENDER_CLASSES = 80  # per-pixel E and Var sums of every class in shared memory: 2 C x 64 x 4 B <= 40 KiB
+
+
+def render_layout(num_classes: int, tile: int) -> tuple[int, int]:
+    """(staged Gaussians per batch, static shared bytes per block) of the render kernel: per-pixel
+    per-class E and Var sums (2 C x tile^2 float32) plus the staged rows (geometry, colour, S, row);
+    the class moments are read from global memory (every lane of a warp reads the same row: one
+    broadcast transaction, L1-resident for the block's batch)."""
+    nt = tile * tile
+    acc = 2 * num_classes * nt * 4
+    row = 4 * STAGE_COLS + 4 * 4 + 4
+    return nt, acc + nt * row
 
 
 @lru_cache(maxsize=None)
 def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) -> Any:
     """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode).
 
-    Launch: grid = views * tiles, block = tile * tile threads. Kernel arguments: offsets (V T + 1,)
-    i64; keys (P,) i64 sorted; num_pairs M; packed (M, 8) f64; colors (M, 3) f32; pair_row (M,) i32
-    row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; e_bg, v_bg, s_bg background moments;
-    bg_rgb (3,) f64; width, height [px]; tiles_x, tiles_per_view; outputs:
+    Launch: grid = views * tiles, block = tile * tile threads (a multiple of 32). Kernel arguments:
+    offsets (V T + 1,) i64; order (P,) i32 pair of each sorted key; packed (M, 8) f64; colors (M, 3) f32;
+    pair_row (M,) i32 row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; e_bg, v_bg, s_bg
+    background moments; bg_rgb (3,) f64; width, height [px]; tiles_x, tiles_per_view; outputs:
 
     - ``score`` False: out (V, H, W, 8) f32 per pixel (label, E, Var of the argmax class, kappa_b,
       evidence, r, g, b); with ``probs`` also probs (V, H, W, C) f32 = E_i^c.
-    - ``score`` True: scores (V, 2) f64 += (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i) per view.
+    - ``score`` True: scores (V, 2) f64 += (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i) per view,
+      reduced per warp with shuffles, one float64 atomic per warp and view.
+
+    The pixel walk is float32; each pixel's E and Var sums of every class live in shared memory
+    (column ``tid`` of a (2C, tile^2) array: no runtime-indexed local arrays, no bank conflicts).
     """
     nt = tile * tile
+    if nt % WARP:
+        raise ValueError(f"tile {tile}: the render kernel needs tile * tile to be a multiple of {WARP}")
     C = num_classes
-    na = 2 * C + 4               # staged row: E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}
-    nm = 2 * C + 1               # moments row: E.., Var.., S
-    batch = batch_size(7 * 8 + 4 + 4 * na, nt)
+    if C > MAX_RENDER_CLASSES:
+        raise CssError(f"backend 'cuda' renders at most {MAX_RENDER_CLASSES} classes (its per-pixel class sums "
+                       f"live in shared memory); {C} asked: use backend 'numba'")
+    batch, _ = render_layout(C, tile)
+    n_acc = 2 * C  # shared array shapes must be compile-time constants
 
     @cuda.jit
-    def render_kernel(offsets, keys, num_pairs, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
+    def render_kernel(offsets, order, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
                       width, height, tiles_x, tiles_per_view, out, probs_out, scores):  # pragma: no cover
         b = cuda.blockIdx.x
         tid = cuda.threadIdx.x
@@ -321,24 +416,19 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
         v = ty * tile + tid // tile
         inside = u < width and v < height
         done = not inside
-        s_g = cuda.shared.array((batch, 7), float64)
-        s_a = cuda.shared.array((batch, na), float32)
+        s_g = cuda.shared.array((batch, STAGE_COLS), float32)
+        s_a = cuda.shared.array((batch, 4), float32)  # r, g, b, S
         s_row = cuda.shared.array(batch, int32)
-        s_sum = cuda.shared.array(2, float64)
-        eacc = cuda.local.array(C, float32)
-        vacc = cuda.local.array(C, float32)
-        for c in range(C):
-            eacc[c] = 0.0
-            vacc[c] = 0.0
+        acc = cuda.shared.array((n_acc, nt), float32)
+        for c in range(n_acc):
+            acc[c, tid] = float32(0.0)
         cr = float32(0.0)
         cg = float32(0.0)
         cb = float32(0.0)
         ev = float32(0.0)
-        if score and tid < 2:
-            s_sum[tid] = 0.0
-        fu = float64(u)
-        fv = float64(v)
-        trans = 1.0
+        fu = float32(u)
+        fv = float32(v)
+        trans = float32(1.0)
         start = offsets[b]
         end = offsets[b + 1]
         for b0 in range(start, end, batch):
@@ -346,78 +436,68 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
                 break
             n = min(batch, end - b0)
             if tid < n:
-                j = keys[b0 + tid] % num_pairs
-                for c in range(7):
-                    s_g[tid, c] = packed[j, c]
-                s_row[tid] = pair_row[j]
-                s_a[tid, C] = colors[j, 0]
-                s_a[tid, C + 1] = colors[j, 1]
-                s_a[tid, C + 2] = colors[j, 2]
-            cuda.syncthreads()
-            for idx in range(tid, n * nm, nt):
-                k = idx // nm
-                c = idx - k * nm
-                val = mom[s_row[k], c]
-                if c < C:
-                    s_a[k, c] = val
-                elif c < 2 * C:
-                    s_a[k, c + 4] = val
-                else:
-                    s_a[k, C + 3] = val
+                j = order[b0 + tid]
+                stage_geometry(s_g, tid, packed, j)
+                row = pair_row[j]
+                s_row[tid] = row
+                s_a[tid, 0] = colors[j, 0]
+                s_a[tid, 1] = colors[j, 1]
+                s_a[tid, 2] = colors[j, 2]
+                s_a[tid, 3] = mom[row, 2 * C]
             cuda.syncthreads()
             if not done:
                 for k in range(n):
-                    dx = fu - s_g[k, 0]
-                    dy = fv - s_g[k, 1]
-                    q = s_g[k, 2] * dx * dx + 2.0 * s_g[k, 3] * dx * dy + s_g[k, 4] * dy * dy
-                    if not (q <= s_g[k, 6]):
+                    alpha = pixel_alpha(s_g, k, fu, fv)
+                    if alpha == float32(0.0):
                         continue
-                    alpha = min(ALPHA_MAX, s_g[k, 5] * math.exp(-0.5 * q))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    test_t = trans * (1.0 - alpha)
-                    if test_t < T_MIN:
+                    test_t = trans * (float32(1.0) - alpha)
+                    if test_t < float32(T_MIN_WALK):
                         done = True
                         break
-                    kappa = alpha * trans
-                    w1 = float32(kappa)
-                    w2 = float32(kappa * kappa)
+                    w1 = alpha * trans
+                    w2 = w1 * w1
+                    row = s_row[k]
                     for c in range(C):
-                        eacc[c] += w1 * s_a[k, c]
-                        vacc[c] += w2 * s_a[k, C + 4 + c]
-                    cr += w1 * s_a[k, C]
-                    cg += w1 * s_a[k, C + 1]
-                    cb += w1 * s_a[k, C + 2]
-                    ev += w1 * s_a[k, C + 3]
+                        acc[c, tid] += w1 * mom[row, c]
+                        acc[C + c, tid] += w2 * mom[row, C + c]
+                    cr += w1 * s_a[k, 0]
+                    cg += w1 * s_a[k, 1]
+                    cb += w1 * s_a[k, 2]
+                    ev += w1 * s_a[k, 3]
                     trans = test_t
+        best = 0
+        best_e = acc[0, tid]
+        for c in range(1, C):
+            e = acc[c, tid]
+            if e > best_e:
+                best = c
+                best_e = e
+        tr = float64(trans)
+        e_hat = float64(best_e) + tr * e_bg
+        v_hat = float64(acc[C + best, tid]) + tr * tr * v_bg
         if score:
-            cuda.syncthreads()
-        if inside:
-            best = 0
-            for c in range(1, C):
-                if eacc[c] > eacc[best]:
-                    best = c
-            e_hat = float64(eacc[best]) + trans * e_bg
-            v_hat = float64(vacc[best]) + trans * trans * v_bg
-            if score:
-                cuda.atomic.add(s_sum, 0, math.log(max(v_hat, VAR_FLOOR)))
-                cuda.atomic.add(s_sum, 1, e_hat)
-            else:
-                out[view, v, u, 0] = best
-                out[view, v, u, 1] = e_hat
-                out[view, v, u, 2] = v_hat
-                out[view, v, u, 3] = trans
-                out[view, v, u, 4] = float64(ev) + trans * s_bg
-                out[view, v, u, 5] = float64(cr) + trans * bg_rgb[0]
-                out[view, v, u, 6] = float64(cg) + trans * bg_rgb[1]
-                out[view, v, u, 7] = float64(cb) + trans * bg_rgb[2]
-                if probs:
-                    for c in range(C):
-                        probs_out[view, v, u, c] = float64(eacc[c]) + trans * e_bg
-        if score:
-            cuda.syncthreads()
-            if tid < 2:
-                cuda.atomic.add(scores, (view, tid), s_sum[tid])
+            lv = 0.0
+            le = 0.0
+            if inside:
+                lv = math.log(max(v_hat, VAR_FLOOR))
+                le = e_hat
+            lv = warp_sum_f64(lv)
+            le = warp_sum_f64(le)
+            if tid % WARP == 0:
+                cuda.atomic.add(scores, (view, 0), lv)
+                cuda.atomic.add(scores, (view, 1), le)
+        elif inside:
+            out[view, v, u, 0] = best
+            out[view, v, u, 1] = e_hat
+            out[view, v, u, 2] = v_hat
+            out[view, v, u, 3] = tr
+            out[view, v, u, 4] = float64(ev) + tr * s_bg
+            out[view, v, u, 5] = float64(cr) + tr * bg_rgb[0]
+            out[view, v, u, 6] = float64(cg) + tr * bg_rgb[1]
+            out[view, v, u, 7] = float64(cb) + tr * bg_rgb[2]
+            if probs:
+                for c in range(C):
+                    probs_out[view, v, u, c] = float64(acc[c, tid]) + tr * e_bg
     return render_kernel
 
 

@@ -3,13 +3,13 @@ cross-check of the compiled path. Tiles are evaluated densely (tile pixels x til
 stays bounded by the longest tile list, never pixels x Gaussians."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterator, Sequence
 
 import numpy as np
 import torch
 
+from ..backends import RasterBackend
 from ..buffers import RenderBuffers
 from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, TILE_SIZE
 from ..sh import eval_sh
@@ -35,7 +35,7 @@ class TorchFrame:
     tile_size: int
 
 
-class TorchBackend:
+class TorchBackend(RasterBackend):
     """Rasteriser backend in plain PyTorch (float64 on ``device``)."""
 
     def __init__(self, model: "GaussianModel", device: str = "cpu", tile_size: int = TILE_SIZE) -> None:
