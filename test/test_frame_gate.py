@@ -197,7 +197,8 @@ def _scene(seed: int = 0, n: int = 300) -> GaussianModel:
 def test_splat_in_its_own_scaled_rotated_frame_renders_as_the_map_splat():
     """The splat moved into a scaled, rotated frame plus splat_to_map gives the renders of the original."""
     map_model = _scene()
-    to_map = Similarity.from_params([0.37, 1.0, -2.0, 0.5, *(np.array([0.2, -0.5, 0.3, 0.8]) / np.linalg.norm([0.2, -0.5, 0.3, 0.8]))])
+    q = np.array([0.2, -0.5, 0.3, 0.8])
+    to_map = Similarity.from_params([0.37, 1.0, -2.0, 0.5, *(q / np.linalg.norm(q))])
     splat_model = to_map.inverse().transform_model(map_model)
     rec = Recorder()
     gate = gate_for(rec, splat_to_map=to_map)

@@ -164,13 +164,15 @@ def test_two_cameras_each_given_half_the_frames_make_the_map_of_one_camera_given
             pubs = _publishers(client, cams)
             pose_pub = client.node.create_publisher(PoseStamped, "pose",
                                                     QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
-            assert client.wait_until(lambda: all(p.get_subscription_count() > 0 for pair in pubs for p in pair)
-                                     and pose_pub.get_subscription_count() > 0, 60.0), node.log()
+            publishers = [p for pair in pubs for p in pair] + [pose_pub]
+            n_cams = len(cams)
+            assert client.wait_until(lambda pubs_=publishers: all(p.get_subscription_count() > 0 for p in pubs_),
+                                     60.0), node.log()
             time.sleep(0.5)
             stamps = stream(client, duration=4.0, fps=5.0, pose_rate=50.0, latency=0.1,
-                            send_pose=lambda s, t: pose_pub.publish(pose_stamped_msg(*optical_truth(t),
-                                                                                      header_msg(s, "map"))),
-                            seg_publishers=pubs, camera_of_frame=lambda i: i % len(cams))
+                            send_pose=lambda s, t, pub=pose_pub: pub.publish(pose_stamped_msg(*optical_truth(t),
+                                                                                               header_msg(s, "map"))),
+                            seg_publishers=pubs, camera_of_frame=lambda i, n=n_cams: i % n)
             key = "frames_processed"
             assert client.wait_diag(key, len(stamps), timeout=20.0) >= len(stamps), node.log()[-3000:]
             res = client.call(client.save_client)

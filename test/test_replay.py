@@ -268,7 +268,8 @@ def test_bad_frames_are_skipped_and_counted(tmp_path, capsys, case):
     assert m["frames"]["processed"] == 4
     skipped = m["frames"]["skipped"]
     assert sum(skipped.values()) == 1
-    expected_key = {"no_pose": "pose_too_old_to_extrapolate", "bad_encoding": "bad_segmentation", "size_mismatch": "size_mismatch"}[case]
+    expected_key = {"no_pose": "pose_too_old_to_extrapolate", "bad_encoding": "bad_segmentation",
+                    "size_mismatch": "size_mismatch"}[case]
     assert any(k.startswith(expected_key) for k in skipped), skipped
 
 

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ..engine.camera import Camera, matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from ..engine.camera import Camera, matrix_to_quaternion_xyzw
 from ..engine.similarity import Similarity
 from ..errors import CssError
 from ..io.bag import BagWriter

@@ -175,7 +175,8 @@ class Similarity:
         return GaussianModel(means=self.apply(model.means).astype(np.float32), sh=sh,
                              opacity_logits=model.opacity_logits,
                              log_scales=(model.log_scales.astype(np.float64) + math.log(self.scale)).astype(np.float32),
-                             rotations=q_new.astype(np.float32), normals=model.normals @ self.R.T.astype(np.float32))
+                             rotations=q_new.astype(np.float32),
+                             normals=None if model.normals is None else model.normals @ self.R.T.astype(np.float32))
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -184,7 +184,8 @@ class FrameGate:
                      for i, ns in enumerate(config.cameras)]
         n_hist = len(config.cameras) if config.pose_per_camera else 1
         self.histories = [PoseHistory(config.pose_policy) for _ in range(n_hist)]
-        self._recent = [deque(maxlen=RECENT_POSES) for _ in range(n_hist)]
+        self._recent: list[deque[tuple[int, np.ndarray, np.ndarray]]] = [deque(maxlen=RECENT_POSES)
+                                                                         for _ in range(n_hist)]
         self._map_to_splat = config.splat_to_map.inverse()
         self._slop_ns = int(round(config.sync_slop * 1e9))
         self._wait_ns = int(round(config.pose_policy.wait * 1e9))
@@ -415,6 +416,7 @@ class FrameGate:
             if look.status is LookupStatus.REFUSED:
                 self.warn(self.topic(cam, "segmentation"), look.reason, f"{look.detail}; frame dropped")
                 continue
+            assert look.position is not None and look.quat is not None  # OK lookups carry a pose
             frame = self._build(st, fr, confidence, look.position, look.quat, look.how)
             if frame is not None:
                 out.append(frame)
