@@ -42,7 +42,9 @@ class NodeParams:
                          "against the working directory, the package share directory and the source tree")
     class_file: str = _p(DEFAULT_CLASSES, "path", "class YAML (classes: [{id, name, color}]); empty: "
                          "num_classes anonymous classes")
-    num_classes: int = _p(0, "", "number of classes C when class_file is empty (0: take it from class_file)")
+    num_classes: int = _p(0, "", "number of classes C (0: take it from class_file); given while class_file is "
+                          "left at its default (the demo's): C anonymous classes; contradicting a class_file "
+                          "that is set: start-up error")
     # --- semantic model
     prior: float = _p(DEFAULT_PRIOR, "", "initial Dirichlet concentration per class and Gaussian (alpha_0)")
     background: float = _p(DEFAULT_BACKGROUND, "", "background Dirichlet concentration per class (alpha_b)")
