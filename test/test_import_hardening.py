@@ -166,12 +166,15 @@ def test_sigterm_during_import_cleans_up_like_sigint(tmp_path, sig, code):
     (labels / "frame_003.png").unlink()
     os.mkfifo(labels / "frame_003.png")
     proc = _import_subprocess(_args(tmp_path / "sparse", labels, tmp_path / "out"))
-    deadline = time.monotonic() + 60
-    while not any(tmp_path.glob(".out.css_import-*/bag/*.mcap")):
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-        time.sleep(0.05)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=30)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(tmp_path.glob(".out.css_import-*/bag/*.mcap")):
+            assert proc.poll() is None and time.monotonic() < deadline, "the import did not reach frame 3"
+            time.sleep(0.05)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
     assert proc.returncode == code, err
     assert err.strip().splitlines()[-1] == ("css_import: terminated" if sig == signal.SIGTERM
                                              else "css_import: interrupted")
