@@ -28,7 +28,7 @@ from ..io.frames import (FrameRejected, Intrinsics, check_size, decode_camera_in
                          decode_labels, decode_pose)
 from ..errors import InputError
 from ..io.messages import stamp_to_ns
-from ..io.point_queries import request_points
+from ..io.point_queries import declared_points, request_points
 from ..io.sync import FrameSynchronizer
 from ..io.topics import INPUT_TOPICS
 from .params import NodeParams
@@ -343,12 +343,22 @@ class InputGate:
     def on_point_query(self, msg: Any, num_classes: int) -> PointQueryJob:
         """A PointCloud2 of query points -> a job for the worker.
 
-        Every request is answered in request order: a cloud without readable x y z fields is answered
-        with an empty cloud, one with more than ``max_query_points`` points and non-finite points as
-        unknown (the job is then already done and only needs publishing).
+        Every request is answered in request order: a cloud without readable x y z fields, or declaring
+        more than ``max_query_points`` points in its header (width x height; checked before its data is
+        touched), is answered at once with an empty cloud; non-finite points are answered as unknown.
         """
         topic = INPUT_TOPICS["point_queries"]
         self.count("point_queries_received")
+        try:
+            declared = declared_points(msg)
+        except InputError:
+            declared = 0  # request_points below says what is wrong
+        if declared > self.p.max_query_points:
+            self.warn(topic, "too many points", f"{declared} > max_query_points={self.p.max_query_points}: "
+                      "answered with an empty cloud", dropped=False)
+            job = PointQueryJob(msg.header, np.zeros((0, 3)), num_classes, self.p.ignore_label, time.monotonic())
+            job.status = "too many points"
+            return job
         try:
             xyz = request_points(msg)
         except (InputError, AttributeError, TypeError, ValueError) as exc:
@@ -356,16 +366,10 @@ class InputGate:
             xyz = np.zeros((0, 3))
         job = PointQueryJob(msg.header, xyz, num_classes, self.p.ignore_label, time.monotonic())
         self.frame_id_check(topic, msg.header.frame_id)
-        if len(xyz) > self.p.max_query_points:
-            self.warn(topic, "too many points", f"{len(xyz)} > max_query_points={self.p.max_query_points}: "
-                      "answered as unknown", dropped=False)
-            job.next_index = len(xyz)
-            job.status = "too many points"
-        else:
-            bad = int(np.count_nonzero(~np.all(np.isfinite(xyz), axis=1)))
-            if bad:
-                self.warn(topic, "non-finite query points", f"{bad} of {len(xyz)}: answered as unknown",
-                          dropped=False)
+        bad = int(np.count_nonzero(~np.all(np.isfinite(xyz), axis=1)))
+        if bad:
+            self.warn(topic, "non-finite query points", f"{bad} of {len(xyz)}: answered as unknown (as points "
+                      "far from every Gaussian)", dropped=False)
         return job
 
 

@@ -25,6 +25,10 @@ CLOUD_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=Rel
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+#: Outputs that answer requests (one message per request).
+ANSWER_OUTPUTS = ("candidate_scores", "point_query_results")
+
+
 class OutputPublisher:
     """Creates the enabled ``~/<output>`` publishers and publishes the worker's results.
 
@@ -44,7 +48,9 @@ class OutputPublisher:
             if name == "semantic_cloud" and params.cloud_period <= 0:
                 continue
             typ = PointCloud2 if msgtype == POINTCLOUD2_TYPE else Image
-            self.pubs[name] = node.create_publisher(typ, f"~/{name}", CLOUD_QOS if name == "semantic_cloud" else depth)
+            qos = CLOUD_QOS if name == "semantic_cloud" else \
+                params.request_queue_size if name in ANSWER_OUTPUTS else depth  # bursts of answers
+            self.pubs[name] = node.create_publisher(typ, f"~/{name}", qos)
 
     def publish_frame(self, job: FrameJob, view: Any) -> None:
         header = rc.header_msg(job.stamp_ns, job.frame_id)
