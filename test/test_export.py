@@ -296,3 +296,30 @@ def test_corrupt_compressed_map_is_one_line_naming_the_file(scene, capsys):
     bad.write_bytes(bytes(raw))
     assert main([str(bad), "--model", str(tmp_path / "model.ply"), "--num-classes", "4"]) == 1
     one_line_error(capsys, f"cannot read map file {bad}")
+
+
+def test_decompression_bomb_refused_from_its_header(scene, capsys):
+    """A deflated map whose concentrations declare (N, 50000) float64 (80 MB of zeros, < 1 MB on disk) while
+    the file records 4 classes: refused from the headers, one line naming the file and both shapes."""
+    import zipfile
+
+    tmp_path, *_ = scene
+    src = tmp_path / "map.npz"
+    bomb = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(src) as zf:
+        items = {i.filename: zf.read(i) for i in zf.infolist() if i.filename != "concentrations.npy"}
+    n = GaussianModel.from_ply(tmp_path / "model.ply").num_gaussians
+    from numpy.lib import format as npformat
+    import io
+    head = io.BytesIO()
+    npformat.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (n, 50000)})
+    with zipfile.ZipFile(bomb, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, data in items.items():
+            zf.writestr(name, data)
+        with zf.open("concentrations.npy", "w", force_zip64=True) as fh:
+            fh.write(head.getvalue())
+            for _ in range(n):
+                fh.write(bytes(8 * 50000))
+    assert bomb.stat().st_size < 2**20
+    assert main([str(bomb), "--model", str(tmp_path / "model.ply"), "--num-classes", "4"]) == 1
+    one_line_error(capsys, f"map file {bomb}: concentrations have shape ({n}, 50000)")
