@@ -1,22 +1,45 @@
 """How every ROS-free console script ends: one-line errors and documented exit codes.
 
 0 success; 1 a user-facing error (``CssError``: bad file, bad option value, refused data; or an OS
-error naming the file); 2 a usage error (argparse); 130 interrupted. An unexpected exception is also
-one line (exit 1) unless ``CSS_DEBUG=1`` is set, which shows the traceback.
+error naming the file); 2 a usage error (argparse); 130 interrupted (SIGINT); 143 terminated
+(SIGTERM). SIGTERM unwinds exactly like SIGINT (an exception through the work), so the same clean-up
+runs: no half-written output is left. An unexpected exception is also one line (exit 1) unless
+``CSS_DEBUG=1`` is set, which shows the traceback.
 """
 from __future__ import annotations
 
 import os
+import signal
 import sys
-from typing import Callable
+import threading
+from typing import Any, Callable
 
 from .errors import CssError
 
 DEBUG_ENV = "CSS_DEBUG"
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived: raised in the main thread, unwinds (and cleans up) as KeyboardInterrupt does."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
 def run_console(prog: str, work: Callable[[], int | None]) -> int:
     """Run ``work`` (which prints its own results) and turn failures into ``prog: error: ...`` lines."""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return _run(prog, work)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(prog: str, work: Callable[[], int | None]) -> int:
     try:
         code = work()
     except CssError as exc:
@@ -25,6 +48,9 @@ def run_console(prog: str, work: Callable[[], int | None]) -> int:
     except OSError as exc:
         print(f"{prog}: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
         return 1
+    except Terminated:
+        print(f"{prog}: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

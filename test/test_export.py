@@ -190,7 +190,7 @@ def test_map_model_mismatch(scene, capsys):
     tmp_path, *_ = scene
     make_model(seed=7).to_ply(tmp_path / "other.ply")
     assert main([str(tmp_path / "map.npz"), "--model", str(tmp_path / "other.ply"), "--num-classes", "4"]) == 1
-    one_line_error(capsys, "another model")
+    one_line_error(capsys, "this map belongs to model")
 
 
 def test_bad_class_files(scene, capsys):
@@ -202,7 +202,7 @@ def test_bad_class_files(scene, capsys):
     ClassSet.default(3).to_yaml(tmp_path / "three.yaml")
     assert main([str(tmp_path / "map.npz"), "--model", str(tmp_path / "model.ply"),
                  "--classes", str(tmp_path / "three.yaml")]) == 1
-    one_line_error(capsys, "the map has 4 classes but 3")
+    one_line_error(capsys, "has 4 classes, expected 3")
 
 
 def test_bad_formats_and_usage(scene, capsys):
@@ -278,3 +278,48 @@ def test_birdseye_image_top_is_map_plus_y(tmp_path):
     h = view.labels.shape[0]
     assert np.mean(view.labels[: h // 3] == 0) > 0.8
     assert np.mean(view.labels[-(h // 3):] == 1) > 0.8
+
+
+def test_corrupt_compressed_map_is_one_line_naming_the_file(scene, capsys):
+    tmp_path, *_ = scene
+    with np.load(tmp_path / "map.npz", allow_pickle=False) as data:
+        members = {k: data[k] for k in data.files}
+    bad = tmp_path / "corrupt.npz"
+    np.savez_compressed(bad, **members)
+    raw = bytearray(bad.read_bytes())
+    import zipfile
+    with zipfile.ZipFile(bad) as zf:
+        info = zf.getinfo("concentrations.npy")
+    start = info.header_offset + 30 + len(info.filename.encode()) + \
+        int.from_bytes(raw[info.header_offset + 28:info.header_offset + 30], "little")
+    raw[start] = 0x07  # invalid deflate block type
+    bad.write_bytes(bytes(raw))
+    assert main([str(bad), "--model", str(tmp_path / "model.ply"), "--num-classes", "4"]) == 1
+    one_line_error(capsys, f"cannot read map file {bad}")
+
+
+def test_decompression_bomb_refused_from_its_header(scene, capsys):
+    """A deflated map whose concentrations declare (N, 50000) float64 (80 MB of zeros, < 1 MB on disk) while
+    the file records 4 classes: refused from the headers, one line naming the file and both shapes."""
+    import zipfile
+
+    tmp_path, *_ = scene
+    src = tmp_path / "map.npz"
+    bomb = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(src) as zf:
+        items = {i.filename: zf.read(i) for i in zf.infolist() if i.filename != "concentrations.npy"}
+    n = GaussianModel.from_ply(tmp_path / "model.ply").num_gaussians
+    from numpy.lib import format as npformat
+    import io
+    head = io.BytesIO()
+    npformat.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (n, 50000)})
+    with zipfile.ZipFile(bomb, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, data in items.items():
+            zf.writestr(name, data)
+        with zf.open("concentrations.npy", "w", force_zip64=True) as fh:
+            fh.write(head.getvalue())
+            for _ in range(n):
+                fh.write(bytes(8 * 50000))
+    assert bomb.stat().st_size < 2**20
+    assert main([str(bomb), "--model", str(tmp_path / "model.ply"), "--num-classes", "4"]) == 1
+    one_line_error(capsys, f"map file {bomb}: concentrations have shape ({n}, 50000)")

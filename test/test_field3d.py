@@ -208,8 +208,12 @@ def test_bad_points_are_refused():
     smap = random_map(random_model(15, 20), 2, 16)
     with pytest.raises(InputError):
         smap.query_points(np.zeros((4, 2)))
-    with pytest.raises(InputError):
-        smap.query_points(np.array([[0.0, np.nan, 0.0]]))
+    # Non-finite points: exactly the answer of a point far from every Gaussian (one rule for "unknown").
+    q = smap.query_points(np.array([[1e9, 1e9, 1e9], [0.0, np.nan, 0.0], [np.inf, 0.0, 0.0]]))
+    assert q.background.tolist() == [1.0, 1.0, 1.0] and q.labels.tolist() == [smap.ignore_label] * 3
+    np.testing.assert_array_equal(q.expectation[1:], q.expectation[[0, 0]])
+    np.testing.assert_array_equal(q.variance[1:], q.variance[[0, 0]])
+    np.testing.assert_allclose(q.expectation, 0.5, rtol=1e-6)  # E = 1/C with C = 2
     with pytest.raises(InputError):
         smap.query_points(np.zeros((1, 3)), background_weight=0.0)
     assert smap.query_points(np.zeros((0, 3))).expectation.shape == (0, 2)

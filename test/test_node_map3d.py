@@ -42,6 +42,28 @@ def _cloud_msg(header_stamp_ns, xyz):
     return msg
 
 
+def _write_corrupt_compressed_map(path, model) -> None:
+    """A valid map of ``model`` written with np.savez_compressed, then the first byte of the
+    concentrations' deflate stream set to 0x07 (an invalid block type)."""
+    import zipfile
+
+    from css_ros.engine.semantic_map import SemanticMap
+
+    smap = SemanticMap(model, C)
+    smap.concentrations[:] = np.random.default_rng(0).uniform(1, 2, smap.concentrations.shape)
+    smap.save(path)
+    with np.load(path, allow_pickle=False) as data:
+        members = {k: data[k] for k in data.files}
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, **members)
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("concentrations.npy")
+    o = info.header_offset
+    raw[o + 30 + int.from_bytes(raw[o + 26:o + 28], "little") + int.from_bytes(raw[o + 28:o + 30], "little")] = 7
+    path.write_bytes(bytes(raw))
+
+
 def test_semantic_cloud_point_queries_and_load_map(tmp_path):
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
@@ -104,12 +126,14 @@ def test_semantic_cloud_point_queries_and_load_map(tmp_path):
         assert q["label"].tolist()[1:] == [255, 255]
         assert q["label"][0] == label[first]
         np.testing.assert_allclose([q[f"class_{c}"][1] for c in range(C)], 1.0 / C, rtol=1e-6)
-        assert np.isnan(q["class_0"][2])
-        # Too many points: answered (unknown) in full, counted.
+        # A NaN point gets exactly the far point's answer (one rule for points that cannot be located).
+        assert [q[f"class_{c}"][2] for c in range(C)] == [q[f"class_{c}"][1] for c in range(C)]
+        assert q["variance"][2] == q["variance"][1]
+        # Too many points (from the header): an empty answer at once, counted.
         answers.clear()
         pub.publish(_cloud_msg(78, np.zeros((6, 3))))
         assert client.wait_until(lambda: answers, 20.0)
-        assert answers[-1].width == 6 and set(unpack_cloud(answers[-1])["label"].tolist()) == {255}
+        assert answers[-1].width == 0 and answers[-1].header.stamp.nanosec == 78 and len(answers[-1].data) == 0
         assert client.wait_diag("requests_nan[too many points]", 1) == 1
 
         # load_map: reset, then load the checkpoint back; the next cloud shows the loaded map again.
@@ -122,6 +146,11 @@ def test_semantic_cloud_point_queries_and_load_map(tmp_path):
         npz.write_bytes(b"not a map")
         res = client.call(load)
         assert not res.success and "checkpoint refused, map unchanged" in res.message
+        # A corrupt compressed checkpoint (invalid deflate block): refused by name, the node keeps answering.
+        _write_corrupt_compressed_map(npz, model)
+        res = client.call(load)
+        assert not res.success and f"checkpoint refused, map unchanged: cannot read map file {npz}" in res.message
+        assert client.call(client.save_client).success and node.proc.poll() is None
     finally:
         client.close()
         assert node.stop() == 0

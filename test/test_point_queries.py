@@ -36,3 +36,25 @@ def test_answer_columns_in_request_order_with_the_argmax_moments():
     np.testing.assert_allclose(cols["expectation"], [0.8, 0.6, 0.5])
     np.testing.assert_allclose(cols["variance"], [0.02, 0.03, 0.05])
     np.testing.assert_allclose(cols["chair"], E[:, 1])
+
+
+def test_request_points_refuses_integer_duplicated_or_misaligned_coordinates():
+    from css_ros.io.point_queries import declared_points
+
+    xyz = np.arange(6, dtype=np.float32).reshape(2, 3)
+    good = pack_cloud({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
+    assert declared_points(_msg(good)) == 2
+    for dt, code in ((np.int32, 5), (np.uint8, 2)):
+        f = pack_cloud({"x": xyz[:, 0].astype(dt), "y": xyz[:, 1], "z": xyz[:, 2]})
+        with pytest.raises(InputError, match=rf"field x has datatype {code}; x y z must be FLOAT32"):
+            request_points(_msg(f))
+    dup = dict(good, fields=good["fields"] + [("z", 0, 7, 1)])
+    with pytest.raises(InputError, match=r"names fields \['z'\] more than once"):
+        request_points(_msg(dup))
+    # x y z float32 at offsets 1, 5, 9 of a 13-byte point: misaligned.
+    raw = np.zeros((2, 13), np.uint8)
+    raw[:, 1:13] = xyz.view(np.uint8).reshape(2, 12)
+    shifted = dict(good, fields=[("x", 1, 7, 1), ("y", 5, 7, 1), ("z", 9, 7, 1)], point_step=13, row_step=26,
+                   data=raw.reshape(-1))
+    with pytest.raises(InputError, match="field x at offset 1 is not aligned to its 4 bytes"):
+        request_points(_msg(shifted))

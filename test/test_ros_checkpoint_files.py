@@ -95,7 +95,7 @@ def test_header_declaring_huge_array_refused_before_reading(model, tmp_path):
         for name, data in items.items():
             zf.writestr(name, data)
         zf.writestr("concentrations.npy", _npy_header((model.num_gaussians, 10**9)) + b"\0" * 16)
-    with pytest.raises(MapError, match=r"concentrations have shape"):
+    with pytest.raises(MapError, match=r"concentrations holds 144 bytes, its header declares 2560000000128"):
         SemanticMap.load(path, model)
 
 
@@ -158,3 +158,103 @@ def test_default_checkpoint_path_differs_per_model(tmp_path, monkeypatch):
     pb = load_engine(NodeParams(model_path=str(b), class_file="", num_classes=4), print, print).checkpoint_path
     assert pa != pb and pa.parent == pb.parent == tmp_path / ".ros" / "css_ros" / "maps"
     assert pa.name == GaussianModel.from_ply(a).fingerprint[:16] + ".npz"
+
+
+def _corrupt_deflate_stream(path: Path, member: str = "concentrations.npy", how: str = "block type") -> Path:
+    """Damage the deflate stream of ``member`` in place: its first byte 0x07 (an invalid block type) or a
+    run of 0xff bytes inside it (the zip headers and the declared sizes stay intact)."""
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(member)
+    name_len, extra_len = int.from_bytes(raw[info.header_offset + 26:info.header_offset + 28], "little"), \
+        int.from_bytes(raw[info.header_offset + 28:info.header_offset + 30], "little")
+    start = info.header_offset + 30 + name_len + extra_len
+    if how == "block type":
+        raw[start] = 0x07
+    else:
+        mid = start + info.compress_size // 2
+        raw[mid:mid + 64] = b"\xff" * 64
+    path.write_bytes(bytes(raw))
+    return path
+
+
+@pytest.mark.parametrize("how", ["block type", "0xff run"])
+def test_corrupt_compressed_checkpoint_is_a_map_error_naming_the_file(model, tmp_path, how):
+    rng = np.random.default_rng(0)
+    path = write(tmp_path / "z.npz", members(model, concentrations=rng.uniform(1, 2, (model.num_gaussians, 4))),
+                 compress=True)
+    _corrupt_deflate_stream(path, how=how)
+    with pytest.raises(MapError, match=f"cannot read map file {path}"):
+        SemanticMap.load(path, model, expected_classes=4)
+    with pytest.raises(MapError, match=str(path)):
+        SemanticMap.load(path, model)
+
+
+def test_corrupt_compressed_checkpoint_at_start_is_renamed_aside(model, model_path, tmp_path):
+    ckpt = write(tmp_path / "map.npz", members(model), compress=True)
+    _corrupt_deflate_stream(ckpt)
+    warnings: list[str] = []
+    p = NodeParams(model_path=str(model_path), class_file="", num_classes=4, checkpoint_path=str(ckpt))
+    engine = load_engine(p, lambda s: None, warnings.append)
+    assert "checkpoint refused" in engine.resume_status and str(ckpt) in warnings[0]
+    assert not ckpt.exists() and [q for q in tmp_path.iterdir() if q.name.startswith("map.npz.rejected-")]
+    assert np.all(engine.smap.concentrations == p.prior)
+
+
+def _bomb(model: GaussianModel, path: Path, classes_declared: int, file_classes: int) -> Path:
+    """A deflated map whose concentrations header declares (N, classes_declared) float64 of zeros (all
+    sizes consistent, so only the class count can tell), while the file records ``file_classes``."""
+    write(path, members(model, num_classes=np.int64(file_classes)))
+    with zipfile.ZipFile(path) as zf:
+        items = {i.filename: zf.read(i) for i in zf.infolist() if i.filename != "concentrations.npy"}
+    shape = (model.num_gaussians, classes_declared)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, data in items.items():
+            zf.writestr(name, data)
+        with zf.open("concentrations.npy", "w", force_zip64=True) as fh:
+            fh.write(_npy_header(shape))
+            zeros = b"\0" * 2**22
+            left = shape[0] * shape[1] * 8
+            while left > 0:
+                fh.write(zeros[:min(left, len(zeros))])
+                left -= len(zeros)
+    return path
+
+
+def test_decompression_bomb_refused_from_the_files_own_class_count(model, tmp_path, monkeypatch):
+    # 400 MB declared and truly present (deflated to well under 1 MB); the file says 4 classes.
+    classes = (400 * 2**20) // (8 * model.num_gaussians)
+    path = _bomb(model, tmp_path / "bomb.npz", classes, 4)
+    assert path.stat().st_size < 2**20
+    # Refused from the headers: the concentrations are never inflated (np.load is never asked for them).
+    real_load = np.load
+
+    class Guard:
+        def __init__(self, data):
+            self.data = data
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *a):
+            self.data.close()
+
+        def __getitem__(self, key):
+            assert key != "concentrations", "the bomb was decompressed"
+            return self.data[key]
+
+        @property
+        def files(self):
+            return self.data.files
+
+    monkeypatch.setattr(np, "load", lambda *a, **k: Guard(real_load(*a, **k)))
+    with pytest.raises(MapError, match=rf"concentrations have shape \({model.num_gaussians}, {classes}\).*"
+                                       rf"num_classes .*\({model.num_gaussians}, 4\)"):
+        SemanticMap.load(path, model)
+
+
+def test_another_models_map_is_refused_by_fingerprint_not_by_shape(model, tmp_path):
+    other = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "other.ply", seed=3, depth=4.0))
+    path = SemanticMap(other, 4).save(tmp_path / "other_map.npz")
+    with pytest.raises(MapError, match=rf"this map belongs to model {other.fingerprint[:16]}, not .*wall.ply"):
+        SemanticMap.load(path, model)

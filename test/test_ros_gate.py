@@ -229,3 +229,28 @@ def test_candidate_with_extreme_position_scored_nan():
     assert isinstance(job, CandidateJob)
     assert np.all(np.isfinite(job.quats_splat[0])) and np.all(np.isnan(job.quats_splat[1]))
     assert h.warned("candidates: invalid candidate poses") == 1
+
+
+def test_oversized_point_query_is_refused_from_its_header_without_touching_the_data():
+    class Untouchable:
+        def __getattr__(self, name):
+            raise AssertionError("the request's data was read")
+
+        def __len__(self):
+            raise AssertionError("the request's data was read")
+
+        def __buffer__(self, flags):
+            raise AssertionError("the request's data was read")
+
+    h = Harness(max_query_points=1000)
+    fields = [NS(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
+    msg = NS(header=header(5), width=10**7, height=1, point_step=12, row_step=12 * 10**7, fields=fields,
+             is_bigendian=False, data=Untouchable(), is_dense=True)
+    job = h.gate.on_point_query(msg, 4)
+    assert job.done and job.status == "too many points" and job.xyz.shape == (0, 3)
+    assert job.expectation.shape == (0, 4) and job.header is msg.header
+    assert h.warned("point_queries: too many points") == 1 and h.counts["point_queries_received"] == 1
+    # 1000 x 1 declared is within the bound: evaluated (here: truncated data, answered empty as unreadable).
+    msg.width, msg.data = 1000, b""
+    job = h.gate.on_point_query(msg, 4)
+    assert job.status is None and h.warned("point_queries: unreadable point query") == 1

@@ -171,7 +171,7 @@ def test_load_refuses_foreign_corrupt_or_invalid(tmp_path):
     model, other = random_scene(0), random_scene(1)
     smap = SemanticMap(model, C)
     path = smap.save(tmp_path / "map.npz")
-    with pytest.raises(MapError, match="another model"):
+    with pytest.raises(MapError, match="this map belongs to model"):
         SemanticMap.load(path, other)
     bad = tmp_path / "bad.npz"
     bad.write_bytes(path.read_bytes()[:200])

@@ -248,14 +248,16 @@ def query_field(index: FieldIndex, concentrations: np.ndarray, points: np.ndarra
     Args:
         index: the model's :class:`FieldIndex`.
         concentrations: (N, C) float64 α of the map.
-        points: (M, 3) points in the map frame [m], finite.
+        points: (M, 3) points in the map frame [m]. A non-finite point is "far from every Gaussian":
+            it gets exactly what a point beyond every Gaussian's support gets (κ_b = 1, E = E[θ_b],
+            Var = Var[θ_b], ``ignore_label``), so there is one rule for points that cannot be located.
         background_weight: w_b > 0.
         background_moments: (E[θ_b^c], Var[θ_b^c]) of the background Dirichlet (same for every c).
         unknown_threshold: labels are ``ignore_label`` where κ_b(x) exceeds this.
         ignore_label: the "no label" value.
         chunk: points per compiled call; scratch is 2 · chunk · C float64.
     Raises:
-        InputError: points not (M, 3) finite numbers, or a non-positive background weight.
+        InputError: points not an (M, 3) array of numbers, or a non-positive background weight.
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
@@ -282,13 +284,14 @@ def query_field(index: FieldIndex, concentrations: np.ndarray, points: np.ndarra
     cut2 = index.cutoff * index.cutoff
     for a in range(0, m, chunk):
         b = min(m, a + chunk)
-        block = np.ascontiguousarray(pts[a:b], dtype=np.float64)
-        if not np.all(np.isfinite(block)):
-            raise InputError("points hold non-finite coordinates")
+        block = np.array(pts[a:b], dtype=np.float64)
+        lost = ~np.all(np.isfinite(block), axis=1)
+        block[lost] = 0.0  # evaluated, then overwritten below with the far-point answer
         be, bv, bk = buf_e[: b - a], buf_v[: b - a], buf_kb[: b - a]
         query_kernel(block, index.means, index.inv_cov, index.opacities, alpha, totals, index.origin,
                       index.cell_size, index.dims, index.level_offsets, index.cell_start, index.items,
                       cut2, float(background_weight), e_b, v_b, be, bv, bk)
+        be[lost], bv[lost], bk[lost] = e_b, v_b, 1.0
         lab = np.argmax(be, axis=1).astype(np.int32)
         lab[bk > unknown_threshold] = int(ignore_label)
         labels[a:b] = lab

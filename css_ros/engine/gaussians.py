@@ -301,10 +301,12 @@ class GaussianModel:
         if all(f in names for f in _NORMAL_FIELDS):
             normals = np.stack([np.asarray(data[f], dtype=np.float32) for f in _NORMAL_FIELDS], axis=1)
         try:
-            return cls(means=means, sh=sh, opacity_logits=logits, log_scales=log_scales,
-                       rotations=rotations, normals=normals)
+            model = cls(means=means, sh=sh, opacity_logits=logits, log_scales=log_scales,
+                        rotations=rotations, normals=normals)
         except ModelError as exc:
             raise ModelError(f"{p}: {exc}") from None
+        object.__setattr__(model, "source", p)  # the file it came from, named by error messages (not compared)
+        return model
 
     # ------------------------------------------------------------------ saving
     def ply_fields(self) -> list[str]:

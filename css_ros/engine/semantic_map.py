@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Sequence
@@ -40,16 +41,37 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
 _OPTIONAL_MEMBERS = ("frames_observed",)
 
 
-def _check_map_headers(path: Path, num_gaussians: int, num_classes: int | None = None) -> None:
-    """Check every member's declared dtype, shape and size from the npy headers, before reading any data.
+#: Largest byte size of a scalar member of a map file (the fingerprint string is 64 characters of 4 bytes).
+_MAX_SCALAR_BYTES = 4096
 
-    Refuses (MapError) a file that is not a zip, lacks members, declares other dtypes (complex, bool,
-    object, ...) or shapes, declares more than ``num_gaussians x MAX_CLASSES`` concentrations, or whose
-    members hold another number of bytes than their headers declare (a decompression bomb, or a header
-    declaring huge arrays over a little data); with ``num_classes`` given, a map of another class count.
-    """
+
+def _read_npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, name: str) -> tuple[tuple, np.dtype, int]:
+    """(shape, dtype, header length [bytes]) of one npy member (only its first bytes are inflated)."""
     from numpy.lib import format as npformat
 
+    with zf.open(info) as fh:
+        version = npformat.read_magic(fh)
+        if version == (1, 0):
+            dshape, _fortran, dtype = npformat.read_array_header_1_0(fh)
+        elif version in ((2, 0), (3, 0)):
+            dshape, _fortran, dtype = npformat.read_array_header_2_0(fh)
+        else:
+            raise MapError(f"map file {path}: {name} has npy format version {version}")
+        return dshape, dtype, fh.tell()
+
+
+def _check_map_headers(path: Path, model: "GaussianModel", num_classes: int | None = None) -> None:
+    """Check every member's declared dtype, shape and size from the npy headers, and the file's own
+    model fingerprint and class count, before reading any large data.
+
+    Refuses (MapError naming ``path``) a file that is not a zip, lacks members, declares other dtypes
+    (complex, bool, object, ...) or shapes, whose members hold another number of bytes than their
+    headers declare, or whose scalars are larger than :data:`_MAX_SCALAR_BYTES`; a map of another model
+    ("this map belongs to model <fingerprint>, not <model file>"); concentrations whose declared shape
+    is not (the model's N, the file's own ``num_classes``) (a decompression bomb or a header declaring a
+    huge array is refused here, without the caller passing C); with ``num_classes`` given, a map of
+    another class count. A corrupt compressed stream is a MapError too.
+    """
     if not zipfile.is_zipfile(path):
         raise MapError(f"map file {path} is not an .npz archive")
     try:
@@ -58,36 +80,44 @@ def _check_map_headers(path: Path, num_gaussians: int, num_classes: int | None =
             missing = [k for k in _MAP_MEMBERS if k not in infos and k not in _OPTIONAL_MEMBERS]
             if missing:
                 raise MapError(f"map file {path} lacks {', '.join(missing)}")
+            shapes: dict[str, tuple] = {}
             for name, (kinds, shape) in _MAP_MEMBERS.items():
                 info = infos.get(name)
                 if info is None:
                     continue
-                with zf.open(info) as fh:
-                    version = npformat.read_magic(fh)
-                    if version == (1, 0):
-                        dshape, fortran, dtype = npformat.read_array_header_1_0(fh)
-                    elif version in ((2, 0), (3, 0)):
-                        dshape, fortran, dtype = npformat.read_array_header_2_0(fh)
-                    else:
-                        raise MapError(f"map file {path}: {name} has npy format version {version}")
-                    header_len = fh.tell()
+                dshape, dtype, header_len = _read_npy_header(zf, info, path, name)
                 if dtype.kind not in kinds or dtype.hasobject:
                     raise MapError(f"map file {path}: {name} has dtype {dtype}, expected kind {kinds}")
                 if len(dshape) != len(shape):
                     raise MapError(f"map file {path}: {name} has shape {dshape}, expected {len(shape)} dimension(s)")
-                if shape == ("G", "C") and (dshape[0] != num_gaussians or not 1 <= dshape[1] <= MAX_CLASSES):
-                    raise MapError(f"map file {path}: concentrations have shape {dshape}, expected "
-                                   f"({num_gaussians}, 1..{MAX_CLASSES})")
                 declared = int(np.prod(dshape, dtype=np.int64)) * dtype.itemsize + header_len
                 if info.file_size != declared:
                     raise MapError(f"map file {path}: {name} holds {info.file_size} bytes, its header declares "
                                    f"{declared}")
-                if num_classes is not None and shape == ("G", "C") and dshape[1] != num_classes:
-                    raise MapError(f"map file {path} has {dshape[1]} classes, expected {num_classes}")
+                if not shape and declared > _MAX_SCALAR_BYTES:
+                    raise MapError(f"map file {path}: {name} is a scalar of {declared} bytes")
+                shapes[name] = dshape
+            # The scalars are a few bytes each (checked above): read them before the concentrations.
+            with np.load(path, allow_pickle=False) as data:
+                file_gaussians = int(data["num_gaussians"])
+                fingerprint = str(data["model_fingerprint"])
+                file_classes = int(data["num_classes"])
     except MapError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError) as exc:
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, RuntimeError, zlib.error) as exc:
         raise MapError(f"cannot read map file {path}: {exc}") from exc
+    if fingerprint != model.fingerprint or file_gaussians != model.num_gaussians:
+        source = getattr(model, "source", None) or "the given model"
+        raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not {source} (model "
+                       f"{model.fingerprint[:16]}; {file_gaussians} vs {model.num_gaussians} Gaussians)")
+    if not 1 <= file_classes <= MAX_CLASSES:
+        raise MapError(f"map file {path}: num_classes={file_classes} outside 1..{MAX_CLASSES}")
+    dshape = shapes["concentrations"]
+    if tuple(dshape) != (model.num_gaussians, file_classes):
+        raise MapError(f"map file {path}: concentrations have shape {dshape}, the file's own num_classes and "
+                       f"the model give ({model.num_gaussians}, {file_classes})")
+    if num_classes is not None and file_classes != num_classes:
+        raise MapError(f"map file {path} has {file_classes} classes, expected {num_classes}")
 
 BackendName = Literal["numba", "torch", "cuda"]
 
@@ -381,11 +411,12 @@ class SemanticMap:
         (ignore_label, unknown_threshold, backend, ...) go to the constructor; prior, background and
         num_classes come from the file.
         Raises:
-            MapError: unreadable/corrupt/crafted file, unknown format version, or a map made for
-                another model (fingerprint or size mismatch), or invalid values.
+            MapError (naming ``path``): unreadable/corrupt/crafted file (also a corrupt compressed
+                stream), unknown format version, a map of another model ("this map belongs to model
+                <fingerprint>, not <model file>"), or invalid values.
         """
         path = Path(path)
-        _check_map_headers(path, model.num_gaussians, expected_classes)
+        _check_map_headers(path, model, expected_classes)
         try:
             with np.load(path, allow_pickle=False) as data:
                 version = int(data["format_version"])
@@ -399,13 +430,12 @@ class SemanticMap:
                 background = float(data["background"])
                 frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
                 if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
-                    raise MapError(f"map file {path} was made for another model (fingerprint {fingerprint[:12]}…, "
-                                   f"{num_gaussians} Gaussians; this model: {model.fingerprint[:12]}…, "
-                                   f"{model.num_gaussians} Gaussians)")
+                    raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not "
+                                   f"{getattr(model, 'source', None) or 'the given model'}")
                 conc = np.array(data["concentrations"], dtype=np.float64)
         except MapError:
             raise
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, RuntimeError, zlib.error) as exc:
             raise MapError(f"cannot read map file {path}: {exc}") from exc
         if conc.shape != (num_gaussians, num_classes) or not np.all(np.isfinite(conc)) or np.any(conc <= 0) \
                 or np.any(conc > MAX_CONCENTRATION):

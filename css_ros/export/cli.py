@@ -80,7 +80,8 @@ def export(args: argparse.Namespace) -> list[Path]:
             raise CssError("--num-classes must be >= 1")
         classes = ClassSet.default(args.num_classes)
     model = GaussianModel.from_ply(args.model)
-    smap = SemanticMap.load(args.map, model)
+    # The class count is known here: a map of another count (or a bomb claiming one) is refused from its headers.
+    smap = SemanticMap.load(args.map, model, expected_classes=classes.num_classes)
     if classes.num_classes != smap.num_classes:
         raise CssError(f"the map has {smap.num_classes} classes but {classes.num_classes} were given "
                        f"({args.classes or '--num-classes'})")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .views import ImportFormatError, PosedView, check_intrinsics, make_pose, pinhole_K, sorted_views
+from .views import ImportFormatError, PosedView, checked_K, make_pose, sorted_views
 
 #: model id -> (name, number of parameters) as in COLMAP's src/colmap/sensor/models.h.
 CAMERA_MODELS: dict[int, tuple[str, int]] = {
@@ -82,7 +82,7 @@ def _view(name: str, qvec: np.ndarray, tvec: np.ndarray, cam: ColmapCamera, wher
             "the pinhole part only")
     p = cam.params
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if cam.model in SINGLE_FOCAL else (p[0], p[1], p[2], p[3])
-    check_intrinsics(fx, fy, cam.width, cam.height, where)
+    K = checked_K(fx, fy, cx - 0.5, cy - 0.5, cam.width, cam.height, where)
     q = np.asarray(qvec, dtype=np.float64)
     norm = float(np.linalg.norm(q))
     if not np.isfinite(norm) or abs(norm - 1.0) > 1e-3:
@@ -90,8 +90,7 @@ def _view(name: str, qvec: np.ndarray, tvec: np.ndarray, cam: ColmapCamera, wher
     R_cam_map = _qvec_to_matrix(q / norm)
     R_map_cam = R_cam_map.T
     T = make_pose(R_map_cam, -R_map_cam @ np.asarray(tvec, dtype=np.float64), where)
-    return PosedView(name=name, K=pinhole_K(fx, fy, cx - 0.5, cy - 0.5), width=cam.width, height=cam.height,
-                     T_map_cam=T)
+    return PosedView(name=name, K=K, width=cam.width, height=cam.height, T_map_cam=T)
 
 
 def _qvec_to_matrix(q: np.ndarray) -> np.ndarray:

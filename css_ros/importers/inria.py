@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .views import ImportFormatError, PosedView, check_intrinsics, make_pose, pinhole_K, sorted_views
+from .views import ImportFormatError, PosedView, checked_K, image_name, image_size, make_pose, sorted_views
 
 #: Largest cameras.json read [bytes] (a 10 000-camera file is about 5 MB).
 MAX_FILE_BYTES = 512 * 1024 * 1024
@@ -34,16 +34,15 @@ def load_inria(path: str | Path) -> list[PosedView]:
     for i, cam in enumerate(data):
         where = f"{path} entry {i}"
         try:
-            name = str(cam["img_name"])
-            width, height = int(cam["width"]), int(cam["height"])
+            name = image_name(cam["img_name"], "img_name", where)
+            width, height = image_size(cam["width"], "width", where), image_size(cam["height"], "height", where)
             fx, fy = float(cam["fx"]), float(cam["fy"])
             rotation, position = cam["rotation"], cam["position"]
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise ImportFormatError(f"{where}: needs img_name, width, height, fx, fy, position, rotation "
                                     f"({type(exc).__name__}: {exc})") from None
-        check_intrinsics(fx, fy, width, height, where)
+        K = checked_K(fx, fy, (width - 1) / 2.0, (height - 1) / 2.0, width, height, where)
         T = make_pose(_floats(rotation, where), _floats(position, where), where)
-        K = pinhole_K(fx, fy, (width - 1) / 2.0, (height - 1) / 2.0)
         views.append(PosedView(name=name, K=K, width=width, height=height, T_map_cam=T))
     return sorted_views(views)
 

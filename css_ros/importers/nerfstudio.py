@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .inria import _read_json
-from .views import ImportFormatError, PosedView, check_intrinsics, make_pose, pinhole_K, sorted_views
+from .views import ImportFormatError, PosedView, checked_K, image_name, image_size, make_pose, sorted_views
 
 #: OpenGL camera axes (x right, y up, z back) -> OpenCV optical axes (x right, y down, z forward).
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -71,18 +71,18 @@ def _view(f: dict[str, Any], where: str, ignore_distortion: bool) -> PosedView:
             f"{where}: camera_model {model}" + (f" with distortion {detail}" if detail else "")
             + " is not an undistorted pinhole camera; undistort the images (e.g. colmap image_undistorter) "
               "or pass --ignore-distortion to use the pinhole part only")
+    name = image_name(f["file_path"], "file_path", where)
+    width, height = image_size(f["w"], "w", where), image_size(f["h"], "h", where)
     try:
         fx, fy, cx, cy = (float(f[k]) for k in ("fl_x", "fl_y", "cx", "cy"))
-        width, height = int(f["w"]), int(f["h"])
         M = np.asarray(f["transform_matrix"], dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ImportFormatError(f"{where}: bad intrinsics or transform_matrix ({exc})") from None
-    check_intrinsics(fx, fy, width, height, where)
+    K = checked_K(fx, fy, cx - 0.5, cy - 0.5, width, height, where)
     if M.shape == (3, 4):
         M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
     if M.shape != (4, 4):
         raise ImportFormatError(f"{where}: transform_matrix must be 4x4 (or 3x4), got {M.shape}")
     T_cv = M @ GL_TO_CV
     T = make_pose(T_cv[:3, :3], T_cv[:3, 3], where)
-    return PosedView(name=str(f["file_path"]), K=pinhole_K(fx, fy, cx - 0.5, cy - 0.5), width=width,
-                     height=height, T_map_cam=T)
+    return PosedView(name=name, K=K, width=width, height=height, T_map_cam=T)

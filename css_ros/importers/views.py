@@ -1,14 +1,17 @@
 """The common result of every pose importer: one posed pinhole view per image (frames: SPEC §2)."""
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import PurePath
+from typing import Any
 
 import numpy as np
 
 from ..engine.camera import matrix_to_quaternion_xyzw
 from ..errors import InputError
+from ..io.frames import FrameRejected, validate_intrinsics
 
 #: Largest accepted deviation of an imported rotation from orthonormality (|R^T R - I|, max abs entry).
 ROTATION_TOLERANCE = 1e-4
@@ -80,12 +83,36 @@ def make_pose(R_map_cam: np.ndarray, t_map_cam: np.ndarray, where: str) -> np.nd
     return T
 
 
-def check_intrinsics(fx: float, fy: float, width: int, height: int, where: str) -> None:
-    """Raise ImportFormatError unless the focal lengths are finite and positive and the size is positive."""
-    if not (np.isfinite(fx) and np.isfinite(fy) and fx > 0 and fy > 0):
-        raise ImportFormatError(f"{where}: focal lengths must be > 0, got fx={fx} fy={fy}")
-    if width < 1 or height < 1:
-        raise ImportFormatError(f"{where}: image size must be positive, got {width}x{height}")
+def checked_K(fx: float, fy: float, cx: float, cy: float, width: int, height: int, where: str) -> np.ndarray:
+    """(3, 3) pinhole K [px] (principal point already in SPEC §2's convention), checked with the bounds
+    css_node and css_replay apply to camera_info (:func:`css_ros.io.frames.validate_intrinsics`): a camera
+    they would refuse is refused here, naming ``where``."""
+    try:
+        K = pinhole_K(float(fx), float(fy), float(cx), float(cy))
+        validate_intrinsics(K, width, height)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ImportFormatError(f"{where}: intrinsics must be numbers ({exc})") from None
+    except FrameRejected as exc:
+        raise ImportFormatError(f"{where}: {exc.reason}: {exc} (css_node and css_replay refuse this camera)") \
+            from None
+    return K
+
+
+def image_size(value: Any, key: str, where: str) -> int:
+    """An image width/height [px] read from a pose file: a positive integer (an integral float such as
+    640.0 is accepted; 256.9, 1e999, NaN, booleans, strings and null are an ImportFormatError naming ``where``)."""
+    ok = isinstance(value, int) and not isinstance(value, bool) or \
+        isinstance(value, float) and math.isfinite(value) and value.is_integer()
+    if not ok or int(value) < 1:
+        raise ImportFormatError(f"{where}: {key} must be a positive integer number of pixels, got {value!r}")
+    return int(value)
+
+
+def image_name(value: Any, key: str, where: str) -> str:
+    """An image file name read from a pose file: a non-empty string (else ImportFormatError naming ``where``)."""
+    if not isinstance(value, str) or not value.strip():
+        raise ImportFormatError(f"{where}: {key} must be a non-empty file name, got {value!r}")
+    return value
 
 
 def sorted_views(views: list[PosedView]) -> list[PosedView]:

@@ -4,6 +4,10 @@
     OUT/classes.yaml   the class file (copied after validation, or anonymous classes)
     OUT/bag/           rosbag2 MCAP with the BAG_TOPICS topics of the demo bag
 
+OUT is complete or untouched: everything is written into a temporary folder beside OUT
+(``.<OUT name>.css_import-*``) and moved into OUT by renames at the end; a failure (full disk, a bad
+label file, SIGINT/SIGTERM) removes the temporary folder and leaves an earlier import in OUT as it was.
+
 Every frame i gets the stamp ``START_NS + round(i * 1e9 / rate_hz)`` on all its messages; frame ids
 are the demo's (``camera_optical`` for images and camera_info, ``map`` for the pose).
 """
@@ -11,6 +15,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -18,6 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..engine.classes import ClassSet
+from ..errors import BagError, CssError
 from ..io.bag import BagWriter
 from ..io.params_file import PARAMS_FILE_NAME, write_params_file
 from ..io.topics import BAG_TOPICS
@@ -28,6 +35,8 @@ from .views import ImportFormatError, PosedView
 CAMERA_FRAME = "camera_optical"   #: frame id of images and camera_info (as the demo bag)
 MAP_FRAME = "map"                 #: frame id of the poses (as the demo bag)
 START_NS = 1_700_000_000_000_000_000  #: stamp of frame 0 [ns] (fixed: byte-identical output for equal input)
+#: What an import writes into OUT (each is replaced as a whole by a rename).
+OUTPUTS = ("bag", "model.ply", "classes.yaml", PARAMS_FILE_NAME)
 
 
 @dataclass
@@ -78,13 +87,63 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
     model = Path(model)
     if not model.is_file():
         raise ImportFormatError(f"model not found: {model}")
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ImportFormatError(f"--out {out} exists and is not a folder")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.css_import-", dir=out.parent))
+        umask = os.umask(0o022)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)  # mkdtemp's 0700 would become OUT's mode
+    except OSError as exc:
+        raise CssError(f"cannot create the output folder beside {out}: {exc.strerror or exc}") from None
+    try:
+        summary = _write_into(tmp, out, frames, model, classes, classes_file, decoder, rate_hz, ignore_label,
+                              link_model, progress, node_params)
+        # No SIGINT/SIGTERM between the renames: OUT never holds a mix of the old and the new import.
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        try:
+            _move_into(tmp, out)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+    except (OSError, BagError) as exc:
+        detail = exc.strerror or str(exc) if isinstance(exc, OSError) else str(exc)
+        if isinstance(exc, OSError) and exc.filename2:  # shutil's copy errors name the source first
+            detail += f" (while copying {exc.filename})"
+        raise CssError(f"writing the import into {out} failed: {detail}; {out} was left as it was") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return summary
+
+
+def _move_into(tmp: Path, out: Path) -> None:
+    """Move the finished outputs from ``tmp`` into ``out`` by renames (same file system: no copying)."""
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    old = tmp / ".replaced"
+    old.mkdir()
+    for name in OUTPUTS:
+        new = tmp / name
+        if not (new.exists() or new.is_symlink()):
+            continue  # e.g. the model already lies in OUT
+        target = out / name
+        if target.exists() or target.is_symlink():
+            os.rename(target, old / name)
+        os.rename(new, target)
+
+
+def _write_into(tmp: Path, out: Path, frames: Sequence[ImportFrame], model: Path, classes: ClassSet,
+                classes_file: str | Path | None, decoder: LabelDecoder, rate_hz: float, ignore_label: int,
+                link_model: bool, progress: Callable[[int], None] | None,
+                node_params: dict | None = None) -> ImportSummary:
+    """Write the import into the empty folder ``tmp``; the summary names the final paths in ``out``."""
     C = classes.num_classes
     wide = C > 255 or ignore_label > 255
     enc, dtype, limit = ("mono16", np.uint16, 65535) if wide else ("mono8", np.uint8, 255)
     stamps = stamps_ns(len(frames), rate_hz)
     labelled = out_of_range = 0
-    with BagWriter(out / "bag") as bag:
+    with BagWriter(tmp / "bag") as bag:
         bag.set_custom_data("generator", "css_import")
         for f, stamp in zip(frames, stamps):
             v, s = f.view, int(stamp)
@@ -107,20 +166,22 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
                 progress(1)
     model_out = out / "model.ply"
     if model.resolve() != model_out.resolve():
-        if model_out.exists() or model_out.is_symlink():
-            model_out.unlink()
         if link_model:
-            os.symlink(model.resolve(), model_out)
+            os.symlink(model.resolve(), tmp / "model.ply")
         else:
-            shutil.copyfile(model, model_out)
+            shutil.copyfile(model, tmp / "model.ply")
     classes_out = out / "classes.yaml"
     if classes_file is not None and Path(classes_file).resolve() != classes_out.resolve():
-        shutil.copyfile(classes_file, classes_out)
+        shutil.copyfile(classes_file, tmp / "classes.yaml")
     elif classes_file is None:
-        classes.to_yaml(classes_out)
+        classes.to_yaml(tmp / "classes.yaml")
     if node_params:
-        write_params_file(out / PARAMS_FILE_NAME, node_params,
+        write_params_file(tmp / PARAMS_FILE_NAME, node_params,
                           comment="css_import: the node parameters of this import (css_replay reads this file)")
+    for name in OUTPUTS:  # on disk before the renames make them visible
+        if (tmp / name).is_file() and not (tmp / name).is_symlink():
+            with open(tmp / name, "rb") as fh:
+                os.fsync(fh.fileno())
     return ImportSummary(frames=len(frames), labelled_pixels=labelled, out_of_range_pixels=out_of_range,
                          unknown_color_pixels=decoder.unknown_color_pixels, segmentation_encoding=enc,
                          bag=out / "bag", model=model_out, classes=classes_out)

@@ -67,6 +67,16 @@ def decode_camera_info(msg: Any, max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXEL
         K, width, height = camera_info_to_intrinsics(msg)
     except (InputError, AttributeError, TypeError, ValueError) as exc:
         raise FrameRejected("invalid camera_info", f"cannot read K/width/height: {exc}") from None
+    return validate_intrinsics(K, width, height, max_image_pixels)
+
+
+def validate_intrinsics(K: np.ndarray, width: int, height: int,
+                        max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> Intrinsics:
+    """The one camera check of css_node, css_replay and css_import: K (3, 3) [px] an upper-triangular
+    pinhole with finite, positive focal lengths and entries within :data:`INTRINSICS_BOUND`, and
+    0 < width x height <= ``max_image_pixels``. Raises FrameRejected (reason ``invalid camera_info`` or
+    ``image too large``)."""
+    K = np.asarray(K, dtype=np.float64)
     if width <= 0 or height <= 0:
         raise FrameRejected("invalid camera_info", f"image size {width}x{height}")
     if width * height > max_image_pixels:

@@ -31,13 +31,46 @@ def class_field_names(class_names: Sequence[str]) -> list[str]:
     return out
 
 
-def request_points(msg: Any) -> np.ndarray:
-    """(M, 3) float64 query points [m, map frame] of a request cloud (rows may be non-finite: the caller
-    answers those as unknown).
+#: PointField datatypes accepted for x, y, z of a request: FLOAT32, FLOAT64.
+COORDINATE_DATATYPES = (7, 8)
+
+
+def declared_points(msg: Any) -> int:
+    """Number of points a request cloud declares (width x height), read from its header only.
 
     Raises:
-        InputError: fields x, y, z missing or unreadable, or truncated data.
+        InputError: width/height/point_step not non-negative integers.
     """
+    try:
+        width, height, step = int(msg.width), int(msg.height), int(msg.point_step)
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise InputError(f"unreadable cloud header: {exc}") from None
+    if min(width, height, step) < 0:
+        raise InputError(f"negative cloud size {width}x{height}, point_step {step}")
+    return width * height
+
+
+def request_points(msg: Any) -> np.ndarray:
+    """(M, 3) float64 query points [m, map frame] of a request cloud (rows may be non-finite: they are
+    answered as unknown, as points far from every Gaussian).
+
+    Raises:
+        InputError: fields x, y, z missing, not FLOAT32/FLOAT64 or at offsets that are not a multiple of
+            their size, a field name occurring twice, or truncated data.
+    """
+    fields = list(msg.fields)
+    names = [f.name for f in fields]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"point cloud names fields {dup} more than once")
+    for f in fields:
+        if f.name in ("x", "y", "z"):
+            if int(f.datatype) not in COORDINATE_DATATYPES:
+                raise InputError(f"field {f.name} has datatype {int(f.datatype)}; x y z must be FLOAT32 (7) or "
+                                 "FLOAT64 (8)")
+            size = 4 if int(f.datatype) == 7 else 8
+            if int(f.offset) % size:
+                raise InputError(f"field {f.name} at offset {int(f.offset)} is not aligned to its {size} bytes")
     pts = unpack_cloud(msg, ("x", "y", "z"))
     return np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64).reshape(-1, 3)
 

@@ -25,7 +25,7 @@ from ..engine.similarity import Similarity, parse_extrinsics
 from ..errors import InputError
 from ..io.frame_gate import STAMP_RESET_COUNT, FrameGate, GateConfig, GateFrame
 from ..io.frames import FrameRejected, decode_pose
-from ..io.point_queries import request_points
+from ..io.point_queries import declared_points, request_points
 from ..io.topics import INPUT_TOPICS
 from .params import NodeParams, pose_policy
 from .work import CandidateJob, FrameJob, PointQueryJob, WarnLimiter
@@ -166,12 +166,22 @@ class InputGate:
     def on_point_query(self, msg: Any, num_classes: int) -> PointQueryJob:
         """A PointCloud2 of query points -> a job for the worker.
 
-        Every request is answered in request order: a cloud without readable x y z fields is answered
-        with an empty cloud, one with more than ``max_query_points`` points and non-finite points as
-        unknown (the job is then already done and only needs publishing).
+        Every request is answered in request order: a cloud without readable x y z fields, or declaring
+        more than ``max_query_points`` points in its header (width x height; checked before its data is
+        touched), is answered at once with an empty cloud; non-finite points are answered as unknown.
         """
         topic = INPUT_TOPICS["point_queries"]
         self.count("point_queries_received")
+        try:
+            declared = declared_points(msg)
+        except InputError:
+            declared = 0  # request_points below says what is wrong
+        if declared > self.p.max_query_points:
+            self.warn(topic, "too many points", f"{declared} > max_query_points={self.p.max_query_points}: "
+                      "answered with an empty cloud", dropped=False)
+            job = PointQueryJob(msg.header, np.zeros((0, 3)), num_classes, self.p.ignore_label, time.monotonic())
+            job.status = "too many points"
+            return job
         try:
             xyz = request_points(msg)
         except (InputError, AttributeError, TypeError, ValueError) as exc:
@@ -180,16 +190,10 @@ class InputGate:
         job = PointQueryJob(msg.header, xyz, num_classes, self.p.ignore_label, time.monotonic(),
                             xyz_splat=self.frames.map_points_to_splat(xyz))
         self.frame_id_check(topic, msg.header.frame_id)
-        if len(xyz) > self.p.max_query_points:
-            self.warn(topic, "too many points", f"{len(xyz)} > max_query_points={self.p.max_query_points}: "
-                      "answered as unknown", dropped=False)
-            job.next_index = len(xyz)
-            job.status = "too many points"
-        else:
-            bad = int(np.count_nonzero(~np.all(np.isfinite(xyz), axis=1)))
-            if bad:
-                self.warn(topic, "non-finite query points", f"{bad} of {len(xyz)}: answered as unknown",
-                          dropped=False)
+        bad = int(np.count_nonzero(~np.all(np.isfinite(xyz), axis=1)))
+        if bad:
+            self.warn(topic, "non-finite query points", f"{bad} of {len(xyz)}: answered as unknown (as points "
+                      "far from every Gaussian)", dropped=False)
         return job
 
 

@@ -101,7 +101,9 @@ class CssNode(Node):
         else:
             qos_in = QoSProfile(depth=p.queue_size, reliability=qos_profile_sensor_data.reliability,
                                 durability=qos_profile_sensor_data.durability, history=HistoryPolicy.KEEP_LAST)
-        qos_req = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        # Deep enough for a burst of request_queue_size requests: none is lost before its callback runs.
+        qos_req = QoSProfile(depth=p.request_queue_size, reliability=ReliabilityPolicy.RELIABLE,
+                             history=HistoryPolicy.KEEP_LAST)
         # camera_info first: when several messages are ready the executor takes them in this order.
         t = INPUT_TOPICS
         pose_msg = POSE_MESSAGES[p.pose_type]

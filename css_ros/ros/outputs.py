@@ -26,6 +26,10 @@ CLOUD_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=Rel
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+#: Outputs that answer requests (one message per request).
+ANSWER_OUTPUTS = ("candidate_scores", "point_query_results")
+
+
 class OutputPublisher:
     """Creates the enabled ``~/<output>`` publishers and publishes the worker's results.
 
@@ -48,8 +52,9 @@ class OutputPublisher:
                 continue
             if name == "semantic_cloud" and params.cloud_period <= 0:
                 continue
-            self.pubs[name] = node.create_publisher(PointCloud2, f"~/{name}",
-                                                    CLOUD_QOS if name == "semantic_cloud" else depth)
+            qos = CLOUD_QOS if name == "semantic_cloud" else \
+                params.request_queue_size if name in ANSWER_OUTPUTS else depth  # bursts of answers
+            self.pubs[name] = node.create_publisher(PointCloud2, f"~/{name}", qos)
         for ns in params.cameras:
             ns = ns.strip("/")
             pubs = {}

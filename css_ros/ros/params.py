@@ -44,7 +44,9 @@ class NodeParams:
                          "against the working directory, the package share directory and the source tree")
     class_file: str = _p(DEFAULT_CLASSES, "path", "class YAML (classes: [{id, name, color}]); empty: "
                          "num_classes anonymous classes")
-    num_classes: int = _p(0, "", "number of classes C when class_file is empty (0: take it from class_file)")
+    num_classes: int = _p(0, "", "number of classes C (0: take it from class_file); given while class_file is "
+                          "left at its default (the demo's): C anonymous classes; contradicting a class_file "
+                          "that is set: start-up error")
     # --- semantic model
     prior: float = _p(DEFAULT_PRIOR, "", "initial Dirichlet concentration per class and Gaussian (alpha_0)")
     background: float = _p(DEFAULT_BACKGROUND, "", "background Dirichlet concentration per class (alpha_b)")
@@ -114,11 +116,14 @@ class NodeParams:
                                "(0: no limit)")
     min_evidence: float = _p(DEFAULT_MIN_EVIDENCE, "", "a Gaussian is observed (in ~/semantic_cloud) when its "
                              "concentrations exceed the prior by this total (S_n - C alpha_0)")
-    max_query_points: int = _p(1_000_000, "points", "largest point_queries cloud evaluated (larger: answered "
-                               "as unknown)")
+    max_query_points: int = _p(1_000_000, "points", "largest point_queries cloud evaluated (larger, from its "
+                               "header: answered at once with an empty cloud)")
     point_query_slice: int = _p(65_536, "points", "query points evaluated between two observed frames")
     query_background_weight: float = _p(DEFAULT_QUERY_BACKGROUND_WEIGHT, "", "background weight w_b of the "
                                         "continuous field at a 3D point (SPEC §9)")
+    request_queue_size: int = _p(256, "requests", "subscription depth of candidates and point_queries and history "
+                                 "of their answer topics: a burst of up to this many requests is received and "
+                                 "answered in full (beyond the 8 pending ones: at once, as busy)")
     # --- persistence
     checkpoint_path: str = _p(DEFAULT_CHECKPOINT, "path", "semantic map checkpoint (.npz); {fingerprint} is "
                               "replaced by 16 hex digits of the model fingerprint; empty disables saving and "
@@ -239,7 +244,7 @@ def check_params(p: NodeParams) -> None:
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
     for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
-                 "max_query_points", "point_query_slice"):
+                 "max_query_points", "point_query_slice", "request_queue_size"):
         if getattr(p, name) < 1:
             raise bad(name, "must be >= 1")
     if p.cloud_max_points < 0:

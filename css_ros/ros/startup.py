@@ -17,7 +17,7 @@ from ..engine.semantic_map import SemanticMap
 from ..engine.warmup import warm_up_kernels
 from ..errors import ConfigError, CssError, MapError, ModelError
 from ..io.paths import resolve_data_path
-from .params import NodeParams, checkpoint_file
+from .params import DEFAULT_CLASSES, NodeParams, checkpoint_file
 
 
 @dataclass
@@ -62,12 +62,19 @@ def reject_aside(path: Path) -> Path | None:
 
 
 def load_classes(params: NodeParams, log_warning: Callable[[str], None]) -> ClassSet:
+    """The class set: num_classes > 0 with class_file left at its default (the demo's file) gives
+    num_classes anonymous classes (another model must not get the demo's classes); a class_file that is
+    set and a num_classes that contradicts it are a ConfigError naming both."""
+    if params.class_file and params.num_classes > 0 and params.class_file == DEFAULT_CLASSES:
+        log_warning(f"num_classes={params.num_classes} given and class_file left at the demo's default "
+                    f"{DEFAULT_CLASSES}: using {params.num_classes} anonymous classes")
+        return ClassSet.default(params.num_classes)
     if params.class_file:
         class_path = resolve_data_path(params.class_file)
         classes = ClassSet.from_yaml(class_path)
         if params.num_classes and params.num_classes != classes.num_classes:
-            log_warning(f"num_classes={params.num_classes} ignored: class file {class_path} defines "
-                        f"{classes.num_classes} classes")
+            raise ConfigError(f"num_classes={params.num_classes} contradicts class_file={params.class_file} "
+                              f"({class_path} defines {classes.num_classes} classes): drop one of them")
         return classes
     if params.num_classes > 0:
         return ClassSet.default(params.num_classes)

@@ -227,7 +227,7 @@ class MapWorker:
             self.finish_request(job, "time budget exceeded")
             return
         start, stop = job.next_index, min(len(job.xyz), job.next_index + self.p.point_query_slice)
-        rows = start + np.flatnonzero(np.all(np.isfinite(job.xyz_splat[start:stop]), axis=1))
+        rows = np.arange(start, stop)  # non-finite points get the far-point answer (field3d.query_field)
         if len(rows):
             with self.map_lock:
                 q = self.smap.query_points(job.xyz_splat[rows], self.p.query_background_weight)
