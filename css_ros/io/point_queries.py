@@ -12,6 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..errors import InputError
 from .clouds import unpack_cloud
 
 #: Fields of an answer before the per-class ones.
