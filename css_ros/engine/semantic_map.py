@@ -36,8 +36,11 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "num_gaussians": ("iu", ()),
     "model_fingerprint": ("U", ()),
     "frames_observed": ("iu", ()),
+    "sources": ("U", ("S",)),
 }
-_OPTIONAL_MEMBERS = ("frames_observed",)
+_OPTIONAL_MEMBERS = ("frames_observed", "sources")
+#: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
+MAX_SOURCES = 4096
 
 
 def _check_map_headers(path: Path, num_gaussians: int, num_classes: int | None = None) -> None:
@@ -82,6 +85,8 @@ def _check_map_headers(path: Path, num_gaussians: int, num_classes: int | None =
                 if info.file_size != declared:
                     raise MapError(f"map file {path}: {name} holds {info.file_size} bytes, its header declares "
                                    f"{declared}")
+                if shape == ("S",) and dshape[0] > MAX_SOURCES:
+                    raise MapError(f"map file {path} lists {dshape[0]} sources, at most {MAX_SOURCES}")
                 if num_classes is not None and shape == ("G", "C") and dshape[1] != num_classes:
                     raise MapError(f"map file {path} has {dshape[1]} classes, expected {num_classes}")
     except MapError:
@@ -182,6 +187,8 @@ class SemanticMap:
         self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.frames_observed = 0
+        #: origin ids of the sources whose evidence this map holds (css_node's own and received ones), sorted
+        self.sources: list[str] = []
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
     # ------------------------------------------------------------------ state
@@ -355,6 +362,7 @@ class SemanticMap:
                     num_gaussians=np.int64(self.model.num_gaussians),
                     model_fingerprint=np.array(self.model.fingerprint),
                     frames_observed=np.int64(self.frames_observed),
+                    sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
                 )
                 fh.flush()
                 os.fsync(fh.fileno())
@@ -400,6 +408,7 @@ class SemanticMap:
                 prior = float(data["prior"])
                 background = float(data["background"])
                 frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
+                sources = [str(v) for v in data["sources"]] if "sources" in data.files else []
                 if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
                     raise MapError(f"map file {path} was made for another model (fingerprint {fingerprint[:12]}…, "
                                    f"{num_gaussians} Gaussians; this model: {model.fingerprint[:12]}…, "
@@ -422,4 +431,5 @@ class SemanticMap:
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
         smap.concentrations[...] = conc
         smap.frames_observed = frames
+        smap.sources = sources
         return smap
