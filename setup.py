@@ -72,6 +72,7 @@ setup(
             "css_nbv_client = css_ros.clients.nbv_client:main",
             "css_export = css_ros.export.cli:main",
             "css_import = css_ros.importers.cli:main",
+            "css_map = css_ros.maps.cli:main",
         ],
     },
 )

@@ -24,7 +24,7 @@ def check_compatible(a: "SemanticMap", b: "SemanticMap", name_a: str = "first ma
         raise MapError(f"{name_a} and {name_b} were made on different splat models (fingerprints "
                        f"{a.model.fingerprint[:12]}… and {b.model.fingerprint[:12]}…); transfer one first")
     if a.num_classes != b.num_classes:
-        raise MapError(f"{name_a} has {a.num_classes} classes, {name_b} {b.num_classes}")
+        raise MapError(f"{name_a} has {a.num_classes} classes, {name_b} has {b.num_classes} classes")
     if a.prior != b.prior:
         raise MapError(f"{name_a} has prior {a.prior:g}, {name_b} {b.prior:g}: their evidence is not comparable")
     if a.background != b.background:
