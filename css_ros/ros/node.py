@@ -21,6 +21,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from ..errors import MapError
 from ..io.topics import INPUT_TOPICS, NODE_NAME
 from .diagnostics import Stats, StatusReporter
+from .evidence import EvidenceLink
 from .gate import InputGate, NanAnswer
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
@@ -82,6 +83,7 @@ class CssNode(Node):
         self.outputs = OutputPublisher(self, p, self.classes)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
+        self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
         self._confidence_topic = self.resolve_topic_name(INPUT_TOPICS["confidence"])
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
                               lambda: self.count_publishers(self._confidence_topic) > 0, log.warning)
@@ -184,6 +186,7 @@ class CssNode(Node):
         else:
             try:
                 response.success, response.message = True, self.worker.load_map(path)
+                self.evidence.map_replaced()
                 self.stats.count("maps_loaded")
                 self.get_logger().info(response.message)
             except MapError as exc:
@@ -193,6 +196,7 @@ class CssNode(Node):
 
     def _on_reset_map(self, request: Any, response: Any) -> Any:
         self.worker.reset_map()
+        self.evidence.map_replaced()
         self.stats.count("resets")
         response.success = True
         response.message = f"all {self.smap.model.num_gaussians} Gaussians reset to the prior"
