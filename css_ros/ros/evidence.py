@@ -47,14 +47,9 @@ class EvidenceLink:
     def __init__(self, node: Node, p: NodeParams, worker: Any, warn: WarnLimiter,
                  count: Callable[..., None]) -> None:
         self.p, self.worker, self.warn, self.count = p, worker, warn, count
-        smap = worker.smap
         self.origin = p.evidence_origin or default_origin()
-        fp = smap.model.fingerprint
-        n, c = smap.model.num_gaussians, smap.num_classes
-        self.ledger = EvidenceLedger(self.origin, fp, n, c, smap.prior, p.evidence_max_sources)
-        self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, p.evidence_max_rows)
+        self.rebind()
         self._buckets: dict[str, tuple[float, float]] = {}   # origin -> (tokens, time.monotonic())
-        self._next_snapshot = 0.0
         self.topics = [t.strip() for t in p.evidence_in.split(",") if t.strip()]
         qos = QoSProfile(depth=EVIDENCE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
@@ -64,6 +59,15 @@ class EvidenceLink:
         if self.pub is not None:
             node.create_timer(p.evidence_period if p.evidence_period > 0 else 0.5, self.publish)
         self._update_sources()
+
+    def rebind(self) -> None:
+        """(Re)start the bookkeeping for the worker's current map (at start and after a model swap)."""
+        with self.worker.map_lock:
+            smap = self.worker.smap
+            fp, n, c = smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes
+            self.ledger = EvidenceLedger(self.origin, fp, n, c, smap.prior, self.p.evidence_max_sources)
+            self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows)
+            self._next_snapshot = 0.0
 
     @property
     def enabled(self) -> bool:

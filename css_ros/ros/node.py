@@ -22,6 +22,7 @@ from ..errors import MapError
 from ..io.topics import INPUT_TOPICS, NODE_NAME
 from .diagnostics import Stats, StatusReporter
 from .evidence import EvidenceLink
+from .model_swap import ModelWatcher
 from .gate import InputGate, NanAnswer
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
@@ -84,6 +85,7 @@ class CssNode(Node):
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
+        self.model_watcher = ModelWatcher(self, p, self.warn, self.stats.count, log.info)
         self._confidence_topic = self.resolve_topic_name(INPUT_TOPICS["confidence"])
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
                               lambda: self.count_publishers(self._confidence_topic) > 0, log.warning)

@@ -123,6 +123,10 @@ class NodeParams:
                                          "~/evidence (late joiners and receivers that missed a packet catch up)")
     evidence_max_rows: int = _p(20_000, "Gaussians", "most Gaussians per evidence packet (sent and accepted)")
     evidence_max_sources: int = _p(8, "sources", "most other nodes whose evidence is added (8 N C bytes each)")
+    model_watch_dir: str = _p("", "path", "folder watched for a newer splat (*.ply): the map moves to it by "
+                              "the transfer of SPEC §10 while the node runs (empty: off)")
+    model_watch_period: float = _p(2.0, "s", "time between two scans of model_watch_dir (a file must be "
+                                   "unchanged over two scans)")
     evidence_max_rate: float = _p(200.0, "packets/s", "evidence packets accepted per source and second (a "
                                   "flood beyond is refused)")
 
@@ -226,6 +230,8 @@ def check_params(p: NodeParams) -> None:
                  "evidence_period", "evidence_snapshot_period"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
+    if not (math.isfinite(p.model_watch_period) and p.model_watch_period > 0):
+        raise bad("model_watch_period", "must be finite and > 0")
     for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
                  "max_query_points", "point_query_slice", "evidence_max_rows", "evidence_max_sources"):
         if getattr(p, name) < 1:
