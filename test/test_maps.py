@@ -28,11 +28,8 @@ from scenes import camera, random_scene  # noqa: E402
 
 PRIOR = 1e-3
 #: Label agreement with direct fusion required on the 20k-Gaussian room (its ~5 cm Gaussians make the class
-#: borders a few % of the labelled pixels; the nearest-neighbour copy reaches the same level: docs/spec.md).
-AGREEMENT_MIN = 0.97
-#: The transfer conserves evidence (the copy inflates it by ~16 % here) and may trail the copy's agreement
-#: by at most this (measured: 0.1 percentage point; the two choose the same class for all but ~13 of 24k Gaussians).
-NN_SLACK = 2e-3
+#: borders a few % of the labelled pixels; the nearest-neighbour copy reaches 98.0 %: docs/spec.md §10).
+AGREEMENT_MIN = 0.98
 
 
 def _fused(model: GaussianModel, c: int, seed: int, frames: int = 3) -> SemanticMap:
@@ -178,7 +175,7 @@ def test_transfer_to_a_retrained_splat_matches_direct_fusion(retrained_case):
     agree, agree_nn = _agreement(moved, direct, views), _agreement(nn, direct, views)
     print(f"agreement transfer {agree:.4f}, nearest copy {agree_nn:.4f}, evidence ratio {report.ratio:.4f}")
     assert agree >= AGREEMENT_MIN
-    assert agree >= agree_nn - NN_SLACK
+    assert agree >= agree_nn   # and the copy inflates the total evidence (by ~16 % here), the transfer does not
     ev_old = (old.concentrations - old.prior).sum()
     ev_new = (moved.concentrations - moved.prior).sum()
     assert ev_new == pytest.approx(report.evidence_new, rel=1e-9)

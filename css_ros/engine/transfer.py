@@ -4,7 +4,7 @@ The maths is docs/spec.md "Transfer of a map to another splat". In short, with �
 of old Gaussian g (C-vector, ≥ 0) and Σ'_g = Σ_g + τ² I its covariance widened by the tolerance τ:
 
     o_gj = o_j sqrt(|Σ_j| / |Σ'_g + Σ_j|) exp(-½ Δᵀ (Σ'_g + Σ_j)⁻¹ Δ),   Δ = μ_j - μ_g
-           (0 beyond Mahalanobis distance 3, or where μ_j is outside g's widened 3σ box)
+           (0 beyond Mahalanobis distance 3, or where μ_j is outside g's widened 3σ ellipsoid)
     α_j   = α_0 + Σ_g (o_gj / Σ_k o_gk) ε_g
 
 Each old Gaussian hands all its evidence to the new Gaussians that overlap it, in proportion to how much
@@ -125,7 +125,7 @@ def transfer_concentrations(old_model: GaussianModel, old_concentrations: np.nda
     new_cov, new_det = _covariance_rows(new_model, 0.0)
     new_means = np.ascontiguousarray(new_model.means, dtype=np.float64)
     new_opac = np.ascontiguousarray(new_model.opacities, dtype=np.float64)
-    geometry = (new_means, new_cov, new_det, new_opac, index.means, old_cov, index.origin, index.cell_size,
+    geometry = (new_means, new_cov, new_det, new_opac, index.means, old_cov, index.inv_cov, index.origin, index.cell_size,
                 index.dims, index.level_offsets, index.cell_start, index.items, TRANSFER_CUTOFF ** 2)
     best = np.empty(n_new, dtype=np.int64)
     nearest_old(*geometry, best)

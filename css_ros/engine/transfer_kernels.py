@@ -2,7 +2,7 @@
 
 Called through :mod:`css_ros.engine.transfer`, which documents the maths and the data layout. Every kernel
 visits, for each new Gaussian j, the old Gaussians g of the SPEC §9 grid cells holding μ_j (old boxes
-widened by the tolerance), and keeps the pairs whose overlap o_gj is > 0.
+widened by the tolerance) whose widened 3σ ellipsoid contains μ_j, and keeps the pairs whose overlap o_gj is > 0.
 """
 from __future__ import annotations
 
@@ -34,6 +34,17 @@ def _cell(px, py, pz, lv, origin, cell_size, dims, level_offsets):  # pragma: no
 
 
 @njit(inline="always")
+def _inside(g, px, py, pz, old_means, old_inv, cut2):  # pragma: no cover - compiled
+    """μ_j inside old g's widened ellipsoid: (μ_j - μ_g)ᵀ Σ'_g⁻¹ (μ_j - μ_g) <= cut2 (cheap pre-filter)."""
+    ax = px - old_means[g, 0]
+    ay = py - old_means[g, 1]
+    az = pz - old_means[g, 2]
+    d2 = (old_inv[g, 0] * ax * ax + old_inv[g, 3] * ay * ay + old_inv[g, 5] * az * az
+          + 2.0 * (old_inv[g, 1] * ax * ay + old_inv[g, 2] * ax * az + old_inv[g, 4] * ay * az))
+    return d2 <= cut2
+
+
+@njit(inline="always")
 def _overlap(g, j, new_means, new_cov, new_det, new_opac, old_means, old_cov, cut2):  # pragma: no cover
     """o_gj = o_j sqrt(|Σ_j| / |A|) exp(-q/2), q = Δᵀ A⁻¹ Δ, A = Σ'_g + Σ_j; 0 where q > cut2."""
     dx = new_means[j, 0] - old_means[g, 0]
@@ -61,7 +72,7 @@ def _overlap(g, j, new_means, new_cov, new_det, new_opac, old_means, old_cov, cu
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def nearest_old(new_means, new_cov, new_det, new_opac, old_means, old_cov, origin, cell_size, dims,
+def nearest_old(new_means, new_cov, new_det, new_opac, old_means, old_cov, old_inv, origin, cell_size, dims,
                 level_offsets, cell_start, items, cut2, out_best):  # pragma: no cover - compiled
     """out_best[j] = the overlapping old Gaussian whose centre is nearest to μ_j (ties: lowest id); -1: none."""
     nlev = cell_size.shape[0]
@@ -73,6 +84,8 @@ def nearest_old(new_means, new_cov, new_det, new_opac, old_means, old_cov, origi
             cell = _cell(px, py, pz, lv, origin, cell_size, dims, level_offsets)
             for k in range(cell_start[cell], cell_start[cell + 1]):
                 g = items[k]
+                if not _inside(g, px, py, pz, old_means, old_inv, cut2):
+                    continue
                 if _overlap(g, j, new_means, new_cov, new_det, new_opac, old_means, old_cov, cut2) > 0.0:
                     d = (px - old_means[g, 0]) ** 2 + (py - old_means[g, 1]) ** 2 + (pz - old_means[g, 2]) ** 2
                     if d < best_d or (d == best_d and g < best):
@@ -82,7 +95,7 @@ def nearest_old(new_means, new_cov, new_det, new_opac, old_means, old_cov, origi
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def overlap_denominators(new_means, new_cov, new_det, new_opac, old_means, old_cov, origin, cell_size, dims,
+def overlap_denominators(new_means, new_cov, new_det, new_opac, old_means, old_cov, old_inv, origin, cell_size, dims,
                          level_offsets, cell_start, items, cut2, eligible, partial,
                          out_denominator):  # pragma: no cover - compiled
     """out_denominator[g] = Σ_j o_gj over the new Gaussians j with ``eligible[j]``.
@@ -102,6 +115,8 @@ def overlap_denominators(new_means, new_cov, new_det, new_opac, old_means, old_c
                 cell = _cell(px, py, pz, lv, origin, cell_size, dims, level_offsets)
                 for k in range(cell_start[cell], cell_start[cell + 1]):
                     g = items[k]
+                    if not _inside(g, px, py, pz, old_means, old_inv, cut2):
+                        continue
                     partial[t, g] += _overlap(g, j, new_means, new_cov, new_det, new_opac, old_means, old_cov, cut2)
     for g in prange(old_means.shape[0]):
         s = 0.0
@@ -111,7 +126,7 @@ def overlap_denominators(new_means, new_cov, new_det, new_opac, old_means, old_c
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def gather_mass(new_means, new_cov, new_det, new_opac, old_means, old_cov, origin, cell_size, dims,
+def gather_mass(new_means, new_cov, new_det, new_opac, old_means, old_cov, old_inv, origin, cell_size, dims,
                 level_offsets, cell_start, items, cut2, eligible, denominator, old_mass,
                 out_mass):  # pragma: no cover - compiled
     """out_mass[j] = Σ_g (o_gj / denominator[g]) old_mass[g] for eligible j (0 otherwise)."""
@@ -124,7 +139,8 @@ def gather_mass(new_means, new_cov, new_det, new_opac, old_means, old_cov, origi
                 cell = _cell(px, py, pz, lv, origin, cell_size, dims, level_offsets)
                 for k in range(cell_start[cell], cell_start[cell + 1]):
                     g = items[k]
-                    if old_mass[g] > 0.0 and denominator[g] > 0.0:
+                    if old_mass[g] > 0.0 and denominator[g] > 0.0 and _inside(g, px, py, pz, old_means, old_inv,
+                                                                               cut2):
                         o = _overlap(g, j, new_means, new_cov, new_det, new_opac, old_means, old_cov, cut2)
                         mass += o / denominator[g] * old_mass[g]
         out_mass[j] = mass
