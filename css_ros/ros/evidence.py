@@ -57,7 +57,7 @@ class EvidenceLink:
         for topic in self.topics:
             node.create_subscription(UInt8MultiArray, topic, self._on_packet, qos)
         if self.pub is not None:
-            node.create_timer(p.evidence_period if p.evidence_period > 0 else 0.5, self.publish)
+            node.create_timer(p.evidence_period, self.publish)
         self._update_sources()
 
     def rebind(self) -> None:
@@ -66,7 +66,8 @@ class EvidenceLink:
             smap = self.worker.smap
             fp, n, c = smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes
             self.ledger = EvidenceLedger(self.origin, fp, n, c, smap.prior, self.p.evidence_max_sources)
-            self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows)
+            self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows) \
+                if self.p.publish_evidence else None   # 8 N C bytes: only when publishing
             self._next_snapshot = 0.0
 
     @property
@@ -91,6 +92,8 @@ class EvidenceLink:
     def publish(self) -> None:
         """Timer: deltas of the own evidence since the last call, or a snapshot when one is due."""
         now = time.monotonic()
+        if self.outbox is None:
+            return
         with self.worker.map_lock:
             alpha = self.worker.smap.concentrations
             own = self.outbox.own(alpha, self.ledger.received_total())

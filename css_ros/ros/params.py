@@ -227,11 +227,12 @@ def check_params(p: NodeParams) -> None:
             raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")
     for name in ("sync_slop", "max_stamp_future", "checkpoint_period", "checkpoint_retry_max", "log_period",
                  "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence",
-                 "evidence_period", "evidence_snapshot_period"):
+                 "evidence_snapshot_period"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
-    if not (math.isfinite(p.model_watch_period) and p.model_watch_period > 0):
-        raise bad("model_watch_period", "must be finite and > 0")
+    for name in ("model_watch_period", "evidence_period"):
+        if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
+            raise bad(name, "must be finite and > 0")
     for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
                  "max_query_points", "point_query_slice", "evidence_max_rows", "evidence_max_sources"):
         if getattr(p, name) < 1:
