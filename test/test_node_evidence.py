@@ -168,6 +168,7 @@ def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
         assert got, "snapshot did not bridge the gap"
         m, sources = _saved(client, ckpt)
         assert sources == ["crafted"]
+        assert int(client.wait_until(lambda: client.diagnostics().get("evidence_packets_from[crafted]"), 10.0)) >= 5
         for _ in range(120):                                                   # a flood: 120 packets at once
             msg = UInt8MultiArray()
             msg.data = pkt(DELTA, 1, d[0])

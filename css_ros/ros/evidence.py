@@ -143,6 +143,7 @@ class EvidenceLink:
             self._refuse(reason, pkt.origin)
             return
         self.count("evidence_packets_applied")
+        self.count(f"evidence_packets_from[{pkt.origin}]")   # diagnostics name the contributing sources
         self._update_sources()
 
     def _refuse(self, reason: str, origin: str = "") -> None:
