@@ -76,6 +76,7 @@ setup(
             "css_export = css_ros.export.cli:main",
             "css_import = css_ros.importers.cli:main",
             "css_align = css_ros.importers.align_cli:main",
+            "css_map = css_ros.maps.cli:main",
         ],
     },
 )

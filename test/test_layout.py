@@ -22,11 +22,12 @@ ALLOWED: dict[str, set[str]] = {
     "evaluation": {"engine", "io", "export"},
     "export": {"engine", "io"},
     "importers": {"engine", "io"},
+    "maps": {"engine", "io"},
     "ros": {"engine", "io", "export"},
     "demo": {"engine", "io", "evaluation", "ros"},
     "clients": {"engine", "io", "ros"},
 }
-ROS_FREE = ("engine", "io", "evaluation", "export", "importers")
+ROS_FREE = ("engine", "io", "evaluation", "export", "importers", "maps")
 #: Root modules of layer 0, importable from every layer (they import nothing of the package but errors).
 BASE = ("errors", "console")
 ROS_MODULES = ("rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "std_srvs", "diagnostic_msgs",

@@ -37,8 +37,11 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "num_gaussians": ("iu", ()),
     "model_fingerprint": ("U", ()),
     "frames_observed": ("iu", ()),
+    "sources": ("U", ("S",)),
 }
-_OPTIONAL_MEMBERS = ("frames_observed",)
+_OPTIONAL_MEMBERS = ("frames_observed", "sources")
+#: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
+MAX_SOURCES = 4096
 
 
 #: Largest byte size of a scalar member of a map file (the fingerprint string is 64 characters of 4 bytes).
@@ -60,7 +63,7 @@ def _read_npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, nam
         return dshape, dtype, fh.tell()
 
 
-def _check_map_headers(path: Path, model: "GaussianModel", num_classes: int | None = None) -> None:
+def _check_map_headers(path: Path, model: "GaussianModel | int", num_classes: int | None = None) -> None:
     """Check every member's declared dtype, shape and size from the npy headers, and the file's own
     model fingerprint and class count, before reading any large data.
 
@@ -70,7 +73,8 @@ def _check_map_headers(path: Path, model: "GaussianModel", num_classes: int | No
     ("this map belongs to model <fingerprint>, not <model file>"); concentrations whose declared shape
     is not (the model's N, the file's own ``num_classes``) (a decompression bomb or a header declaring a
     huge array is refused here, without the caller passing C); with ``num_classes`` given, a map of
-    another class count. A corrupt compressed stream is a MapError too.
+    another class count. A corrupt compressed stream is a MapError too. ``model`` may be just its number of
+    Gaussians (css_map reading a map without its model: no fingerprint check).
     """
     if not zipfile.is_zipfile(path):
         raise MapError(f"map file {path} is not an .npz archive")
@@ -94,6 +98,8 @@ def _check_map_headers(path: Path, model: "GaussianModel", num_classes: int | No
                 if info.file_size != declared:
                     raise MapError(f"map file {path}: {name} holds {info.file_size} bytes, its header declares "
                                    f"{declared}")
+                if shape == ("S",) and dshape[0] > MAX_SOURCES:
+                    raise MapError(f"map file {path} lists {dshape[0]} sources, at most {MAX_SOURCES}")
                 if not shape and declared > _MAX_SCALAR_BYTES:
                     raise MapError(f"map file {path}: {name} is a scalar of {declared} bytes")
                 shapes[name] = dshape
@@ -106,16 +112,20 @@ def _check_map_headers(path: Path, model: "GaussianModel", num_classes: int | No
         raise
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, RuntimeError, zlib.error) as exc:
         raise MapError(f"cannot read map file {path}: {exc}") from exc
-    if fingerprint != model.fingerprint or file_gaussians != model.num_gaussians:
+    n_model = model if isinstance(model, int) else model.num_gaussians
+    if isinstance(model, int):
+        if file_gaussians != n_model:
+            raise MapError(f"map file {path}: {file_gaussians} Gaussians declared, {n_model} expected")
+    elif fingerprint != model.fingerprint or file_gaussians != model.num_gaussians:
         source = getattr(model, "source", None) or "the given model"
         raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not {source} (model "
                        f"{model.fingerprint[:16]}; {file_gaussians} vs {model.num_gaussians} Gaussians)")
     if not 1 <= file_classes <= MAX_CLASSES:
         raise MapError(f"map file {path}: num_classes={file_classes} outside 1..{MAX_CLASSES}")
     dshape = shapes["concentrations"]
-    if tuple(dshape) != (model.num_gaussians, file_classes):
+    if tuple(dshape) != (n_model, file_classes):
         raise MapError(f"map file {path}: concentrations have shape {dshape}, the file's own num_classes and "
-                       f"the model give ({model.num_gaussians}, {file_classes})")
+                       f"the model give ({n_model}, {file_classes})")
     if num_classes is not None and file_classes != num_classes:
         raise MapError(f"map file {path} has {file_classes} classes, expected {num_classes}")
 
@@ -212,6 +222,8 @@ class SemanticMap:
         self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.frames_observed = 0
+        #: origin ids of the sources whose evidence this map holds (css_node's own and received ones), sorted
+        self.sources: list[str] = []
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
     # ------------------------------------------------------------------ state
@@ -383,6 +395,7 @@ class SemanticMap:
                     num_gaussians=np.int64(self.model.num_gaussians),
                     model_fingerprint=np.array(self.model.fingerprint),
                     frames_observed=np.int64(self.frames_observed),
+                    sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
                 )
                 fh.flush()
                 os.fsync(fh.fileno())
@@ -429,6 +442,7 @@ class SemanticMap:
                 prior = float(data["prior"])
                 background = float(data["background"])
                 frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
+                sources = [str(v) for v in data["sources"]] if "sources" in data.files else []
                 if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
                     raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not "
                                    f"{getattr(model, 'source', None) or 'the given model'}")
@@ -450,4 +464,5 @@ class SemanticMap:
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
         smap.concentrations[...] = conc
         smap.frames_observed = frames
+        smap.sources = sources
         return smap

@@ -24,3 +24,7 @@ VAR_FLOOR = 1e-30                 # variances are floored here before the log of
 DEFAULT_MIN_EVIDENCE = 0.5              # a Gaussian is observed when S_n - C alpha_0 >= this
 DEFAULT_QUERY_BACKGROUND_WEIGHT = 0.01  # w_b of the continuous field at a point
 QUERY_MAHALANOBIS_CUTOFF = 3.0          # w_n(x) = 0 beyond this Mahalanobis distance
+
+# --- Moving a map to a retrained splat (docs/spec.md "Transfer") ----------------------------------
+DEFAULT_TRANSFER_TOLERANCE = 0.01   # m; τ added in quadrature to every old standard deviation (retraining jitter)
+TRANSFER_CUTOFF = 3.0               # Mahalanobis distance of an old/new pair beyond which the overlap is 0

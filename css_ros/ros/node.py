@@ -23,6 +23,8 @@ from ..engine.similarity import Similarity
 from ..errors import MapError
 from ..io.topics import INPUT_TOPICS, NODE_NAME
 from .diagnostics import Stats, StatusReporter
+from .evidence import EvidenceLink
+from .model_swap import ModelWatcher
 from .gate import InputGate, NanAnswer
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
@@ -89,6 +91,8 @@ class CssNode(Node):
         self.outputs = OutputPublisher(self, p, self.classes)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
+        self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
+        self.model_watcher = ModelWatcher(self, p, self.warn, self.stats.count, log.info)
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
                               self._confidence_published, log.warning)
         frames = self.gate.frames
@@ -214,6 +218,7 @@ class CssNode(Node):
         else:
             try:
                 response.success, response.message = True, self.worker.load_map(path)
+                self.evidence.map_replaced()
                 self.stats.count("maps_loaded")
                 self.get_logger().info(response.message)
             except MapError as exc:
@@ -223,6 +228,7 @@ class CssNode(Node):
 
     def _on_reset_map(self, request: Any, response: Any) -> Any:
         self.worker.reset_map()
+        self.evidence.map_replaced()
         self.stats.count("resets")
         response.success = True
         response.message = f"all {self.smap.model.num_gaussians} Gaussians reset to the prior"

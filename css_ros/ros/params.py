@@ -137,6 +137,24 @@ class NodeParams:
     log_period: float = _p(10.0, "s", "time between status log lines and diagnostics messages (0: never)")
     warn_period: float = _p(5.0, "s", "minimum time between two warnings of the same topic and reason")
     warmup: bool = _p(True, "", "compile the rasteriser kernels before subscribing")
+    # --- evidence exchange between nodes of one splat (css_ros/io/evidence.py)
+    publish_evidence: bool = _p(False, "", "publish the evidence this node fuses on ~/evidence (never what it "
+                                "received)")
+    evidence_in: str = _p("", "topics", "comma-separated evidence topics of other nodes to add to the map "
+                          "(e.g. /robot_b/css_node/evidence; empty: none)")
+    evidence_origin: str = _p("", "", "origin id of this node's evidence, <= 32 ASCII characters (empty: "
+                              "host name and process id)")
+    evidence_period: float = _p(0.5, "s", "time between ~/evidence delta packets (only when evidence was added)")
+    evidence_snapshot_period: float = _p(5.0, "s", "time between snapshots of this node's total evidence on "
+                                         "~/evidence (late joiners and receivers that missed a packet catch up)")
+    evidence_max_rows: int = _p(20_000, "Gaussians", "most Gaussians per evidence packet (sent and accepted)")
+    evidence_max_sources: int = _p(8, "sources", "most other nodes whose evidence is added (8 N C bytes each)")
+    model_watch_dir: str = _p("", "path", "folder watched for a newer splat (*.ply): the map moves to it by "
+                              "the transfer of SPEC §10 while the node runs (empty: off)")
+    model_watch_period: float = _p(2.0, "s", "time between two scans of model_watch_dir (a file must be "
+                                   "unchanged over two scans)")
+    evidence_max_rate: float = _p(200.0, "packets/s", "evidence packets accepted per source and second (a "
+                                  "flood beyond is refused)")
 
 
 def param_table() -> list[tuple[str, Any, str, str]]:
@@ -240,11 +258,16 @@ def check_params(p: NodeParams) -> None:
         if getattr(p, name) > 1:
             raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")
     for name in ("sync_slop", "max_stamp_future", "checkpoint_period", "checkpoint_retry_max", "log_period",
-                 "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence"):
+                 "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence",
+                 "evidence_snapshot_period"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
+    for name in ("model_watch_period", "evidence_period"):
+        if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
+            raise bad(name, "must be finite and > 0")
     for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
-                 "max_query_points", "point_query_slice", "request_queue_size"):
+                 "max_query_points", "point_query_slice", "request_queue_size", "evidence_max_rows",
+                 "evidence_max_sources"):
         if getattr(p, name) < 1:
             raise bad(name, "must be >= 1")
     if p.cloud_max_points < 0:
@@ -253,6 +276,10 @@ def check_params(p: NodeParams) -> None:
         raise bad("num_classes", "must be >= 0")
     if not 0 <= p.ignore_label <= 65535:
         raise bad("ignore_label", "must be in 0..65535")
+    if not (math.isfinite(p.evidence_max_rate) and p.evidence_max_rate > 0):
+        raise bad("evidence_max_rate", "must be finite and > 0")
+    if len(p.evidence_origin) > 32 or not p.evidence_origin.isascii():
+        raise bad("evidence_origin", "at most 32 ASCII characters")
     if p.pose_type not in POSE_TYPES:
         raise bad("pose_type", f"expected one of {', '.join(POSE_TYPES)}")
     for name in ("pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap"):

@@ -1,0 +1,151 @@
+"""css_node's evidence exchange with other nodes of the same splat (several robots, one map).
+
+Publishes this node's own evidence on ``~/evidence`` and adds the evidence of the nodes named in the
+``evidence_in`` parameter; the packet format and the exactly-once rules are in :mod:`css_ros.io.evidence`.
+Messages are ``std_msgs/UInt8MultiArray`` (data = one packet), reliable QoS, bounded depth. Every map change
+happens under the worker's map lock, so frames, checkpoints and received evidence never interleave.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import time
+from typing import Any, Callable
+
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import UInt8MultiArray
+
+from ..errors import InputError
+from ..io.evidence import ORIGIN_BYTES, EvidenceLedger, EvidenceOutbox, decode_packet
+from .params import NodeParams
+from .work import WarnLimiter
+
+#: Depth of the evidence publisher and subscriptions (messages; each at most evidence_max_rows rows).
+EVIDENCE_QUEUE_DEPTH = 100
+TOPIC = "evidence_in"
+
+
+def default_origin() -> str:
+    """Host name and process id, cut to the 32 ASCII characters an origin id may have."""
+    host = socket.gethostname().encode("ascii", "replace").decode("ascii")
+    tail = f"-{os.getpid()}"
+    return host[: ORIGIN_BYTES - len(tail)] + tail
+
+
+class EvidenceLink:
+    """Publisher, subscriptions and bookkeeping of the evidence exchange of one node.
+
+    Args:
+        node: the css_node.
+        p: its parameters.
+        worker: the MapWorker (its ``smap``, ``map_lock``, ``policy`` and ``map_version``).
+        warn: rate-limited warnings, counted per (topic, reason) in diagnostics.
+        count: the node's counter function.
+    """
+
+    def __init__(self, node: Node, p: NodeParams, worker: Any, warn: WarnLimiter,
+                 count: Callable[..., None]) -> None:
+        self.p, self.worker, self.warn, self.count = p, worker, warn, count
+        self.origin = p.evidence_origin or default_origin()
+        self.rebind()
+        self._buckets: dict[str, tuple[float, float]] = {}   # origin -> (tokens, time.monotonic())
+        self.topics = [t.strip() for t in p.evidence_in.split(",") if t.strip()]
+        qos = QoSProfile(depth=EVIDENCE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST)
+        self.pub = node.create_publisher(UInt8MultiArray, "~/evidence", qos) if p.publish_evidence else None
+        for topic in self.topics:
+            node.create_subscription(UInt8MultiArray, topic, self._on_packet, qos)
+        if self.pub is not None:
+            node.create_timer(p.evidence_period, self.publish)
+        self._update_sources()
+
+    def rebind(self) -> None:
+        """(Re)start the bookkeeping for the worker's current map (at start and after a model swap)."""
+        with self.worker.map_lock:
+            smap = self.worker.smap
+            fp, n, c = smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes
+            self.ledger = EvidenceLedger(self.origin, fp, n, c, smap.prior, self.p.evidence_max_sources)
+            self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows) \
+                if self.p.publish_evidence else None   # 8 N C bytes: only when publishing
+            self._next_snapshot = 0.0
+
+    @property
+    def enabled(self) -> bool:
+        return self.pub is not None or bool(self.topics)
+
+    # ------------------------------------------------------------------ sources
+    def _update_sources(self) -> None:
+        own = [self.origin] if self.pub is not None else []
+        received = [o for o, s in self.ledger.sources.items() if s.packets > 0]
+        self.worker.smap.sources = sorted(set(own) | set(received) | set(self.worker.smap.sources))
+
+    def map_replaced(self) -> None:
+        """The map was reset or loaded: received evidence is gone, every source must re-sync by snapshot."""
+        with self.worker.map_lock:
+            for s in self.ledger.sources.values():
+                s.evidence[...] = 0.0
+                s.in_step = False
+            self._next_snapshot = 0.0
+
+    # ------------------------------------------------------------------ out
+    def publish(self) -> None:
+        """Timer: deltas of the own evidence since the last call, or a snapshot when one is due."""
+        now = time.monotonic()
+        if self.outbox is None:
+            return
+        with self.worker.map_lock:
+            alpha = self.worker.smap.concentrations
+            own = self.outbox.own(alpha, self.ledger.received_total())
+            if now >= self._next_snapshot:
+                packets = self.outbox.snapshot(own)
+                self._next_snapshot = now + self.p.evidence_snapshot_period
+                self.count("evidence_snapshots_sent")
+            else:
+                packets = self.outbox.deltas(own, alpha)
+        for data in packets:
+            msg = UInt8MultiArray()
+            msg.data = data
+            self.pub.publish(msg)
+        self.count("evidence_packets_sent", len(packets))
+
+    # ------------------------------------------------------------------ in
+    def _allow(self, origin: str) -> bool:
+        """Token bucket per origin: evidence_max_rate packets/s, bursts up to one second's worth."""
+        rate = self.p.evidence_max_rate
+        now = time.monotonic()
+        tokens, last = self._buckets.get(origin, (rate, now))
+        tokens = min(rate, tokens + (now - last) * rate)
+        if tokens < 1.0:
+            self._buckets[origin] = (tokens, now)
+            return False
+        self._buckets[origin] = (tokens - 1.0, now)
+        return True
+
+    def _on_packet(self, msg: Any) -> None:
+        try:
+            pkt = decode_packet(bytes(msg.data), self.p.evidence_max_rows)
+        except InputError as exc:
+            self._refuse(str(exc))
+            return
+        if len(self._buckets) > 4 * self.p.evidence_max_sources and pkt.origin not in self._buckets:
+            self._refuse("too many sources")
+            return
+        if not self._allow(pkt.origin):
+            self._refuse("flood: more than evidence_max_rate packets/s from one source")
+            return
+        with self.worker.map_lock:
+            reason = self.ledger.apply(pkt, self.worker.smap.concentrations)
+            if reason is None:
+                self.worker.policy.changed()
+                self.worker.map_version += 1
+        if reason is not None:
+            self._refuse(reason, pkt.origin)
+            return
+        self.count("evidence_packets_applied")
+        self.count(f"evidence_packets_from[{pkt.origin}]")   # diagnostics name the contributing sources
+        self._update_sources()
+
+    def _refuse(self, reason: str, origin: str = "") -> None:
+        self.count(f"evidence_refused[{reason}]")
+        self.warn(TOPIC, reason, f"packet from {origin!r} refused, map unchanged" if origin else "packet refused")

@@ -1,0 +1,100 @@
+"""Live splat swap: css_node moves its map to a newer splat dropped into a watched folder.
+
+Every ``model_watch_period`` seconds the folder ``model_watch_dir`` is scanned for ``*.ply`` files; the newest
+one, when newer than the model in use and unchanged in size and time over two scans (a trainer still writing
+it is left alone), is read on a background thread. A file that cannot be read (truncated, bad fields) is
+warned about once and skipped. Then, under the map lock, the map is moved to the new splat by the transfer of
+SPEC §10 (:func:`css_ros.engine.transfer.transfer_map`), the checkpoint path follows the new fingerprint and a
+checkpoint is written. Frames that arrive meanwhile wait in the bounded work queue; beyond
+``max_pending_frames`` the oldest are dropped and counted as ``frames_dropped_busy``. Evidence exchange is
+re-bound to the new model (peers still on the old one are refused as "another splat model" until they move).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from ..engine.gaussians import GaussianModel
+from ..engine.transfer import transfer_map
+from ..errors import CssError
+from .params import NodeParams
+from .startup import checkpoint_path
+from .work import WarnLimiter
+
+TOPIC = "model_swap"
+
+
+class ModelWatcher:
+    """Scans ``p.model_watch_dir`` from a node timer and swaps the node's model when a newer PLY is complete.
+
+    Args:
+        node: the CssNode (its ``worker``, ``evidence``, ``smap``, ``model_path``, ``checkpoint_path``).
+        p: the node parameters.
+        warn: rate-limited warnings; count: the node's counter function; log_info: info logger.
+    """
+
+    def __init__(self, node: Any, p: NodeParams, warn: WarnLimiter, count: Callable[..., None],
+                 log_info: Callable[[str], None]) -> None:
+        self.node, self.p, self.warn, self.count, self.log_info = node, p, warn, count, log_info
+        self.folder = Path(p.model_watch_dir).expanduser() if p.model_watch_dir else None
+        self._current_mtime = _mtime(Path(node.model_path))
+        self._seen: dict[Path, tuple[int, int]] = {}   # path -> (size, mtime_ns) of the previous scan
+        self._skipped: set[tuple[Path, int]] = set()    # unreadable files (path, mtime_ns), not retried
+        self._busy = threading.Lock()
+        if self.folder is not None:
+            node.create_timer(p.model_watch_period, self.scan)
+
+    def scan(self) -> None:
+        """Timer: start a swap when the newest PLY of the folder is newer than the model and complete."""
+        if self._busy.locked():
+            return
+        try:
+            files = [(f.stat().st_mtime_ns, f.stat().st_size, f) for f in self.folder.glob("*.ply") if f.is_file()]
+        except OSError as exc:
+            self.warn(TOPIC, "model_watch_dir unreadable", str(exc), dropped=False)
+            return
+        if not files:
+            return
+        mtime, size, path = max(files)
+        previous = self._seen.get(path)
+        self._seen = {path: (size, mtime)}
+        if mtime <= self._current_mtime or (path, mtime) in self._skipped or previous != (size, mtime):
+            return
+        threading.Thread(target=self._swap, args=(path, mtime), name="css_model_swap", daemon=True).start()
+
+    def _swap(self, path: Path, mtime: int) -> None:
+        with self._busy:
+            t0 = time.perf_counter()
+            try:
+                model = GaussianModel.from_ply(path)
+            except (CssError, OSError) as exc:
+                self._skipped.add((path, mtime))
+                self.count("model_swaps_failed")
+                self.warn(TOPIC, "new model unreadable", f"{path}: {exc}; keeping the current model")
+                return
+            node, worker = self.node, self.node.worker
+            with worker.map_lock:   # frames wait (bounded queue) while the map moves
+                moved, report = transfer_map(worker.smap, model)
+                worker.smap = node.smap = moved
+                node.model_path = path
+                ckpt = checkpoint_path(self.p, model.fingerprint)
+                worker.checkpoint_path = node.checkpoint_path = ckpt
+                worker.map_version += 1
+                worker.policy.changed()
+            node.evidence.rebind()
+            self._current_mtime = mtime
+            self.count("model_swaps")
+            self.log_info(f"model swapped to {path} ({model.num_gaussians} Gaussians, fingerprint "
+                          f"{model.fingerprint[:12]}) in {time.perf_counter() - t0:.2f} s: evidence ratio "
+                          f"{report.ratio:.4f}, {report.new_at_prior} new Gaussians at the prior, "
+                          f"{report.old_dropped} old ones dropped; checkpoint {ckpt}")
+            worker.save_checkpoint("model swap", force=True)
+
+
+def _mtime(path: Path) -> int:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return 0

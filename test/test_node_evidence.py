@@ -1,0 +1,187 @@
+"""Several css_nodes, one map: evidence exchanged over real DDS (css_ros/ros/evidence.py, io/evidence.py).
+
+Nodes run as subprocesses in their own namespaces on one ROS domain; each is fed a share of the frames and the
+maps are compared with a node fed every frame (1e-9 relative). A test client also plays a source itself, with
+packets built by the documented encoder, to check gaps, snapshots, replays and bad input.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import ros_helpers as rh  # noqa: E402
+
+from css_ros.engine.gaussians import GaussianModel  # noqa: E402
+from css_ros.io.evidence import DELTA, SNAPSHOT, encode_packet  # noqa: E402
+
+pytestmark = pytest.mark.slow
+PRIOR = 1e-3
+FRAMES = 6
+SNAPSHOT_PERIOD = 1.0
+
+
+def _params(model: Path, ckpt: Path, **kw) -> dict:
+    return dict(model_path=str(model), class_file="", num_classes=rh.NUM_CLASSES, prior=PRIOR,
+                checkpoint_path=str(ckpt), resume=False, checkpoint_period=0.0, log_period=0.5, warmup=False,
+                evidence_period=0.2, evidence_snapshot_period=SNAPSHOT_PERIOD, **kw)
+
+
+def _frame(i: int) -> tuple[np.ndarray, tuple[float, float, float]]:
+    rng = np.random.default_rng(100 + i)
+    labels = rh.wall_labels().copy()
+    labels[rng.integers(0, rh.HEIGHT, 40), rng.integers(0, rh.WIDTH, 40)] = 3
+    return labels, (float(rng.uniform(-0.3, 0.3)), float(rng.uniform(-0.2, 0.2)), 0.0)
+
+
+def _client(domain: int, ns: str) -> rh.RosClient:
+    topics = {k: f"{ns}/{k}" for k in ("image", "segmentation", "segmentation_confidence", "camera_info", "pose",
+                                       "candidates")}
+    return rh.RosClient(domain, node_ns=f"{ns}/css_node", topics=topics)
+
+
+def _feed(client: rh.RosClient, frames: list[int]) -> None:
+    for i in frames:
+        labels, pos = _frame(i)
+        stamp = (i + 1) * 10**9
+        client.send_frame(stamp, labels, position=pos)
+        assert client.wait_stamp("semantic", stamp, 30.0) is not None, f"frame {i} not processed"
+
+
+def _saved(client: rh.RosClient, path: Path) -> np.ndarray:
+    assert client.call(client.save_client).success
+    with np.load(path, allow_pickle=False) as data:
+        return np.array(data["concentrations"]), [str(s) for s in data["sources"]]
+
+
+def _converged(clients, paths, ref: np.ndarray, timeout: float = 20.0) -> list[np.ndarray]:
+    end = time.monotonic() + timeout
+    while True:
+        maps = [_saved(c, p)[0] for c, p in zip(clients, paths)]
+        if all(np.allclose(m, ref, rtol=1e-9, atol=0) for m in maps) or time.monotonic() > end:
+            return maps
+        time.sleep(0.3)
+
+
+@pytest.mark.parametrize("n_nodes", [2, 3])
+def test_nodes_sharing_evidence_equal_one_node_fed_every_frame(tmp_path, n_nodes):
+    domain = rh.next_domain_id()
+    model = rh.write_wall_model(tmp_path / "wall.ply")
+    names = ["a", "b", "c"][:n_nodes]
+    nodes, clients, paths = [], [], []
+    try:
+        for name in [*names, "ref"]:
+            ckpt = tmp_path / f"{name}.npz"
+            others = ",".join(f"/{o}/css_node/evidence" for o in names if o != name) if name != "ref" else ""
+            nodes.append(rh.NodeProcess(_params(model, ckpt, publish_evidence=name != "ref", evidence_in=others,
+                                                evidence_origin=f"robot_{name}"),
+                                        domain, tmp_path / f"{name}.log", remaps={"__ns": f"/{name}"}))
+            paths.append(ckpt)
+        for name in [*names, "ref"]:
+            clients.append(_client(domain, f"/{name}"))
+        for c in clients:
+            assert c.wait_connected(60.0), "node did not come up"
+        for k, c in enumerate(clients[:-1]):
+            _feed(c, [i for i in range(FRAMES) if i % n_nodes == k])
+        _feed(clients[-1], list(range(FRAMES)))
+        ref = _saved(clients[-1], paths[-1])[0]
+        assert np.all(ref - PRIOR >= 0) and (ref - PRIOR).sum() > 100
+        maps = _converged(clients[:-1], paths[:-1], ref)
+        for name, m in zip(names, maps):
+            np.testing.assert_allclose(m, ref, rtol=1e-9, atol=0, err_msg=f"node {name}")
+        # no echo: after more snapshot periods the maps still equal the reference (echoed evidence would add up)
+        time.sleep(2.5 * SNAPSHOT_PERIOD)
+        for name, c, p in zip(names, clients, paths):
+            m, sources = _saved(c, p)
+            np.testing.assert_allclose(m, ref, rtol=1e-9, atol=0, err_msg=f"node {name} after settling")
+            assert sources == sorted(f"robot_{o}" for o in names)
+        if n_nodes == 2:  # a node started late catches up from the snapshots
+            late_ckpt = tmp_path / "late.npz"
+            nodes.append(rh.NodeProcess(_params(model, late_ckpt, evidence_in="/a/css_node/evidence,/b/css_node/evidence"),
+                                        domain, tmp_path / "late.log", remaps={"__ns": "/late"}))
+            late = _client(domain, "/late")
+            clients.append(late)
+            assert late.wait_connected(60.0)
+            np.testing.assert_allclose(_converged([late], [late_ckpt], ref)[0], ref, rtol=1e-9, atol=0)
+    finally:
+        for c in clients:
+            c.close()
+        for n in nodes:
+            n.stop()
+
+
+def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
+    """The test client is source 'crafted': a lost packet is bridged by the next snapshot, bad packets refused."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import UInt8MultiArray
+
+    domain = rh.next_domain_id()
+    model_path = rh.write_wall_model(tmp_path / "wall.ply")
+    model = GaussianModel.from_ply(model_path)
+    n, c, fp = model.num_gaussians, rh.NUM_CLASSES, model.fingerprint
+    ckpt = tmp_path / "n.npz"
+    node = rh.NodeProcess(_params(model_path, ckpt, evidence_in="/crafted/evidence", evidence_max_rate=40.0),
+                          domain, tmp_path / "n.log")
+    client = rh.RosClient(domain)
+    try:
+        pub = client.node.create_publisher(UInt8MultiArray, "/crafted/evidence",
+                                           QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        assert client.wait_connected(60.0)
+        assert client.wait_until(lambda: pub.get_subscription_count() > 0, 30.0)
+
+        def send(data: bytes) -> None:
+            msg = UInt8MultiArray()
+            msg.data = data
+            pub.publish(msg)
+            time.sleep(0.03)  # stay under the node's 40 packets/s
+
+        rng = np.random.default_rng(0)
+        d = [rng.uniform(0, 5, (n, c)) for _ in range(3)]
+        rows = np.arange(n)
+        pkt = lambda kind, seq, vals, **kw: encode_packet(kind, "crafted", fp, seq, rows, vals, PRIOR, n, **kw)  # noqa: E731
+        send(pkt(SNAPSHOT, 1, np.zeros((n, c)), snapshot_id=1))
+        send(pkt(DELTA, 2, d[0]))
+        # seq 3 (d[1]) is lost; seq 4 arrives after the gap and must wait for a snapshot
+        send(pkt(DELTA, 4, d[2]))
+        send(pkt(DELTA, 2, d[0]))                                              # replayed
+        bad = d[0].copy()
+        bad[3, 1] = np.nan
+        send(pkt(DELTA, 5, bad))                                               # NaN
+        bad[3, 1] = -1.0
+        send(pkt(DELTA, 6, bad))                                               # negative
+        bad[3, 1] = 1e12
+        send(pkt(DELTA, 7, bad))                                               # huge
+        send(encode_packet(DELTA, "crafted", "ab" * 32, 8, rows, d[0], PRIOR, n))  # other model
+        np.testing.assert_allclose(_saved(client, ckpt)[0], PRIOR + d[0], rtol=1e-12)
+        total = d[0] + d[1] + d[2]
+        send(encode_packet(SNAPSHOT, "crafted", fp, 9, rows[: n // 2], total[: n // 2], PRIOR, n, snapshot_id=9,
+                           range_start=0, range_end=n // 2, part=0, parts=2))
+        send(encode_packet(SNAPSHOT, "crafted", fp, 10, rows[n // 2:], total[n // 2:], PRIOR, n, snapshot_id=9,
+                           range_start=n // 2, range_end=n, part=1, parts=2))
+        send(pkt(DELTA, 11, d[0]))                                             # in step again: applied
+        expected = PRIOR + total + d[0]
+        got = client.wait_until(lambda: np.allclose(_saved(client, ckpt)[0], expected, rtol=1e-12), 10.0, 0.3)
+        assert got, "snapshot did not bridge the gap"
+        m, sources = _saved(client, ckpt)
+        assert sources == ["crafted"]
+        assert int(client.wait_until(lambda: client.diagnostics().get("evidence_packets_from[crafted]"), 10.0)) >= 5
+        for _ in range(120):                                                   # a flood: 120 packets at once
+            msg = UInt8MultiArray()
+            msg.data = pkt(DELTA, 1, d[0])
+            pub.publish(msg)
+        diag = client.wait_until(lambda: client.diagnostics() if any(
+            k.startswith("evidence_refused[flood") for k in client.diagnostics()) else None, 20.0, 0.2)
+        assert diag, "flood not reported"
+        for reason in ("replayed or duplicate sequence number", "non-finite evidence", "negative evidence",
+                       "evidence above the per-packet bound", "evidence of another splat model",
+                       "sequence gap or late start: waiting for a snapshot"):
+            assert int(diag.get(f"evidence_refused[{reason}]", 0)) >= 1, reason
+        np.testing.assert_allclose(_saved(client, ckpt)[0], expected, rtol=1e-12)  # nothing of it reached the map
+        assert node.proc.poll() is None
+    finally:
+        client.close()
+        node.stop()
