@@ -40,6 +40,8 @@ setup(
         # GPU backend (docs/cuda.md): kernels in numba-cuda; needs a CUDA build of torch (or cupy) on the GPU
         # machine for device-wide sorts. Its simulator (NUMBA_ENABLE_CUDASIM=1) runs the tests without a GPU.
         "cuda": ["numba-cuda==0.30.4"],
+        # css_view: the semantic splat in a browser (viser draws the Gaussians with WebGL)
+        "view": ["viser==1.1.1"],
         "test": ["pytest>=7", "pytest-timeout>=2.1", "torch==2.13.0", "numba-cuda==0.30.4"],
         # proves the package builds as an ament_python package (test/test_node_colcon.py)
         "colcon": ["colcon-core", "colcon-ros", "colcon-python-setup-py", "ros-jazzy-ament-package"],
@@ -55,6 +57,8 @@ setup(
             "colcon-ros",
             "colcon-python-setup-py",
             "ros-jazzy-ament-package",
+            "viser==1.1.1",
+            "websocket-client==1.9.2",  # test/test_view_browser.py drives Chromium over the DevTools protocol
         ],
     },
     zip_safe=True,
@@ -72,6 +76,7 @@ setup(
             "css_nbv_client = css_ros.clients.nbv_client:main",
             "css_export = css_ros.export.cli:main",
             "css_import = css_ros.importers.cli:main",
+            "css_view = css_ros.view.cli:main",
         ],
     },
 )
