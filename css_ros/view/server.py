@@ -60,6 +60,16 @@ def colorbar_html(bar: ColorBar) -> str:
             f'</div><div style="font-size:11px">{html.escape(bar.label)}; grey = unobserved</div></div>')
 
 
+def legend_html(names, palette) -> str:
+    """Colour swatches of the classes (the toggles below carry the same names)."""
+    items = "".join(
+        f'<span style="display:inline-block;margin:1px 6px 1px 0;font-size:11px">'
+        f'<span style="display:inline-block;width:10px;height:10px;margin-right:3px;border:1px solid #666;'
+        f'background:rgb({int(c[0])},{int(c[1])},{int(c[2])})"></span>{html.escape(n)}</span>'
+        for n, c in zip(names, palette))
+    return f'<div id="css-legend">{items}</div>'
+
+
 class MapView:
     """Serve ``data`` on ``host:port``.
 
@@ -85,8 +95,9 @@ class MapView:
         self.var_threshold = DEFAULT_VAR_THRESHOLD
         self.redraws = 0
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.server.gui.configure_theme(control_layout="fixed", control_width="medium", show_logo=False,
-                                        show_share_button=False, dark_mode=False)
+        self.server.gui.configure_theme(control_width="medium", show_logo=False, show_share_button=False,
+                                        dark_mode=False)
+        self.server.gui.main_panel.dock_right()
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{port}"
         self._build_gui(title)
         self._draw_trajectory()
@@ -107,6 +118,7 @@ class MapView:
         folder = gui.add_folder("Classes")
         self.class_cbs = []
         with folder:
+            gui.add_html(legend_html(self.data.classes.names, self.data.classes.palette))
             counts = np.bincount(self.data.semantics.label[self.data.semantics.observed],
                                  minlength=self.data.classes.num_classes)
             for c, name in enumerate(self.data.classes.names):
@@ -120,7 +132,7 @@ class MapView:
         self.observed_cb.on_update(lambda ev: self._set_filter(observed_only=ev.target.value))
         self.uncertain_cb.on_update(lambda ev: self._set_filter(uncertain_only=ev.target.value))
         self.threshold.on_update(lambda ev: self._set_filter(var_threshold=ev.target.value))
-        self.server.scene.on_pointer_event("click")(self._on_click)
+        self.server.scene.on_click()(self._on_click)
 
     def _toggle_class(self, c: int, visible: bool) -> None:
         with self.lock:
