@@ -77,6 +77,7 @@ setup(
             "css_export = css_ros.export.cli:main",
             "css_import = css_ros.importers.cli:main",
             "css_view = css_ros.view.cli:main",
+            "css_ctl = css_ros.clients.ctl:main",
         ],
     },
 )
