@@ -27,6 +27,7 @@ from .params import NodeParams, check_params, coerce
 from .startup import load_engine, warm_up
 from .work import CandidateJob, WarnLimiter, WorkQueue
 from .worker import MapWorker
+from .view_publisher import ViewPublisher
 
 #: Depth of the save_map / reset_map service queues: bursts up to this many calls are all answered.
 SERVICE_QUEUE_DEPTH = 64
@@ -82,6 +83,9 @@ class CssNode(Node):
         self.outputs = OutputPublisher(self, p, self.classes)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
+        if p.view_period > 0:  # css_view --live
+            self.worker.view_stream = ViewPublisher(self, self.smap, self.classes, p.view_period,
+                                                    p.view_max_changes, p.min_evidence)
         self._confidence_topic = self.resolve_topic_name(INPUT_TOPICS["confidence"])
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
                               lambda: self.count_publishers(self._confidence_topic) > 0, log.warning)

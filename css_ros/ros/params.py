@@ -98,6 +98,10 @@ class NodeParams:
     point_query_slice: int = _p(65_536, "points", "query points evaluated between two observed frames")
     query_background_weight: float = _p(DEFAULT_QUERY_BACKGROUND_WEIGHT, "", "background weight w_b of the "
                                         "continuous field at a 3D point (SPEC §9)")
+    view_period: float = _p(1.0, "s", "time between ~/view/semantics messages for css_view --live (only the "
+                            "Gaussians that changed; 0: no ~/view/* topics)")
+    view_max_changes: int = _p(262_144, "Gaussians", "largest ~/view/semantics message (10 bytes a Gaussian); "
+                               "more changes go out in the next ones")
     # --- persistence
     checkpoint_path: str = _p(DEFAULT_CHECKPOINT, "path", "semantic map checkpoint (.npz); {fingerprint} is "
                               "replaced by 16 hex digits of the model fingerprint; empty disables saving and "
@@ -208,11 +212,12 @@ def check_params(p: NodeParams) -> None:
         if getattr(p, name) > 1:
             raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")
     for name in ("sync_slop", "max_stamp_future", "checkpoint_period", "checkpoint_retry_max", "log_period",
-                 "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence"):
+                 "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence",
+                 "view_period"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
     for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
-                 "max_query_points", "point_query_slice"):
+                 "max_query_points", "point_query_slice", "view_max_changes"):
         if getattr(p, name) < 1:
             raise bad(name, "must be >= 1")
     if p.cloud_max_points < 0:
