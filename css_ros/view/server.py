@@ -94,6 +94,8 @@ class MapView:
         self.uncertain_only = False
         self.var_threshold = DEFAULT_VAR_THRESHOLD
         self.redraws = 0
+        self.status_note = ""          # extra status text (live mode: node state, age of the last update)
+        self.keep = np.zeros(0, dtype=bool)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="medium", show_logo=False, show_share_button=False,
                                         dark_mode=False)
@@ -176,9 +178,15 @@ class MapView:
             else:
                 self.server.scene.remove_by_name(SPLAT_NAME)
             self.redraws += 1
-            self.status.content = (f"showing {int(keep.sum()):,} of {d.num_gaussians:,} Gaussians · "
+            self.show_status()
+
+    def show_status(self) -> None:
+        """Refresh the status line (Gaussians shown, mode, redraw count, live state)."""
+        with self.lock:
+            self.status.content = (f"showing {int(self.keep.sum()):,} of {self.data.num_gaussians:,} Gaussians · "
                                    f"{MODE_LABELS[self.mode]} · update {self.redraws} · "
-                                   f"{time.strftime('%H:%M:%S')}")
+                                   f"{time.strftime('%H:%M:%S')}" + (f"\n\n{self.status_note}" if self.status_note
+                                                                     else ""))
 
     def _draw_trajectory(self) -> None:
         traj = self.data.trajectory
