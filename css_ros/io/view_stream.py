@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
+import numba
 import numpy as np
 
 from .clouds import pack_cloud, pack_rgb
@@ -72,3 +73,35 @@ def semantics_columns(index: np.ndarray, label: np.ndarray, expectation: np.ndar
     return pack_cloud({"index": index.astype(np.uint32), "label": lab,
                        "expectation": np.clip(np.rint(expectation * 255.0), 0, 255).astype(np.uint8),
                        "evidence": evidence.astype(np.float32)})
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _update_keys(conc, prior, min_evidence, ignore_label, keys):  # pragma: no cover - compiled
+    n, c = conc.shape
+    changed = np.zeros(n, dtype=np.bool_)
+    for i in numba.prange(n):
+        s = 0.0
+        best = 0
+        top = conc[i, 0]
+        for k in range(c):
+            v = conc[i, k]
+            s += v
+            if v > top:
+                top = v
+                best = k
+        evidence = s - c * prior
+        lab = best if evidence >= min_evidence else ignore_label
+        e_q = np.int64(np.rint(min(max(top / s, 0.0), 1.0) * 255.0))
+        s_q = np.int64(np.rint(np.log2(1.0 + max(evidence, 0.0)) * EVIDENCE_STEPS_PER_OCTAVE))
+        key = (s_q << 16) | (e_q << 8) | lab
+        if key != keys[i]:
+            keys[i] = key
+            changed[i] = True
+    return changed
+
+
+def changed_gaussians(concentrations: np.ndarray, prior: float, min_evidence: float, ignore_label: int,
+                      keys: np.ndarray) -> np.ndarray:
+    """Indices of the Gaussians whose :func:`semantic_keys` differ from ``keys`` (N,) int64; ``keys`` is
+    updated in place to the current ones. One parallel pass over the (N, C) float64 concentrations."""
+    return np.flatnonzero(_update_keys(concentrations, float(prior), float(min_evidence), int(ignore_label), keys))

@@ -14,10 +14,13 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..engine.field3d import gaussian_semantics
-from ..io.view_stream import MODEL_CHUNK, info_json, model_chunks, semantic_keys, semantics_columns
+from ..io.view_stream import MODEL_CHUNK, changed_gaussians, info_json, model_chunks, semantics_columns
 from . import conversions as rc
 
 UNSENT = np.int64(-1)
+#: largest share of the worker's time the stream may take: the period stretches to cost / MAX_WORKER_SHARE
+#: on very large maps (a full scan reads all N·C concentrations: ~60 ms at 1M × 16 on 2 cores)
+MAX_WORKER_SHARE = 0.1
 
 
 class ViewPublisher:
@@ -38,6 +41,7 @@ class ViewPublisher:
         self.pub_sem = node.create_publisher(PointCloud2, "~/view/semantics", 10)
         node.create_service(Trigger, "~/view/resync", self._on_resync)
         self.sent = np.full(n, UNSENT, dtype=np.int64)   # key last sent per Gaussian
+        changed_gaussians(np.ones((1, 1)), 1e-3, 0.5, 255, np.zeros(1, np.int64))  # compile (or load) now
         self._resync = threading.Event()
         self._version = -1
         self._next = 0.0
@@ -65,19 +69,21 @@ class ViewPublisher:
             self._resync.clear()
             self.sent[:] = UNSENT
         with map_lock:
-            sem = gaussian_semantics(self.smap.concentrations, self.smap.prior, self.min_evidence,
+            # keys are updated for every changed Gaussian; those beyond max_changes are marked unsent again
+            changed = changed_gaussians(self.smap.concentrations, self.smap.prior, self.min_evidence,
+                                        self.smap.ignore_label, self.sent)
+            later = changed[self.max_changes:]
+            changed = changed[: self.max_changes]
+            sem = gaussian_semantics(self.smap.concentrations[changed], self.smap.prior, self.min_evidence,
                                      self.smap.ignore_label)
-        keys = semantic_keys(sem.label, sem.expectation, sem.evidence)
-        changed = np.flatnonzero(keys != self.sent)
-        self.pending = max(0, len(changed) - self.max_changes)
-        changed = changed[: self.max_changes]
+        self.sent[later] = UNSENT
+        self.pending = len(later)
         if len(changed):
-            cols = semantics_columns(changed, sem.label[changed], sem.expectation[changed], sem.evidence[changed])
+            cols = semantics_columns(changed, sem.label, sem.expectation, sem.evidence)
             self.pub_sem.publish(rc.cloud_msg(rc.header_msg(self.clock.now().nanoseconds, "map"), cols))
-            self.sent[changed] = keys[changed]
         self._version = map_version
-        self._next = now + self.period
         self.last_sent = len(changed)
         self.last_cost_s = time.perf_counter() - t0
+        self._next = now + max(self.period, self.last_cost_s / MAX_WORKER_SHARE)
 
     pending = 0
