@@ -142,3 +142,37 @@ def test_replay_prints_the_view_command():
     cfg = ReplayConfig.__new__(ReplayConfig)
     object.__setattr__(cfg, "out", Path("out/replay demo"))
     assert view_command(cfg) == "css_view 'out/replay demo'"
+
+
+def test_view_stream_sends_exactly_the_visibly_changed_gaussians():
+    from css_ros.engine.field3d import gaussian_semantics
+    from css_ros.io.clouds import unpack_cloud
+    from css_ros.io.view_stream import changed_gaussians, semantic_keys, semantics_columns
+    from css_ros.view.live import semantics_from
+
+    rng = np.random.default_rng(3)
+    n, c = 5000, 6
+    conc = np.full((n, c), 1e-3)
+    seen = rng.random(n) < 0.6
+    conc[seen, rng.integers(0, c, seen.sum())] += rng.uniform(0.1, 40, seen.sum())
+    keys = np.full(n, -1, np.int64)
+    first = changed_gaussians(conc, 1e-3, 0.5, 255, keys)
+    assert np.array_equal(first, np.arange(n))                      # everything is new
+    ref = gaussian_semantics(conc, 1e-3, 0.5, 255)
+    assert np.array_equal(keys, semantic_keys(ref.label, ref.expectation, ref.evidence))
+    bump = rng.choice(n, 300, replace=False)
+    conc[bump, 1] += 25.0                                           # a visible change
+    conc[seen, 3] += 1e-9                                           # an invisible one on the observed
+    assert np.array_equal(changed_gaussians(conc, 1e-3, 0.5, 255, keys), np.sort(bump))
+    # the message's columns give back label, E (to 1/510), Var and evidence
+    sem = gaussian_semantics(conc[bump], 1e-3, 0.5, 255)
+    from types import SimpleNamespace
+
+    f = semantics_columns(bump, sem.label, sem.expectation, sem.evidence)
+    msg = SimpleNamespace(**{**f, "fields": [SimpleNamespace(name=n, offset=o, datatype=d, count=k)
+                                             for n, o, d, k in f["fields"]], "data": f["data"].tobytes()})
+    rows = unpack_cloud(msg)
+    lab, e, var, total, obs = semantics_from(rows["label"], rows["expectation"], rows["evidence"], c, 1e-3, 0.5)
+    assert np.array_equal(rows["index"], bump) and np.array_equal(lab, sem.label) and np.array_equal(obs, sem.observed)
+    np.testing.assert_allclose(e, sem.expectation, atol=0.5 / 255 + 1e-7)
+    np.testing.assert_allclose(var, e * (1 - e) / (1 + sem.total), rtol=1e-5)
