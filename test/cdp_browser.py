@@ -12,6 +12,7 @@ import socket
 import subprocess
 import tempfile
 import time
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -50,7 +51,8 @@ class Browser:
             [exe, "--headless=new", "--no-sandbox", "--disable-gpu-sandbox", "--use-gl=angle",
              "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
              f"--window-size={width},{height}", "--force-device-scale-factor=1", "--hide-scrollbars",
-             "--no-first-run", "--no-default-browser-check", "--disable-extensions", "--mute-audio",
+             "--disable-background-timer-throttling", "--disable-renderer-backgrounding",
+             "--disable-backgrounding-occluded-windows", "--no-first-run", "--no-default-browser-check", "--disable-extensions", "--mute-audio",
              f"--user-data-dir={self.profile}", f"--remote-debugging-port={port}", "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + timeout
@@ -66,6 +68,7 @@ class Browser:
         if ws_url is None:
             self.close()
             raise RuntimeError("chromium did not open its DevTools port")
+        self.port = port
         self.ws = websocket.create_connection(ws_url, timeout=timeout, suppress_origin=True)
         self._id = 0
         self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
@@ -119,6 +122,22 @@ class Browser:
             return img if ok else None
 
         return self.wait_for(probe, timeout, "the page to settle", poll=0.3)
+
+    def new_tab(self, url: str) -> str:
+        """Open ``url`` in another tab; returns its target id."""
+        req = urllib.request.Request(f"http://127.0.0.1:{self.port}/json/new?{urllib.parse.quote(url, safe='')}",
+                                     method="PUT")
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return json.load(r)["id"]
+
+    def activate_tab(self, target_id: str) -> None:
+        """Bring a tab to the front (pages in background tabs may wait until they are shown)."""
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/json/activate/{target_id}", timeout=10):
+            pass
+
+    def close_tab(self, target_id: str) -> None:
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/json/close/{target_id}", timeout=10):
+            pass
 
     def close(self) -> None:
         try:

@@ -232,3 +232,48 @@ def test_expectation_mode_shows_its_colour_bar_range(page):
         save_shot(img, "css_view_expectation.png")
     finally:
         view.set_mode("semantic")
+
+
+def test_ten_tabs_and_tabs_closing_mid_update(tmp_path):
+    """Ten pages at once, five closed while the splat is being resent: the server keeps serving the rest
+    and a new page still gets the current state."""
+    if find_chromium() is None:
+        pytest.skip("no chromium on PATH (CI installs Debian's chromium in .ci/run; apt-get install chromium)")
+    from css_ros.engine.classes import ClassSet
+    from css_ros.engine.gaussians import GaussianModel
+    from css_ros.engine.semantic_map import SemanticMap
+    from css_ros.view.data import build_view_data
+    from css_ros.view.server import MapView
+
+    rng = np.random.default_rng(0)
+    n = 400
+    model = GaussianModel.from_activated(rng.uniform(-1, 1, (n, 3)), np.full((n, 3), 0.05),
+                                         np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9), rng.uniform(0, 1, (n, 3)))
+    smap = SemanticMap(model, 3)
+    conc = np.full((n, 3), 1e-3)
+    conc[np.arange(n), rng.integers(0, 3, n)] += 10.0
+    smap.concentrations = conc
+    view = MapView(build_view_data(smap, ClassSet.default(3)), port=free_port())
+    connected, gone = [], []
+    view.server.on_client_connect(lambda c: connected.append(c))
+    view.server.on_client_disconnect(lambda c: gone.append(c))
+    browser = Browser(320, 240)
+    try:
+        tabs = []
+        for k in range(10):   # headless pages connect once shown: bring each new tab to the front
+            tabs.append(browser.new_tab(view.url))
+            browser.activate_tab(tabs[-1])
+            browser.wait_for(lambda: len(connected) > k, 30, f"page {k + 1} to connect")
+        for i, tab in enumerate(tabs[:5]):
+            view.set_mode(("variance", "evidence", "rgb", "expectation", "semantic")[i])  # resend while closing
+            browser.close_tab(tab)
+        browser.wait_for(lambda: len(gone) >= 5, 20, "five pages to disconnect")
+        before = view.redraws
+        view.set_class_visible(0, False)
+        assert view.redraws == before + 1
+        assert len(view.server.get_clients()) == 5
+        browser.activate_tab(browser.new_tab(view.url))
+        browser.wait_for(lambda: len(view.server.get_clients()) == 6, 20, "a new page to connect")
+    finally:
+        browser.close()
+        view.stop()

@@ -138,6 +138,8 @@ class MapView:
 
     def _toggle_class(self, c: int, visible: bool) -> None:
         with self.lock:
+            if (c not in self.hidden) == visible:
+                return  # no change (the checkbox echoing a programmatic change)
             (self.hidden.discard if visible else self.hidden.add)(c)
         self.redraw()
 
