@@ -81,7 +81,7 @@ def bench_load(n: int, c: int, browser: bool) -> None:
         t_serve = time.perf_counter() - t0
         clients = []
         view.server.on_client_connect(lambda cl: clients.append(cl))
-        b = Browser(800, 500, timeout=60)
+        b = Browser(800, 500, timeout=300)
         try:
             t0 = time.perf_counter()
             b.goto(view.url)
