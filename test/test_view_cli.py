@@ -176,3 +176,23 @@ def test_view_stream_sends_exactly_the_visibly_changed_gaussians():
     assert np.array_equal(rows["index"], bump) and np.array_equal(lab, sem.label) and np.array_equal(obs, sem.observed)
     np.testing.assert_allclose(e, sem.expectation, atol=0.5 / 255 + 1e-7)
     np.testing.assert_allclose(var, e * (1 - e) / (1 + sem.total), rtol=1e-5)
+
+
+def test_a_replay_folder_names_its_model_classes_and_trajectory(tmp_path, tiny_map):
+    import argparse
+    import json
+
+    from css_ros.view.cli import resolve_inputs
+
+    out = tmp_path / "replay"
+    out.mkdir()
+    (out / "map.npz").write_bytes((tiny_map / "map.npz").read_bytes())
+    classes = ROOT / "bags" / "demo" / "classes.yaml"
+    (out / "metrics.json").write_text(json.dumps({"config": {"model": str(tiny_map / "model.ply"),
+                                                             "classes": str(classes)}}))
+    (out / "trajectory.npz").write_bytes(b"")
+    args = argparse.Namespace(map=out, model=None, classes=None)
+    assert resolve_inputs(args) == (out / "map.npz", tiny_map / "model.ply", classes, out / "trajectory.npz")
+    args = argparse.Namespace(map=out, model=tmp_path / "other.ply", classes=None)
+    with pytest.raises(Exception, match="model file not found"):
+        resolve_inputs(args)
