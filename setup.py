@@ -40,6 +40,8 @@ setup(
         # GPU backend (docs/cuda.md): kernels in numba-cuda; needs a CUDA build of torch (or cupy) on the GPU
         # machine for device-wide sorts. Its simulator (NUMBA_ENABLE_CUDASIM=1) runs the tests without a GPU.
         "cuda": ["numba-cuda==0.30.4"],
+        # css_view: the semantic splat in a browser (viser draws the Gaussians with WebGL)
+        "view": ["viser==1.1.1"],
         "test": ["pytest>=7", "pytest-timeout>=2.1", "torch==2.13.0", "numba-cuda==0.30.4", "ruff==0.17.5",
                  "mypy==2.4.1"],
         # proves the package builds as an ament_python package (test/test_node_colcon.py)
@@ -58,6 +60,8 @@ setup(
             "ros-jazzy-ament-package",
             "ruff==0.17.5",
             "mypy==2.4.1",
+            "viser==1.1.1",
+            "websocket-client==1.9.2",  # test/test_view_browser.py drives Chromium over the DevTools protocol
         ],
     },
     zip_safe=True,
@@ -77,6 +81,8 @@ setup(
             "css_import = css_ros.importers.cli:main",
             "css_align = css_ros.importers.align_cli:main",
             "css_map = css_ros.maps.cli:main",
+            "css_view = css_ros.view.cli:main",
+            "css_ctl = css_ros.clients.ctl:main",
         ],
     },
 )

@@ -169,6 +169,17 @@ def test_num_classes_anonymous(scene):
     np.testing.assert_allclose(decoded_rgb(v)[obs], pal[v["class_id"][obs]], atol=1e-3)
 
 
+def test_classes_come_from_the_map_without_a_class_file(scene):
+    tmp_path, *_ = scene
+    out = tmp_path / "nofile"
+    assert main([str(tmp_path / "map.npz"), "--model", str(tmp_path / "model.ply"), "--formats", "semantic",
+                 "--out", str(out)]) == 0
+    v = vertex(out / "map_semantic.ply")
+    obs = v["class_id"] != 255
+    assert obs.any()
+    np.testing.assert_allclose(decoded_rgb(v)[obs], ClassSet.default(C).palette[v["class_id"][obs]], atol=1e-3)
+
+
 # ------------------------------------------------------------------ errors
 def one_line_error(capsys, needle):
     err = capsys.readouterr().err.strip()
@@ -209,8 +220,9 @@ def test_bad_formats_and_usage(scene, capsys):
     tmp_path, *_ = scene
     assert run(tmp_path, "--formats", "semantic,mesh") == 1
     one_line_error(capsys, "mesh")
-    with pytest.raises(SystemExit) as exc:
-        main([str(tmp_path / "map.npz"), "--model", str(tmp_path / "model.ply")])   # no classes
+    with pytest.raises(SystemExit) as exc:   # --classes and --num-classes exclude each other
+        main([str(tmp_path / "map.npz"), "--model", str(tmp_path / "model.ply"), "--classes", "c.yaml",
+              "--num-classes", "3"])
     assert exc.value.code == 2
     with pytest.raises(SystemExit) as exc:
         main(["--help"])

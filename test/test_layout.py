@@ -26,6 +26,7 @@ ALLOWED: dict[str, set[str]] = {
     "ros": {"engine", "io", "export"},
     "demo": {"engine", "io", "evaluation", "ros"},
     "clients": {"engine", "io", "ros"},
+    "view": {"engine", "io", "export", "ros", "clients"},
 }
 ROS_FREE = ("engine", "io", "evaluation", "export", "importers", "maps")
 #: Root modules of layer 0, importable from every layer (they import nothing of the package but errors).

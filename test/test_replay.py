@@ -252,6 +252,24 @@ def test_train_frames_heldout_mcap(tmp_path):
     assert [f["trained"] for f in m["image_level"]["frames"]] == [True, True, True, False, False]
     assert "css_heldout_frames" in m["segmentation"]
     assert not (tmp_path / "out" / "bag").exists()
+    # css_view's trajectory: the fused frames only; U_var unknown without the online render (--no-output-bag)
+    from css_ros.io.trajectory import load_trajectory
+
+    traj = load_trajectory(tmp_path / "out" / "trajectory.npz")
+    assert len(traj) == 3 and all(np.isnan(u) for *_, u in traj)
+
+
+def test_replay_prints_the_css_view_command_and_writes_the_trajectory(clean_run, capsys, tmp_path):
+    from css_ros.io.trajectory import load_trajectory
+
+    rc, out, bag = clean_run
+    assert run_replay(bag, tmp_path / "again", "--no-output-bag", "--max-frames", "2") == 0
+    assert f"view the map in a browser: css_view {tmp_path / 'again'}" in capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    traj = load_trajectory(out / "trajectory.npz")
+    assert len(traj) == m["frames"]["trained"]
+    u = [f["u_var"] for f in m["image_level"]["frames"] if f["trained"]]
+    assert all(np.isfinite(t[3]) and t[3] > 0 for t in traj) and len(u) == len(traj)
 
 
 @pytest.mark.parametrize("case", ["no_pose", "bad_encoding", "size_mismatch"])

@@ -58,7 +58,7 @@ CLASS_PALETTE: np.ndarray = np.array([
     [160, 80, 200],   # shelf
     [0, 0, 230],      # sofa
     [255, 120, 180],  # cabinet
-    [250, 250, 250],  # lamp
+    [0, 90, 90],  # lamp (dark teal: visible on white backgrounds)
     [0, 255, 140],    # picture
     [255, 0, 0],      # outlet
     [107, 142, 35],   # plant

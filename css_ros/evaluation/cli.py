@@ -265,6 +265,13 @@ def warm_up(cfg: ReplayConfig) -> float:
     return warm_up_kernels(cfg.backend, int(cfg.num_classes or 1))
 
 
+def view_command(cfg: ReplayConfig) -> str:
+    """The ``css_view`` command line that shows this replay's map (its output folder holds the rest)."""
+    import shlex
+
+    return f"css_view {shlex.quote(str(cfg.out))}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; returns the process exit code (0 ok, 1 runtime error, 2 usage error)."""
     parser = build_parser()
@@ -279,6 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         metrics = run(cfg)
         print(headline(metrics))
         print(f"report: {(cfg.out / 'report.md').resolve()}")
+        print(f"view the map in a browser: {view_command(cfg)}")
         return 0
 
     return run_console("css_replay", work)

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from ..engine.photometric import psnr  # noqa: F401  (re-exported: the evaluation API)
+from ..engine.photometric import format_psnr, psnr  # noqa: F401  (re-exported: the evaluation API)
 
 #: Default removal fractions of sparsification curves: 0.00, 0.01, ..., 0.99.
 DEFAULT_FRACTIONS: np.ndarray = np.round(np.arange(0.0, 1.0, 0.01), 2)

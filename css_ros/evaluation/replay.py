@@ -26,6 +26,7 @@ from ..export.bundle import export_map
 from ..io.bag import BagWriter
 from ..io.outputs import frame_output_images
 from ..io.topics import output_topic
+from ..io.trajectory import write_replay_trajectory
 from .config import OUT_OF_RANGE_MAX_SHARE, ReplayConfig
 from .evaluator import Evaluator
 from .metrics import ConfusionMatrix
@@ -87,10 +88,12 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     # Pass 1: fuse the first K frames (observe), render the rest; write the online outputs.
     t1 = time.perf_counter()
     processed = trained = 0
+    trajectory: list = []  # (camera, U_var or None) of the fused frames, for css_view
     bag_ctx = BagWriter(cfg.out / "bag") if cfg.output_bag else nullcontext()
     with bag_ctx as obag, _progress(expected, "fuse", cfg.quiet) as bar:
         for frame in source.frames() if expected > 0 else ():
             if frame.index < K:
+                trajectory.append((frame.camera, None))
                 if obag is not None:
                     view = smap.observe(frame.camera, frame.labels, frame.confidence)
                 else:  # no online outputs wanted: skip the render (the evaluation renders in pass 2)
@@ -106,6 +109,8 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
                     online_cm.update(frame.gt, view.labels)
             if obag is not None and view is not None:
                 _write_outputs(obag, frame, view, classes, cfg)
+            if view is not None and frame.index < K:
+                trajectory[-1] = (frame.camera, view.u_var)
             processed += 1
             bar.update(1)
             if cfg.max_frames is not None and processed >= cfg.max_frames:
@@ -140,6 +145,7 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     # Map, viewer files (semantic and uncertainty splats) and the bird's-eye picture.
     t3 = time.perf_counter()
     smap.save(cfg.out / "map.npz")
+    write_replay_trajectory(cfg.out / "trajectory.npz", trajectory)
     splat_to_map = Similarity.from_params(cfg.splat_to_map)
     export_map(smap, classes, cfg.out, "map", formats=("semantic", "uncertainty"), splat_to_map=splat_to_map)
     birdseye = _birdseye(smap, classes, cfg.out / "birdseye.png", splat_to_map)

@@ -19,8 +19,8 @@ examples:
   # everything, next to the map: map_semantic.ply, map_uncertainty_variance.ply (+ _colorbar.png), map_points.ply
   css_export out/map.npz --model bags/demo/model.ply --classes bags/demo/classes.yaml
 
-  # only the semantic splat, observed Gaussians only, into another folder
-  css_export map.npz --model model.ply --num-classes 5 --formats semantic --drop-unobserved --out export/
+  # only the semantic splat, observed Gaussians only, into another folder (no class file: class_0..C-1)
+  css_export map.npz --model model.ply --formats semantic --drop-unobserved --out export/
 
   # the splat coloured by evidence (how much was seen), and the point cloud
   css_export map.npz --model model.ply --classes classes.yaml --formats uncertainty,points --uncertainty evidence
@@ -37,9 +37,11 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("map", type=Path, help="semantic map .npz written by css_node / css_replay")
     p.add_argument("--model", type=Path, required=True, metavar="PLY", help="the splat model the map was made on")
-    group = p.add_mutually_exclusive_group(required=True)
-    group.add_argument("--classes", type=Path, metavar="YAML", help="class file (names and colours)")
-    group.add_argument("--num-classes", type=int, metavar="N", help="anonymous classes class_0..N-1")
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--classes", type=Path, metavar="YAML", help="class file (names and colours); without it "
+                       "the map's own number of classes, named class_0..C-1")
+    group.add_argument("--num-classes", type=int, metavar="N", help="anonymous classes class_0..N-1 (checked "
+                       "against the map)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default: the map's folder)")
     p.add_argument("--formats", default=",".join(FORMATS),
                    help=f"comma-separated outputs among {', '.join(FORMATS)} (default: all)")
@@ -75,13 +77,18 @@ def export(args: argparse.Namespace) -> list[Path]:
         if not args.classes.is_file():
             raise CssError(f"class file not found: {args.classes}")
         classes = ClassSet.from_yaml(args.classes)
-    else:
+    elif args.num_classes is not None:
         if args.num_classes < 1:
             raise CssError("--num-classes must be >= 1")
         classes = ClassSet.default(args.num_classes)
+    else:
+        classes = None
     model = GaussianModel.from_ply(args.model)
-    # The class count is known here: a map of another count (or a bomb claiming one) is refused from its headers.
-    smap = SemanticMap.load(args.map, model, expected_classes=classes.num_classes)
+    if classes is None:  # no class file: the map's classes, anonymous
+        smap = SemanticMap.load(args.map, model)
+        classes = ClassSet.default(smap.num_classes)
+    else:  # the class count is known: a map of another count (or a bomb claiming one) is refused from its headers
+        smap = SemanticMap.load(args.map, model, expected_classes=classes.num_classes)
     if classes.num_classes != smap.num_classes:
         raise CssError(f"the map has {smap.num_classes} classes but {classes.num_classes} were given "
                        f"({args.classes or '--num-classes'})")

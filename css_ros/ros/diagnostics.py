@@ -9,6 +9,7 @@ from typing import Any, Callable
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from ..engine.photometric import format_psnr
 from .work import WarnLimiter
 
 
@@ -102,7 +103,7 @@ class StatusReporter:
                      f"{s['frame_latency_ms_median']:.0f} ms), pending {s['pending_frames']}, dropped "
                      f"{dropped or 0}; candidate requests served {s.get('requests_served', 0)} (median "
                      f"{s['request_latency_ms_median']:.0f} ms); last U_var {s['last_u_var']:.4g} "
-                     f"U_exp {s['last_u_exp']:.4g}; PSNR {s['last_psnr_db']:.1f} dB"
+                     f"U_exp {s['last_u_exp']:.4g}; PSNR {format_psnr(s['last_psnr_db'])}"
                      + (f"; new input problems: {new}" if new else ""))
         if self.diag_pub is not None:
             level = DiagnosticStatus.WARN if new else DiagnosticStatus.OK

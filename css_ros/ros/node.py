@@ -31,6 +31,7 @@ from .params import NodeParams, check_params, coerce
 from .startup import load_engine, warm_up
 from .work import WarnLimiter, WorkQueue
 from .worker import MapWorker
+from .view_publisher import ViewPublisher
 
 #: Depth of the save_map / reset_map service queues: bursts up to this many calls are all answered.
 SERVICE_QUEUE_DEPTH = 64
@@ -93,6 +94,9 @@ class CssNode(Node):
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
         self.model_watcher = ModelWatcher(self, p, self.warn, self.stats.count, log.info)
+        if p.view_period > 0:  # css_view --live
+            self.worker.view_stream = ViewPublisher(self, self.smap, self.classes, p.view_period,
+                                                    p.view_max_changes, p.min_evidence)
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
                               self._confidence_published, log.warning)
         frames = self.gate.frames

@@ -124,6 +124,10 @@ class NodeParams:
     request_queue_size: int = _p(256, "requests", "subscription depth of candidates and point_queries and history "
                                  "of their answer topics: a burst of up to this many requests is received and "
                                  "answered in full (beyond the 8 pending ones: at once, as busy)")
+    view_period: float = _p(1.0, "s", "time between ~/view/semantics messages for css_view --live (only the "
+                            "Gaussians that changed; 0: no ~/view/* topics)")
+    view_max_changes: int = _p(262_144, "Gaussians", "largest ~/view/semantics message (10 bytes a Gaussian); "
+                               "more changes go out in the next ones")
     # --- persistence
     checkpoint_path: str = _p(DEFAULT_CHECKPOINT, "path", "semantic map checkpoint (.npz); {fingerprint} is "
                               "replaced by 16 hex digits of the model fingerprint; empty disables saving and "
@@ -259,7 +263,7 @@ def check_params(p: NodeParams) -> None:
             raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")
     for name in ("sync_slop", "max_stamp_future", "checkpoint_period", "checkpoint_retry_max", "log_period",
                  "warn_period", "candidate_time_budget", "cloud_period", "cloud_voxel_size", "min_evidence",
-                 "evidence_snapshot_period"):
+                 "evidence_snapshot_period", "view_period"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
     for name in ("model_watch_period", "evidence_period"):
@@ -267,7 +271,7 @@ def check_params(p: NodeParams) -> None:
             raise bad(name, "must be finite and > 0")
     for name in ("queue_size", "max_pending_frames", "max_candidates", "candidate_slice", "max_image_pixels",
                  "max_query_points", "point_query_slice", "request_queue_size", "evidence_max_rows",
-                 "evidence_max_sources"):
+                 "evidence_max_sources", "view_max_changes"):
         if getattr(p, name) < 1:
             raise bad(name, "must be >= 1")
     if p.cloud_max_points < 0:

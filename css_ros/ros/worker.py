@@ -111,6 +111,7 @@ class MapWorker:
         self.map_version = 0            # +1 per map change (frame, reset, load): the cloud is sent on change
         self._cloud_version = -1        # map_version of the last ~/semantic_cloud (-1: none yet)
         self._cloud_next = 0.0          # time.monotonic() before which no cloud is sent
+        self.view_stream: Any = None    # ros.view_publisher.ViewPublisher for css_view --live, or None
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -139,6 +140,8 @@ class MapWorker:
                 self.save_checkpoint("periodic")
             if self.cloud_due(now):
                 self.publish_cloud(now)
+            if self.view_stream is not None:
+                self.view_stream.tick(now, self.map_version, self.map_lock)
         for job in self.queue.drain_requests():
             self.finish_request(job, "node stopping")
 

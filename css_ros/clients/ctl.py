@@ -1,0 +1,228 @@
+"""``css_ctl``: talk to a running css_node from a terminal (no ros2 CLI needed): save / load / reset the map,
+query points (SPEC §9) and score candidate views, printing the answers as tables."""
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..console import run_console
+from ..errors import CssError
+from ..io.clouds import pack_cloud, unpack_cloud
+from ..io.messages import unpack_view_points
+from ..io.point_queries import ANSWER_FIELDS
+from ..io.topics import INPUT_TOPICS
+
+SERVICES = {"save": "save_map", "load": "load_map", "reset": "reset_map"}
+DEFAULT_TIMEOUT_S = 10.0
+
+EXAMPLES = """\
+examples:
+  css_ctl save                                # write the checkpoint now
+  css_ctl reset                               # all concentrations back to the prior
+  css_ctl load                                # replace the map by the checkpoint at checkpoint_path
+  css_ctl query 0.5 0.2 1.0  -1 0 0.3         # SPEC §9 point queries (x y z triples, map frame, metres)
+  css_ctl query --file points.txt             # one "x y z" per line
+  css_ctl candidates 0 0 1.5 0 0 0 1          # score views (x y z qx qy qz qw of the optical frame, map frame)
+  css_ctl candidates --file poses.txt         # one "x y z qx qy qz qw" per line
+Use ROS_DOMAIN_ID as for the node; --node for another node name.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="css_ctl", description="Control and query a running css_node over DDS.",
+                                epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--node", default="/css_node", help="css_node's full name (default /css_node)")
+    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
+                   help=f"seconds to wait for the node (default {DEFAULT_TIMEOUT_S:g})")
+    sub = p.add_subparsers(dest="command", required=True)
+    for name, srv in SERVICES.items():
+        sub.add_parser(name, help=f"call {srv} (std_srvs/Trigger)")
+    q = sub.add_parser("query", help="SPEC §9 point queries")
+    q.add_argument("xyz", type=float, nargs="*", help="x y z triples [m, map frame]")
+    q.add_argument("--file", type=Path, help="text file, one 'x y z' per line")
+    c = sub.add_parser("candidates", help="score candidate views (U_var, U_exp)")
+    c.add_argument("pose", type=float, nargs="*", help="x y z qx qy qz qw per view (optical frame in the map)")
+    c.add_argument("--file", type=Path, help="text file, one 'x y z qx qy qz qw' per line")
+    return p
+
+
+def read_rows(values: Sequence[float], file: Path | None, width: int, what: str) -> np.ndarray:
+    """(M, width) float64 rows from the command line or a text file."""
+    if file is not None:
+        if not file.is_file():
+            raise CssError(f"{what} file not found: {file}")
+        try:
+            rows = np.loadtxt(file, dtype=np.float64, ndmin=2, comments="#")
+        except ValueError as exc:
+            raise CssError(f"{file}: {exc}") from None
+        if rows.size == 0 or rows.shape[1] != width:
+            raise CssError(f"{file}: expected {width} numbers per line")
+        return rows
+    if not values or len(values) % width:
+        raise CssError(f"give {what} as groups of {width} numbers (got {len(values)})")
+    return np.asarray(values, np.float64).reshape(-1, width)
+
+
+def format_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A plain text table with right-aligned columns."""
+    cells = [[str(h) for h in header]] + [[str(c) for c in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+class NodeLink:
+    """An rclpy node with its own context and executor thread, for one request."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(f"css_ctl_{time.monotonic_ns() % 10**9}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.05)
+        except Exception:  # noqa: BLE001 - shutting down
+            pass
+
+    @staticmethod
+    def wait(cond, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if cond():
+                return True
+            time.sleep(0.02)
+        return bool(cond())
+
+    def close(self) -> None:
+        self.context.try_shutdown()
+        self._thread.join(2.0)
+
+
+def call_service(link: NodeLink, node: str, name: str, timeout: float) -> tuple[bool, str]:
+    from std_srvs.srv import Trigger
+
+    client = link.node.create_client(Trigger, f"{node.rstrip('/')}/{name}")
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise CssError(f"no {node}/{name} service within {timeout:g} s (is css_node running, same ROS_DOMAIN_ID?)")
+    future = client.call_async(Trigger.Request())
+    if not link.wait(future.done, timeout):
+        raise CssError(f"{node}/{name} did not answer within {timeout:g} s")
+    res = future.result()
+    return bool(res.success), str(res.message)
+
+
+def _request(link: NodeLink, node: str, topic: str, msg_type: type, answer_topic: str, msg: Any,
+             timeout: float) -> Any:
+    """Publish ``msg`` (its header stamp is the request id) and return the answer echoing that stamp."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    answers: dict[tuple[int, int], Any] = {}
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    link.node.create_subscription(PointCloud2, f"{node.rstrip('/')}/{answer_topic}",
+                                  lambda m: answers.__setitem__((m.header.stamp.sec, m.header.stamp.nanosec), m),
+                                  qos)
+    pub = link.node.create_publisher(msg_type, topic, qos)
+    if not link.wait(lambda: pub.get_subscription_count() > 0, timeout):
+        raise CssError(f"nobody subscribes to {pub.topic_name} within {timeout:g} s (is css_node running?)")
+    key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+    # the answer subscription must be matched too before the request goes out
+    link.wait(lambda: link.node.count_publishers(f"{node.rstrip('/')}/{answer_topic}") > 0, timeout)
+    pub.publish(msg)
+    if not link.wait(lambda: key in answers, timeout):
+        raise CssError(f"no answer on {node}/{answer_topic} within {timeout:g} s")
+    return answers[key]
+
+
+def query(link: NodeLink, node: str, xyz: np.ndarray, timeout: float) -> np.ndarray:
+    """Structured answer rows (x y z label expectation variance <class columns>) for points ``xyz`` (M, 3)."""
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from ..ros.conversions import header_msg
+
+    f = pack_cloud({"x": xyz[:, 0].astype(np.float32), "y": xyz[:, 1].astype(np.float32),
+                    "z": xyz[:, 2].astype(np.float32)})
+    msg = PointCloud2(header=header_msg(time.time_ns(), "map"), height=1, width=f["width"],
+                      fields=[PointField(name=n, offset=o, datatype=d, count=c) for n, o, d, c in f["fields"]],
+                      is_bigendian=False, point_step=f["point_step"], row_step=f["row_step"], is_dense=True)
+    msg.data = f["data"].tobytes()
+    ans = _request(link, node, INPUT_TOPICS["point_queries"], PointCloud2, "point_query_results", msg, timeout)
+    return unpack_cloud(ans)
+
+
+def candidates(link: NodeLink, node: str, poses: np.ndarray, timeout: float) -> np.ndarray:
+    """Scored views (structured rows with U_var, U_exp) for poses (M, 7) x y z qx qy qz qw."""
+    from geometry_msgs.msg import PoseArray
+
+    from ..ros.conversions import header_msg, pose_array_msg
+
+    msg = pose_array_msg(poses[:, :3], poses[:, 3:], header_msg(time.time_ns(), "map"))
+    return unpack_view_points(_request(link, node, INPUT_TOPICS["candidates"], PoseArray, "candidate_scores",
+                                       msg, timeout))
+
+
+def query_table(rows: np.ndarray, ignore_label: int = 255) -> str:
+    names = [n for n in rows.dtype.names if n not in ANSWER_FIELDS]
+    out = []
+    for r in rows:
+        lab = int(r["label"])
+        cls = names[lab] if 0 <= lab < len(names) else "unknown"
+        probs = sorted(((float(r[n]), n) for n in names if np.isfinite(r[n])), reverse=True)[:3]
+        out.append([f"{r['x']:.3f}", f"{r['y']:.3f}", f"{r['z']:.3f}", cls, f"{r['expectation']:.3f}",
+                    f"{r['variance']:.2e}", ", ".join(f"{n} {p:.2f}" for p, n in probs)])
+    return format_table(["x", "y", "z", "class", "E", "Var", "top classes (E)"], out)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``css_ctl``: 0 on success, 1 with a one-line error (or a refused request), 2 usage."""
+    args = build_parser().parse_args(argv)
+
+    def work() -> int:
+        if args.timeout <= 0:
+            raise CssError("--timeout must be > 0")
+        if args.command == "query":
+            xyz = read_rows(args.xyz, args.file, 3, "points")
+        elif args.command == "candidates":
+            poses = read_rows(args.pose, args.file, 7, "poses")
+        link = NodeLink()
+        try:
+            if args.command in SERVICES:
+                ok, message = call_service(link, args.node, SERVICES[args.command], args.timeout)
+                print(format_table(["service", "success", "message"],
+                                   [[f"{args.node.rstrip('/')}/{SERVICES[args.command]}", ok, message]]))
+                return 0 if ok else 1
+            if args.command == "query":
+                print(query_table(query(link, args.node, xyz, args.timeout)))
+                return 0
+            rows = candidates(link, args.node, poses, args.timeout)
+            best = int(np.argmax(rows["u_var"])) if len(rows) else -1
+            print(format_table(["view", "x", "y", "z", "U_var", "U_exp", ""],
+                               [[i, f"{r['x']:.3f}", f"{r['y']:.3f}", f"{r['z']:.3f}", f"{r['u_var']:.3e}",
+                                 f"{r['u_exp']:.3f}", "<- most uncertain" if i == best else ""]
+                                for i, r in enumerate(rows)]))
+            return 0
+        finally:
+            link.close()
+
+    return run_console("css_ctl", work)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,275 @@
+"""``css_view --live``: follow a running css_node over DDS (its ``~/view/*`` topics; no shared files).
+
+The model arrives once (transient local), then only the Gaussians whose semantics changed; the page is
+redrawn at most every REDRAW_PERIOD_S while updates come in. Observed frames (``~/view_uncertainty``) are drawn
+as frustums coloured by U_var, the last answered candidate request (``~/candidate_scores``) as frustums
+coloured by their U_var score; a click queries the node (``point_queries``).
+"""
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from ..engine.classes import ClassSet
+from ..engine.field3d import GaussianSemantics
+from ..errors import CssError
+from ..io.clouds import unpack_cloud, unpack_rgb
+from ..io.messages import unpack_view_points
+from ..io.view_stream import parse_info
+from .data import ViewData
+
+REDRAW_PERIOD_S = 0.5      # at most two redraws a second while updates arrive
+NODE_GONE_S = 3.0          # no publisher of ~/view/semantics for this long: the page says the node is gone
+FRUSTUM_FOV_Y = 0.8        # rad; drawn frustums (the stream carries poses, not intrinsics)
+MAX_FRUSTUMS = 300         # observed frames drawn (the latest)
+
+
+def semantics_from(label: np.ndarray, e_q: np.ndarray, evidence: np.ndarray, num_classes: int, prior: float,
+                   min_evidence: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(label int32, E float32, Var float32, S float64, observed bool) from the stream's quantised columns;
+    Var = E (1 − E) / (1 + S) with S = evidence + C α₀ (SPEC §4)."""
+    e = e_q.astype(np.float32) / 255.0
+    total = evidence.astype(np.float64) + num_classes * prior
+    var = (e * (1.0 - e) / (1.0 + total)).astype(np.float32)
+    return label.astype(np.int32), e, var, total, evidence >= min_evidence
+
+
+class LiveFollower:
+    """Subscribes to a node's view stream and keeps the page up to date."""
+
+    def __init__(self, node_name: str, on_status) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+        from std_msgs.msg import String
+
+        self.node_name = "/" + node_name.strip("/")
+        self.on_status = on_status
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(f"css_view_{time.monotonic_ns() % 10**9}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self.info: dict[str, Any] | None = None
+        self.chunks: dict[int, Any] = {}
+        self.pending: list[Any] = []
+        self.frames: list[np.ndarray] = []
+        self.candidates: Any = None
+        self.last_update = 0.0
+        self.updates = 0
+        latched = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        n = self.node_name
+        self.node.create_subscription(String, f"{n}/view/info", self._on_info, latched)
+        self.node.create_subscription(PointCloud2, f"{n}/view/model", self._on_model, latched)
+        self.node.create_subscription(PointCloud2, f"{n}/view/semantics", self._on_semantics, reliable)
+        self.node.create_subscription(PointCloud2, f"{n}/view_uncertainty", self._on_frame, reliable)
+        self.node.create_subscription(PointCloud2, f"{n}/candidate_scores", self._on_candidates, reliable)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.05)
+        except Exception:  # noqa: BLE001 - shutting down
+            pass
+
+    def _on_info(self, msg: Any) -> None:
+        try:
+            info = parse_info(msg.data)
+        except ValueError as exc:
+            self.on_status(f"unreadable {self.node_name}/view/info: {exc}")
+            return
+        with self.lock:
+            if self.info is not None and info["fingerprint"] != self.info["fingerprint"]:
+                self.on_status("the node now runs another model: restart css_view --live")
+                return
+            self.info = info
+
+    def _on_model(self, msg: Any) -> None:
+        with self.lock:
+            self.chunks[int(unpack_cloud(msg, ("index",))["index"][0]) if msg.width else -1] = msg
+
+    def _on_semantics(self, msg: Any) -> None:
+        with self.lock:
+            self.pending.append(msg)
+            self.last_update = time.monotonic()
+
+    def _on_frame(self, msg: Any) -> None:
+        with self.lock:
+            self.frames.append(unpack_view_points(msg))
+            del self.frames[:-MAX_FRUSTUMS]
+
+    def _on_candidates(self, msg: Any) -> None:
+        with self.lock:
+            self.candidates = unpack_view_points(msg)
+
+    def model_complete(self) -> bool:
+        with self.lock:
+            if self.info is None:
+                return False
+            n, chunk = self.info["num_gaussians"], self.info["chunk"]
+            return len([k for k in self.chunks if k >= 0]) >= -(-n // chunk)
+
+    def resync(self, timeout: float) -> None:
+        """Ask the node to resend every Gaussian's semantics (we joined late)."""
+        from std_srvs.srv import Trigger
+
+        client = self.node.create_client(Trigger, f"{self.node_name}/view/resync")
+        if client.wait_for_service(timeout_sec=timeout):
+            client.call_async(Trigger.Request())
+
+    def node_alive(self) -> bool:
+        return self.node.count_publishers(f"{self.node_name}/view/semantics") > 0
+
+    def build_data(self) -> ViewData:
+        """ViewData of the received model, every Gaussian unobserved until its semantics arrive."""
+        info = self.info
+        with self.lock:
+            chunks = [self.chunks[k] for k in sorted(k for k in self.chunks if k >= 0)]
+        cols = [unpack_cloud(m) for m in chunks]
+        pts = np.concatenate(cols)
+        n = int(info["num_gaussians"])
+        if len(pts) != n or not np.array_equal(pts["index"], np.arange(n)):
+            raise CssError(f"incomplete model stream from {self.node_name} ({len(pts)} of {n} Gaussians)")
+        cov = np.empty((n, 3, 3), np.float32)
+        for (i, j), name in zip(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)),
+                                ("c00", "c01", "c02", "c11", "c12", "c22")):
+            cov[:, i, j] = cov[:, j, i] = pts[name]
+        classes = ClassSet(tuple(info["classes"]), np.asarray(info["palette"], np.uint8).reshape(-1, 3))
+        c = classes.num_classes
+        sem = GaussianSemantics(np.full(n, 255, np.int32), np.full(n, 1.0 / c, np.float32),
+                                np.zeros(n, np.float32), np.full(n, c * info["prior"]), np.zeros(n),
+                                np.zeros(n, bool))
+        return ViewData(index=np.arange(n), centers=np.stack([pts["x"], pts["y"], pts["z"]], 1).astype(np.float32),
+                        covariances=cov, rgb=unpack_rgb(pts["rgb"]).astype(np.float32) / 255.0,
+                        opacity=pts["opacity"].astype(np.float32), classes=classes, semantics=sem, num_gaussians=n)
+
+    def apply_updates(self, data: ViewData) -> int:
+        """Apply the semantics messages received since the last call to ``data``; returns Gaussians changed."""
+        with self.lock:
+            msgs, self.pending = self.pending, []
+        info, changed = self.info, 0
+        sem = data.semantics
+        for msg in msgs:
+            rows = unpack_cloud(msg)
+            idx = rows["index"].astype(np.int64)
+            ok = idx < data.num_gaussians
+            idx, rows = idx[ok], rows[ok]
+            lab, e, var, total, obs = semantics_from(rows["label"], rows["expectation"], rows["evidence"],
+                                                     data.classes.num_classes, info["prior"], info["min_evidence"])
+            sem.label[idx], sem.expectation[idx], sem.variance[idx] = lab, e, var
+            sem.total[idx], sem.evidence[idx], sem.observed[idx] = total, rows["evidence"], obs
+            changed += len(idx)
+        self.updates += len(msgs)
+        return changed
+
+    def close(self) -> None:
+        self.context.try_shutdown()
+        self.thread.join(2.0)
+
+
+def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
+               stop: threading.Event | None = None) -> int:
+    """Follow ``args.node`` and serve the page until interrupted (or ``--exit-after`` seconds, or ``stop``)."""
+    from .server import MapView, check_port_free
+
+    check_port_free(args.host, args.port)
+    notes: list[str] = []
+    follower = LiveFollower(args.node, notes.append)
+    deadline = None if args.exit_after is None else time.monotonic() + args.exit_after
+    view = None
+    try:
+        print(f"css_view: waiting for {follower.node_name}/view/model (is css_node running with view_period > 0, "
+              "same ROS_DOMAIN_ID?)", flush=True)
+        while not follower.model_complete():
+            if stop is not None and stop.is_set():
+                return 0
+            if deadline is not None and time.monotonic() > deadline:
+                raise CssError(f"no model from {follower.node_name} within --exit-after")
+            time.sleep(0.1)
+        data = follower.build_data()
+        follower.resync(10.0)
+        view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}")
+        view.query = _node_query(follower)
+        print(f"css_view: following {follower.node_name} ({data.num_gaussians:,} Gaussians)", flush=True)
+        print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)
+        if ready is not None:
+            ready.set()
+        drawn_frames = drawn_candidates = None
+        while (deadline is None or time.monotonic() < deadline) and not (stop is not None and stop.is_set()):
+            time.sleep(REDRAW_PERIOD_S)
+            with view.lock:
+                changed = follower.apply_updates(view.data)
+            if changed:
+                view.redraw()
+            age = time.monotonic() - follower.last_update if follower.last_update else None
+            alive = follower.node_alive()
+            state = ("**node gone**: no publisher of view/semantics; waiting for it to come back" if not alive
+                     else f"live: {follower.updates} updates" + (f", last {age:.1f} s ago" if age is not None else ""))
+            view.status_note = state + ("; " + notes[-1] if notes else "")
+            view.show_status()
+            with follower.lock:
+                frames = list(follower.frames)
+                cands = follower.candidates
+            if frames and (drawn_frames is None or len(frames) != drawn_frames):
+                _draw_views(view, "/trajectory", np.concatenate(frames), "magma")
+                drawn_frames = len(frames)
+            if cands is not None and cands is not drawn_candidates:
+                _draw_views(view, "/candidates", cands, "viridis", mark_best=True)
+                drawn_candidates = cands
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if view is not None:
+            view.stop()
+        follower.close()
+    return 0
+
+
+def _draw_views(view, prefix: str, rows: np.ndarray, cmap: str, mark_best: bool = False) -> None:
+    """Frustums of scored views (VIEW_FIELDS rows) coloured by U_var on a log scale."""
+    import matplotlib
+
+    u = rows["u_var"].astype(np.float64)
+    ok = np.isfinite(u) & (u > 0)
+    lo, hi = (np.log(u[ok].min()), np.log(u[ok].max())) if ok.any() else (0.0, 1.0)
+    cm = matplotlib.colormaps[cmap]
+    view.server.scene.remove_by_name(prefix)
+    best = int(np.argmax(np.where(ok, u, -np.inf))) if ok.any() else -1
+    for i, r in enumerate(rows):
+        t = (np.log(u[i]) - lo) / max(hi - lo, 1e-12) if ok[i] else 0.0
+        color = tuple(int(255 * v) for v in cm(t)[:3]) if ok[i] else (128, 128, 128)
+        view.server.scene.add_camera_frustum(f"{prefix}/v{i:04d}", fov=FRUSTUM_FOV_Y, aspect=4 / 3,
+                                             scale=0.3 if (mark_best and i == best) else 0.15, color=color,
+                                             wxyz=(float(r["qw"]), float(r["qx"]), float(r["qy"]), float(r["qz"])),
+                                             position=(float(r["x"]), float(r["y"]), float(r["z"])))
+
+
+def _node_query(follower: LiveFollower):
+    """SPEC §9 point query answered by the node (its ``point_queries`` topic)."""
+    from ..clients.ctl import NodeLink, query
+    from ..io.point_queries import ANSWER_FIELDS
+
+    class _Link(NodeLink):
+        def __init__(self) -> None:  # reuse the follower's node and executor
+            self.node, self.context = follower.node, follower.context
+
+    def ask(xyz: np.ndarray):
+        rows = query(_Link(), follower.node_name, np.asarray(xyz, np.float64).reshape(-1, 3), 5.0)
+        names = [n for n in rows.dtype.names if n not in ANSWER_FIELDS]
+        e = np.stack([rows[n] for n in names], axis=1).astype(np.float64)
+        v = np.full_like(e, np.nan)
+        top = np.argmax(np.nan_to_num(e, nan=-1.0), axis=1)
+        v[np.arange(len(rows)), top] = rows["variance"]
+        return rows["label"].astype(np.int64), e, v
+    return ask

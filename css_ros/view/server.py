@@ -1,0 +1,245 @@
+"""The page: a viser server drawing the semantic splat with its modes, filters, legend, colour bar,
+trajectory and click queries. One :class:`MapView` per ``css_view`` process; every browser tab shares it."""
+from __future__ import annotations
+
+import html
+import socket
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..errors import CssError
+from .coloring import MODE_LABELS, MODES, ColorBar, mode_colors, visible_mask
+from .data import ViewData
+
+SPLAT_NAME = "/map"
+DEFAULT_VAR_THRESHOLD = 0.05   # uncertain-only slider start (Var of the argmax class; the maximum is 0.25)
+PICK_SIGMAS = 2.0              # a click hits a Gaussian whose centre is within this many std. devs of the ray
+PICK_MIN_OPACITY = 0.1
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise :class:`CssError` when ``host:port`` cannot be bound (in use or not allowed)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host if host not in ("", "0.0.0.0") else "0.0.0.0", port))
+        except OSError as exc:
+            raise CssError(f"cannot serve on {host}:{port}: {exc.strerror or exc} (is another css_view running? "
+                           "pick another --port)") from None
+
+
+def pick_gaussian(data: ViewData, keep: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> int | None:
+    """Displayed-row index of the first Gaussian the ray ``origin + t·direction`` (t > 0, map frame) hits:
+    centre within PICK_SIGMAS of its largest standard deviation from the ray and opacity >= PICK_MIN_OPACITY;
+    the nearest along the ray wins. None when the ray hits nothing."""
+    d = np.asarray(direction, np.float64)
+    d = d / max(np.linalg.norm(d), 1e-12)
+    rel = data.centers.astype(np.float64) - np.asarray(origin, np.float64)
+    t = rel @ d
+    perp = np.linalg.norm(rel - t[:, None] * d, axis=1)
+    sigma = np.sqrt(np.maximum(np.linalg.eigvalsh(data.covariances.astype(np.float64))[:, -1], 1e-12))
+    hit = keep & (t > 0) & (perp <= PICK_SIGMAS * sigma) & (data.opacity >= PICK_MIN_OPACITY)
+    if not np.any(hit):
+        return None
+    rows = np.flatnonzero(hit)
+    return int(rows[np.argmin(t[rows])])
+
+
+def colorbar_html(bar: ColorBar) -> str:
+    """A horizontal CSS gradient with the two ends of the scale and its label."""
+    stops = ", ".join(f"rgb{c}" for c in bar.stops())
+    fmt = (lambda v: f"{v:.2e}") if bar.log else (lambda v: f"{v:.3g}")
+    scale = "log scale" if bar.log else "linear"
+    return (f'<div id="css-colorbar" data-vmin="{bar.vmin:.6g}" data-vmax="{bar.vmax:.6g}">'
+            f'<div style="height:14px;background:linear-gradient(to right, {stops});border:1px solid #888"></div>'
+            f'<div style="display:flex;justify-content:space-between;font-size:11px">'
+            f'<span class="vmin">{fmt(bar.vmin)}</span><span>{scale}</span><span class="vmax">{fmt(bar.vmax)}</span>'
+            f'</div><div style="font-size:11px">{html.escape(bar.label)}; grey = unobserved</div></div>')
+
+
+def legend_html(names, palette) -> str:
+    """Colour swatches of the classes (the toggles below carry the same names)."""
+    items = "".join(
+        f'<span style="display:inline-block;margin:1px 6px 1px 0;font-size:11px">'
+        f'<span style="display:inline-block;width:10px;height:10px;margin-right:3px;border:1px solid #666;'
+        f'background:rgb({int(c[0])},{int(c[1])},{int(c[2])})"></span>{html.escape(n)}</span>'
+        for n, c in zip(names, palette))
+    return f'<div id="css-legend">{items}</div>'
+
+
+class MapView:
+    """Serve ``data`` on ``host:port``.
+
+    Args:
+        data: what to draw.
+        query: optional SPEC §9 point query, (M, 3) map-frame points -> (labels (M,), E (M, C), Var (M, C)).
+        title: shown on the page.
+    """
+
+    def __init__(self, data: ViewData, host: str = "127.0.0.1", port: int = 8080,
+                 query: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+                 title: str = "css_ros map") -> None:
+        import viser
+
+        check_port_free(host, port)
+        self.data = data
+        self.query = query
+        self.lock = threading.RLock()
+        self.mode = "semantic"
+        self.hidden: set[int] = set()
+        self.observed_only = False
+        self.uncertain_only = False
+        self.var_threshold = DEFAULT_VAR_THRESHOLD
+        self.redraws = 0
+        self.status_note = ""          # extra status text (live mode: node state, age of the last update)
+        self.keep = np.zeros(0, dtype=bool)
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.gui.configure_theme(control_width="medium", show_logo=False, show_share_button=False,
+                                        dark_mode=False)
+        self.server.gui.main_panel.dock_right()
+        self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{port}"
+        self._build_gui(title)
+        self._draw_trajectory()
+        self.redraw()
+
+    # ------------------------------------------------------------------ GUI
+    def _build_gui(self, title: str) -> None:
+        gui = self.server.gui
+        gui.add_markdown(f"**{html.escape(title)}**")
+        self.status = gui.add_markdown("loading…")
+        self.mode_dd = gui.add_dropdown("Colour", options=[MODE_LABELS[m] for m in MODES],
+                                        initial_value=MODE_LABELS[self.mode])
+        self.observed_cb = gui.add_checkbox("Observed only", initial_value=False)
+        self.uncertain_cb = gui.add_checkbox("Uncertain only", initial_value=False)
+        self.threshold = gui.add_slider("Var threshold", min=0.0, max=0.25, step=0.005,
+                                        initial_value=DEFAULT_VAR_THRESHOLD)
+        self.colorbar = gui.add_html("")
+        folder = gui.add_folder("Classes")
+        self.class_cbs = []
+        with folder:
+            gui.add_html(legend_html(self.data.classes.names, self.data.classes.palette))
+            counts = np.bincount(self.data.semantics.label[self.data.semantics.observed],
+                                 minlength=self.data.classes.num_classes)
+            for c, name in enumerate(self.data.classes.names):
+                r, g, b = (int(v) for v in self.data.classes.palette[c])
+                cb = gui.add_checkbox(f"{name} ({counts[c]})", initial_value=True,
+                                      hint=f"class {c}, colour rgb({r},{g},{b})")
+                self.class_cbs.append(cb)
+                cb.on_update(lambda ev, c=c: self._toggle_class(c, ev.target.value))
+        self.query_md = gui.add_markdown("Click the splat to query the map there (SPEC §9).")
+        self.mode_dd.on_update(lambda ev: self.set_mode(MODES[[MODE_LABELS[m] for m in MODES].index(ev.target.value)]))
+        self.observed_cb.on_update(lambda ev: self._set_filter(observed_only=ev.target.value))
+        self.uncertain_cb.on_update(lambda ev: self._set_filter(uncertain_only=ev.target.value))
+        self.threshold.on_update(lambda ev: self._set_filter(var_threshold=ev.target.value))
+        self.server.scene.on_click()(self._on_click)
+
+    def _toggle_class(self, c: int, visible: bool) -> None:
+        with self.lock:
+            if (c not in self.hidden) == visible:
+                return  # no change (the checkbox echoing a programmatic change)
+            (self.hidden.discard if visible else self.hidden.add)(c)
+        self.redraw()
+
+    def _set_filter(self, **kw) -> None:
+        with self.lock:
+            for k, v in kw.items():
+                setattr(self, k, v)
+        self.redraw()
+
+    def set_mode(self, mode: str) -> None:
+        """Switch the colour mode (one of :data:`MODES`) and redraw."""
+        if mode not in MODES:
+            raise ValueError(f"unknown mode {mode!r}")
+        with self.lock:
+            self.mode = mode
+            if self.mode_dd.value != MODE_LABELS[mode]:
+                self.mode_dd.value = MODE_LABELS[mode]
+        self.redraw()
+
+    def set_class_visible(self, c: int, visible: bool) -> None:
+        """Show or hide class ``c`` (as its legend checkbox does)."""
+        self.class_cbs[c].value = visible
+        self._toggle_class(c, visible)
+
+    # ------------------------------------------------------------------ drawing
+    def redraw(self) -> None:
+        """Send the displayed Gaussians in the current mode and filters to every browser."""
+        with self.lock:
+            d = self.data
+            rgb, bar = mode_colors(d, self.mode)
+            keep = visible_mask(d, self.hidden, self.observed_only, self.uncertain_only, self.var_threshold)
+            self.keep = keep
+            self.colorbar.content = colorbar_html(bar) if bar is not None else ""
+            if np.any(keep):
+                self.server.scene.add_gaussian_splats(SPLAT_NAME, centers=d.centers[keep],
+                                                      covariances=d.covariances[keep], rgbs=rgb[keep],
+                                                      opacities=d.opacity[keep, None])
+            else:
+                self.server.scene.remove_by_name(SPLAT_NAME)
+            self.redraws += 1
+            self.show_status()
+
+    def show_status(self) -> None:
+        """Refresh the status line (Gaussians shown, mode, redraw count, live state)."""
+        with self.lock:
+            self.status.content = (f"showing {int(self.keep.sum()):,} of {self.data.num_gaussians:,} Gaussians · "
+                                   f"{MODE_LABELS[self.mode]} · update {self.redraws} · "
+                                   f"{time.strftime('%H:%M:%S')}" + (f"\n\n{self.status_note}" if self.status_note
+                                                                     else ""))
+
+    def _draw_trajectory(self) -> None:
+        traj = self.data.trajectory
+        if not traj:
+            return
+        import matplotlib
+        from ..engine.camera import matrix_to_quaternion_xyzw
+
+        u = np.array([t[3] for t in traj], dtype=np.float64)
+        ok = np.isfinite(u) & (u > 0)
+        lo, hi = (np.log(u[ok].min()), np.log(u[ok].max())) if ok.any() else (0.0, 1.0)
+        cm = matplotlib.colormaps["magma"]
+        for i, (T, fov_y, aspect, uv) in enumerate(traj):
+            x, y, z, w = matrix_to_quaternion_xyzw(T[:3, :3])
+            if ok[i]:
+                color = tuple(int(255 * v) for v in cm((np.log(uv) - lo) / max(hi - lo, 1e-12))[:3])
+            else:
+                color = (128, 128, 128)
+            self.server.scene.add_camera_frustum(f"/trajectory/frame_{i:05d}", fov=float(fov_y),
+                                                 aspect=float(aspect), scale=0.15, color=color,
+                                                 wxyz=(w, x, y, z), position=tuple(T[:3, 3]))
+
+    # ------------------------------------------------------------------ clicks
+    def _on_click(self, event) -> None:
+        if event.ray_origin is None or event.ray_direction is None:
+            return
+        with self.lock:
+            row = pick_gaussian(self.data, self.keep, np.array(event.ray_origin), np.array(event.ray_direction))
+        if row is None:
+            self.query_md.content = "The click hit no Gaussian."
+            return
+        self.show_query(self.data.centers[row].astype(np.float64))
+
+    def show_query(self, point: np.ndarray) -> str:
+        """Query the map at ``point`` (map frame, m) and show the answer; returns the markdown shown."""
+        p = np.asarray(point, np.float64).reshape(1, 3)
+        self.server.scene.add_icosphere("/query_point", radius=0.03, color=(255, 0, 255), position=tuple(p[0]))
+        if self.query is None:
+            text = f"point ({p[0, 0]:.2f}, {p[0, 1]:.2f}, {p[0, 2]:.2f}) m: no map query available"
+        else:
+            labels, e, v = self.query(p)
+            names = self.data.classes.names
+            lab = int(labels[0])
+            head = names[lab] if 0 <= lab < len(names) else "unknown (mostly empty space)"
+            order = np.argsort(-e[0])[:5]
+            rows = "\n".join(f"| {html.escape(names[c])} | {e[0, c]:.3f} | {v[0, c]:.2e} |" for c in order)
+            text = (f"**Query** at ({p[0, 0]:.2f}, {p[0, 1]:.2f}, {p[0, 2]:.2f}) m: **{html.escape(head)}**\n\n"
+                    f"| class | E | Var |\n|---|---|---|\n{rows}")
+        self.query_md.content = text
+        return text
+
+    def stop(self) -> None:
+        """Stop serving."""
+        self.server.stop()

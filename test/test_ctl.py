@@ -1,0 +1,65 @@
+"""css_ctl against a real css_node over DDS: services and requests answered as tables."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+import ros_helpers as rh  # noqa: E402
+from css_ros.engine.gaussians import GaussianModel  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+
+def css_ctl(domain: int, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "css_ros.clients.ctl", "--timeout", "15", *args],
+                          capture_output=True, text=True, env=rh.node_env(domain), timeout=timeout)
+
+
+def test_ctl_save_query_candidates_reset(tmp_path):
+    domain = rh.next_domain_id()
+    model_path = rh.write_wall_model(tmp_path / "wall.ply")
+    model = GaussianModel.from_ply(model_path)
+    npz = tmp_path / "map.npz"
+    node = rh.NodeProcess(dict(model_path=str(model_path), class_file="", num_classes=rh.NUM_CLASSES,
+                               checkpoint_path=str(npz), checkpoint_period=0.0), domain, tmp_path / "node.log")
+    client = rh.RosClient(domain)
+    try:
+        assert client.wait_connected(60.0), node.log()
+        client.send_frame(10**9)
+        assert client.wait_stamp("view_uncertainty", 10**9), node.log()[-3000:]
+
+        r = css_ctl(domain, "save")
+        assert r.returncode == 0, r.stderr
+        lines = r.stdout.strip().splitlines()
+        assert lines[0].split() == ["service", "success", "message"] and "/css_node/save_map" in lines[2]
+        assert "True" in lines[2] and npz.is_file()
+        a = np.load(npz, allow_pickle=False)["concentrations"]
+        seen = int(np.argmax(a.sum(axis=1)))   # the most observed Gaussian
+        label = int(np.argmax(a[seen]))
+
+        x, y, z = (f"{v:.6f}" for v in model.means[seen])
+        r = css_ctl(domain, "query", x, y, z, "100", "100", "100")
+        assert r.returncode == 0, r.stderr
+        rows = r.stdout.strip().splitlines()
+        assert rows[0].split()[:6] == ["x", "y", "z", "class", "E", "Var"] and len(rows) == 4
+        assert rows[2].split()[3] == f"class_{label}" and rows[3].split()[3] == "unknown"
+
+        r = css_ctl(domain, "candidates", "0", "0", "0", "0", "0", "0", "1", "0", "0", "-50", "0", "0", "0", "1")
+        assert r.returncode == 0, r.stderr
+        rows = r.stdout.strip().splitlines()
+        assert rows[0].split() == ["view", "x", "y", "z", "U_var", "U_exp"] and len(rows) == 4
+        u_facing, u_away = float(rows[2].split()[4]), float(rows[3].split()[4])
+        assert u_facing < u_away   # the view of the observed wall is the less uncertain one
+
+        r = css_ctl(domain, "reset")
+        assert r.returncode == 0 and "True" in r.stdout
+        r = css_ctl(domain, "--node", "/nobody", "save", timeout=60)
+        assert r.returncode == 1 and "no /nobody/save_map service" in r.stderr
+    finally:
+        client.close()
+        assert node.stop() == 0
