@@ -57,7 +57,7 @@ def test_missing_files_are_one_line_errors(tmp_path, tiny_map):
 def test_map_of_another_model_is_refused(tmp_path, tiny_map):
     tiny_model(tmp_path / "other.ply", seed=1)
     r = css_view(str(tiny_map / "map.npz"), "--model", str(tmp_path / "other.ply"), "--port", str(free_port()))
-    assert r.returncode == 1 and "another model" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert r.returncode == 1 and "this map belongs to model" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_port_in_use_is_named(tiny_map):
