@@ -361,3 +361,38 @@ def test_a_1khz_pose_stream_keeps_memory_bounded():
 def test_unknown_pose_type_refused():
     with pytest.raises(ValueError, match="pose_type"):
         gate_for(Recorder(), pose_type="tf")
+
+
+def test_pose_per_camera_keeps_one_history_per_camera():
+    rec = Recorder()
+    gate = gate_for(rec, cameras=("a", "b"), extrinsics=(None, None), pose_per_camera=True)
+    assert gate.topic(0, "pose") == "a/pose" and gate.topic(1, "pose") == "b/pose"
+    for c in (0, 1):
+        gate.on_camera_info(c, camera_info())
+    shift = np.array([0.0, 5.0, 0.0])
+    for k in range(3):
+        p, q = base_truth(0.1 * k)
+        gate.on_pose(pose_message("pose_stamped", T0 + k * 100_000_000, p, q), 0.0, cam=0)
+        gate.on_pose(pose_message("pose_stamped", T0 + k * 100_000_000, p + shift, q), 0.0, cam=1)
+    s = T0 + 150_000_000
+    (fa,) = gate.on_segmentation(0, image(s, np.ones((H, W), np.uint8), "mono8"), 0.0)
+    (fb,) = gate.on_segmentation(1, image(s, np.ones((H, W), np.uint8), "mono8"), 0.0)
+    np.testing.assert_allclose(fb.position_map - fa.position_map, shift, atol=1e-12)
+
+
+def test_candidate_poses_take_camera_0_extrinsics_and_go_into_the_splat_frame():
+    to_map = Similarity.from_params([2.0, 1.0, 2.0, 3.0, 0.0, 0.0, math.sin(0.4), math.cos(0.4)])
+    ext = Similarity.rigid_from_params(EXTRINSICS)
+    gate = gate_for(Recorder(), extrinsics=(ext,), splat_to_map=to_map)
+    rng = np.random.default_rng(5)
+    pos = rng.normal(size=(4, 3))
+    quats = rng.normal(size=(4, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats[2] = np.nan                                   # an invalid candidate stays invalid
+    p_s, q_s = gate.map_poses_to_splat(pos, quats)
+    for i in (0, 1, 3):
+        p_opt, q_opt = ext.compose_pose(pos[i], quats[i])   # the camera of a robot standing at the candidate
+        back_p, back_q = to_map.apply_pose(p_s[i], q_s[i])
+        np.testing.assert_allclose(back_p, p_opt, atol=1e-12)
+        assert angle_deg(back_q, q_opt) < 1e-9
+    assert np.all(np.isnan(q_s[2]))
