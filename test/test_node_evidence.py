@@ -53,7 +53,7 @@ def _feed(client: rh.RosClient, frames: list[int]) -> None:
         stamp = (i + 1) * 10**9
         for _attempt in range(3):
             client.send_frame(stamp, labels, position=pos)
-            if client.wait_stamp("semantic", stamp, 10.0) is not None:
+            if client.wait_stamp("semantic", stamp, 60.0 if _attempt == 0 else 15.0) is not None:  # 1st: compile
                 break
         else:
             raise AssertionError(f"frame {i} not processed")
