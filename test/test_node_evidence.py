@@ -49,7 +49,7 @@ def _feed(client: rh.RosClient, frames: list[int]) -> None:
         labels, pos = _frame(i)
         stamp = (i + 1) * 10**9
         client.send_frame(stamp, labels, position=pos)
-        assert client.wait_stamp("semantic", stamp, 30.0) is not None, f"frame {i} not processed"
+        assert client.wait_stamp("semantic", stamp, 90.0) is not None, f"frame {i} not processed"
 
 
 def _saved(client: rh.RosClient, path: Path) -> np.ndarray:
