@@ -310,6 +310,20 @@ class RosClient:
             self.send_image("image", stamp_ns, rgb, "rgb8")
         self.send_image("segmentation", stamp_ns, labels, "mono8")
 
+    def send_frame_until_processed(self, stamp_ns: int, labels: np.ndarray | None = None,
+                                   position: Any = (0.0, 0.0, 0.0), quat: Any = IDENTITY, output: str = "semantic",
+                                   first_timeout: float = 60.0, retry_timeout: float = 15.0, attempts: int = 3) -> Any:
+        """Send a frame and wait for its ``output``; send it again if it was lost (best-effort inputs can go out
+        before the node's reader has matched this writer). A copy that arrives after the first was processed is
+        dropped by the node as out of order, so the map never takes a frame twice. The first wait allows a
+        kernel compile (nodes started with ``warmup: false``). Returns the output message (None if none came)."""
+        for k in range(attempts):
+            self.send_frame(stamp_ns, labels, position, quat)
+            msg = self.wait_stamp(output, stamp_ns, first_timeout if k == 0 else retry_timeout)
+            if msg is not None:
+                return msg
+        return None
+
     def send_candidates(self, stamp_ns: int, positions: np.ndarray, quats: np.ndarray,
                         frame_id: str = "map") -> None:
         from css_ros.ros.conversions import header_msg, pose_array_msg

@@ -45,18 +45,11 @@ def _client(domain: int, ns: str) -> rh.RosClient:
 
 
 def _feed(client: rh.RosClient, frames: list[int]) -> None:
-    """Send each frame and wait for its output. A frame lost to DDS discovery (best-effort inputs can go out
-    before the node's reader has matched the client's writer) is sent again: a copy that does arrive after the
-    first was processed is dropped by the node as out of order, so the map never sees a frame twice."""
+    """Send each frame and wait for its output (sent again if lost to DDS discovery, never applied twice)."""
     for i in frames:
         labels, pos = _frame(i)
         stamp = (i + 1) * 10**9
-        for _attempt in range(3):
-            client.send_frame(stamp, labels, position=pos)
-            if client.wait_stamp("semantic", stamp, 60.0 if _attempt == 0 else 15.0) is not None:  # 1st: compile
-                break
-        else:
-            raise AssertionError(f"frame {i} not processed")
+        assert client.send_frame_until_processed(stamp, labels, position=pos) is not None, f"frame {i} not processed"
 
 
 def _saved(client: rh.RosClient, path: Path) -> np.ndarray:
