@@ -8,11 +8,12 @@ runs: no half-written output is left. An unexpected exception is also one line (
 """
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import sys
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from .errors import CssError
 
@@ -61,3 +62,14 @@ def _run(prog: str, work: Callable[[], int | None]) -> int:
               file=sys.stderr)
         return 1
     return int(code or 0)
+
+
+def cli_main(prog: str, parser: "argparse.ArgumentParser", run: "Callable[[argparse.Namespace], str]",
+             argv: "Sequence[str] | None" = None) -> int:
+    """The whole ``main`` of a CLI whose ``run(args)`` returns the text to print: argparse's exit code on a usage
+    error (2, or 0 for ``--help``), else :func:`run_console`'s."""
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return run_console(prog, lambda: print(run(args)))

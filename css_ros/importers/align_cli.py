@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..console import run_console
+from ..console import cli_main
 from ..engine.similarity import Similarity
 from ..errors import ConfigError, InputError
 from ..io.bag import InputBag
@@ -212,12 +212,7 @@ def run(args: argparse.Namespace) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; returns the exit code (0 ok, 1 error, 2 usage error)."""
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return run_console("css_align", lambda: print(run(args)))
+    return cli_main("css_align", build_parser(), run, argv)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..engine.classes import ClassSet
-from ..console import run_console
+from ..console import cli_main
 from ..engine.similarity import Similarity
 from ..io.params_file import PARAMS_FILE_NAME
 from .colmap import load_colmap
@@ -170,12 +170,7 @@ def run(args: argparse.Namespace) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; returns the exit code (0 ok, 1 error, 2 usage error)."""
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return run_console("css_import", lambda: print(run(args)))
+    return cli_main("css_import", build_parser(), run, argv)
 
 
 if __name__ == "__main__":
