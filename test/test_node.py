@@ -315,6 +315,39 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
     assert i != 0 and pts["u_var"][i] > pts["u_var"][0]
 
 
+def test_nbv_client_takes_the_pose_type_of_the_node(live: Live) -> None:
+    """css_nbv_client --pose-type odometry reads nav_msgs/Odometry (here remapped to its own topic)."""
+    import subprocess
+    import sys
+    import threading
+
+    from nav_msgs.msg import Odometry
+
+    from css_ros.ros.conversions import header_msg
+
+    pub = live.client.node.create_publisher(Odometry, "odom_for_nbv", 10)
+    stop = False
+
+    def keep_publishing() -> None:
+        while not stop:
+            msg = Odometry(header=header_msg(live.stamp(), "map"), child_frame_id="base_link")
+            msg.pose.pose.orientation.w = 1.0
+            pub.publish(msg)
+            time.sleep(0.1)
+
+    th = threading.Thread(target=keep_publishing, daemon=True)
+    th.start()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "css_ros.clients.nbv_client", "--once", "--num-candidates", "3",
+                               "--timeout", "20", "--pose-type", "odometry", "--ros-args", "-r", "pose:=odom_for_nbv"],
+                              env=rh.node_env(live.domain), capture_output=True, text=True, timeout=60)
+    finally:
+        stop = True
+        th.join()
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "next best view" in proc.stdout + proc.stderr
+
+
 def test_clock_reset_accepted_after_consecutive_old_stamps(live: Live) -> None:
     """A replay restarted with older stamps: a few frames are dropped as out of order, then accepted."""
     from css_ros.ros.gate import STAMP_RESET_COUNT

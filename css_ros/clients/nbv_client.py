@@ -12,6 +12,8 @@ import numpy as np
 
 from ..engine.camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from ..io.messages import pose_to_arrays, stamp_to_ns, unpack_view_points
+from ..io.frame_gate import pose_message_pose
+from ..io.topics import POSE_TYPES
 
 
 def yaw_about_map_z(angle: float) -> np.ndarray:
@@ -66,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for an answer (default 10)")
     p.add_argument("--once", action="store_true", help="one request, print the result, exit (0 on success)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the position noise")
+    p.add_argument("--pose-type", choices=tuple(POSE_TYPES), default="pose_stamped",
+                   help="message type on 'pose', as css_node's pose_type (default pose_stamped); candidates are "
+                        "poses of the same frame (css_node applies its camera 0 extrinsics)")
     return p
 
 
@@ -74,7 +79,8 @@ class NbvClient:
 
     def __init__(self, args: argparse.Namespace) -> None:
         import rclpy
-        from geometry_msgs.msg import PoseArray, PoseStamped
+        from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
+        from nav_msgs.msg import Odometry
         from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
@@ -86,7 +92,9 @@ class NbvClient:
         self.pose: Any = None
         self.replies: dict[int, Any] = {}
         # sensor-data QoS matches both best-effort and reliable pose publishers.
-        self.node.create_subscription(PoseStamped, "pose", self._on_pose, qos_profile_sensor_data)
+        pose_msg = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
+                    "odometry": Odometry}[args.pose_type]
+        self.node.create_subscription(pose_msg, "pose", self._on_pose, qos_profile_sensor_data)
         self.node.create_subscription(PointCloud2, f"{args.node.rstrip('/')}/candidate_scores", self._on_scores,
                                       QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.pub_candidates = self.node.create_publisher(PoseArray, "candidates", 10)
@@ -116,7 +124,7 @@ class NbvClient:
         if self.pub_candidates.get_subscription_count() == 0:
             self.log.warning(f"nobody subscribes to {self.pub_candidates.topic_name} (is css_node running?)")
             return None
-        position, quat = pose_to_arrays(pose.pose)
+        position, quat = pose_to_arrays(pose_message_pose(pose, self.args.pose_type).pose)
         positions, quats, yaws = sample_candidates(position, quat, self.args.num_candidates,
                                                    math.radians(self.args.yaw_range), self.args.position_std,
                                                    self.args.vertical_std, self.rng)
