@@ -30,8 +30,7 @@ def test_ctl_save_query_candidates_reset(tmp_path):
     client = rh.RosClient(domain)
     try:
         assert client.wait_connected(60.0), node.log()
-        client.send_frame(10**9)
-        assert client.wait_stamp("view_uncertainty", 10**9), node.log()[-3000:]
+        assert client.send_frame_until_processed(10**9, output="view_uncertainty"), node.log()[-3000:]
 
         r = css_ctl(domain, "save")
         assert r.returncode == 0, r.stderr

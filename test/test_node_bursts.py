@@ -32,8 +32,8 @@ def test_bursts_of_200_point_queries_and_candidates_are_all_answered(tmp_path):
     client = rh.RosClient(domain)
     try:
         assert client.wait_connected(60.0), node.log()
-        client.send_frame(10**9)  # camera_info + one frame: candidates can be scored
-        assert client.wait_stamp("view_uncertainty", 10**9), node.log()[-3000:]
+        # camera_info + one frame: candidates can be scored
+        assert client.send_frame_until_processed(10**9, output="view_uncertainty"), node.log()[-3000:]
         deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
         points: list = []
         lock = threading.Lock()

@@ -32,8 +32,7 @@ def _start(tmp: Path, model: Path, ckpt: Path, name: str, **params) -> tuple[rh.
 
 def _frames(client: rh.RosClient, stamps: list[int]) -> None:
     for s in stamps:
-        client.send_frame(s)
-        assert client.wait_stamp("view_uncertainty", s), f"frame {s} not processed"
+        assert client.send_frame_until_processed(s, output="view_uncertainty"), f"frame {s} not processed"
 
 
 def _score(client: rh.RosClient, stamp: int) -> np.ndarray:
