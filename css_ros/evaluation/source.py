@@ -121,12 +121,10 @@ class FrameSource:
 
     def frames(self) -> Iterator[Frame]:
         """Yield the usable frames (call :meth:`check` first)."""
-        exhausted = False
         try:
             yield from self._iterate()
-            exhausted = True
         finally:
-            self._finish(exhausted)
+            self._finish()
 
     def _warn(self, topic: str, reason: str, detail: str = "", dropped: bool = True) -> None:
         if dropped:
@@ -207,13 +205,11 @@ class FrameSource:
                 self.camera_info_refused[exc.reason] += 1
             return None
 
-    def _finish(self, exhausted: bool) -> None:
-        """Turn the gate's diagnostics into counts (frames still waiting only at the end of the bag)."""
+    def _finish(self) -> None:
+        """Turn the gate's diagnostics into counts (how each pose was found; undecodable messages)."""
         gate = getattr(self, "gate", None)
         if gate is not None:
             self.sync_counts = {f"pose_{k}": v for k, v in gate.frames_by_how.items()}
-            if not exhausted and gate.waiting():
-                pass
         for topic, n in self.undecodable.items():
             self.skips[f"undecodable_{topic}"] += n
 
