@@ -28,9 +28,16 @@ def next_domain_id() -> int:
     """A ROS_DOMAIN_ID unique within this process and unlikely to clash with other runs.
 
     By default in 1..101; ``CSS_TEST_DOMAINS=FIRST:COUNT`` confines it to FIRST..FIRST+COUNT-1 so that test runs
-    started side by side on one host (several checkouts) never share a DDS domain.
+    started side by side on one host (several checkouts) never share a DDS domain. Under pytest-xdist the range
+    is cut into one disjoint slice per worker (``PYTEST_XDIST_WORKER`` gwK of ``PYTEST_XDIST_WORKER_COUNT``), so
+    tests running at the same time in two workers never share a domain either.
     """
     first, count = (int(v) for v in os.environ.get("CSS_TEST_DOMAINS", "1:101").split(":"))
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    if workers > 1 and worker[2:].isdigit():
+        count //= workers
+        first += int(worker[2:]) * count
     return first + (os.getpid() * 7 + next(_domain_counter) * 37) % count
 
 

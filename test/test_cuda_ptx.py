@@ -7,12 +7,16 @@ Budgets and why (block = one 8x8 tile = 64 threads for update/render; 256 for th
 
 - No stack frame and no spills in any kernel: local memory is off-chip (the old render kept its
   per-class sums there: 2 C x 4 B per pixel of round trips for every composited Gaussian).
-- Update: <= 64 registers and >= 37.5 % theoretical occupancy (24 of 64 warps) up to C = 40: its
-  inner step is a few FLOPs per shared-memory read, so latency is hidden by warps, not ILP.
-- Render / score: <= 64 registers; the per-pixel class sums (2 C x 64 x 4 B) dominate shared memory,
-  so occupancy falls with C: >= 33 % at C = 20 (the target table's C = 19/20) and >= 18 % at C = 40
-  (enough resident warps to cover the L1 broadcast reads of the class moments).
-- Projection: <= 96 registers (>= 25 % occupancy: 16 warps/SM streaming one Gaussian per thread).
+- Update: <= 64 registers and >= 37.5 % theoretical occupancy (24 of 64 warps) for every C (20, 40
+  and ADE20k's 150: the staged batch shrinks for large C): its inner step is a few FLOPs per
+  shared-memory read, so latency is hidden by warps, not ILP.
+- Render / score: <= 64 registers in one class pass (C <= 40), <= 80 with several passes (the running
+  argmax, its E and Var carried across passes); the per-pixel class sums of one pass (2 min(C, 40) x
+  64 x 4 B) dominate shared memory, so occupancy falls with C up to 40 and then stays: >= 33 % at
+  C = 20 (the target table's C = 19/20) and >= 18 % beyond (enough resident warps to cover the L1
+  broadcast reads of the class moments).
+- Projection: <= 128 registers, i.e. 25 % occupancy (16 warps/SM streaming one Gaussian per thread;
+  its float64 EWA maths, shared with the CPU kernel, is register-heavy; 25 % holds up to 128).
 - emit_keys / moments: <= 64 registers.
 """
 from __future__ import annotations
@@ -30,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from css_ros.engine.cuda.ptx_report import cuda_home  # noqa: E402  (no numba import)
 
-CLASSES = (20, 40)
+CLASSES = (20, 40, 150)
 ARCHS = ((8, 0), (9, 0))
 
 if importlib.util.find_spec("numba_cuda") is None:
@@ -81,16 +85,16 @@ def test_render_budget(stats):
     for prefix in ("render", "render_probs", "score"):
         for key, r in _kernels(stats, prefix):
             c = int(key[0].rsplit("_C", 1)[1])
-            assert r["registers"] <= 64, (key, r)
-            # static shared memory = the class sums + the staged rows, nothing else
-            assert r["shared"] <= 2 * c * 64 * 4 + 64 * 48 + 64, (key, r)
+            assert r["registers"] <= (64 if c <= 40 else 80), (key, r)
+            # static shared memory = one pass's class sums + the staged rows, nothing else
+            assert r["shared"] <= 2 * min(c, 40) * 64 * 4 + 64 * 48 + 64, (key, r)
             assert r["occupancy"] >= (0.33 if c <= 20 else 0.18), (key, r)
 
 
 @pytest.mark.slow
 def test_streaming_kernels_budget(stats):
     for key, r in _kernels(stats, "project"):
-        assert r["registers"] <= 96 and r["occupancy"] >= 0.25, (key, r)
+        assert r["registers"] <= 128 and r["occupancy"] >= 0.25, (key, r)
     for prefix in ("emit_keys", "moments"):
         for key, r in _kernels(stats, prefix):
             assert r["registers"] <= 64, (key, r)

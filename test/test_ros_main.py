@@ -44,3 +44,25 @@ def test_undeclared_parameter_is_warned_by_name(tmp_path):
         assert "unknown parameter 'num_classes'" not in node.log()
     finally:
         assert node.stop() == 0
+
+
+def test_failed_kernel_warm_up_stops_the_node_with_its_cause():
+    """A warm-up that fails (here: backend cuda on a machine without GPU or simulator) is a one-line
+    CssError naming the backend, which css_node's main turns into 'cannot start' (exit 2), instead of a
+    node that would drop every frame."""
+    from css_ros import SemanticMap
+    from css_ros.errors import CssError
+    from css_ros.ros.params import NodeParams
+    from css_ros.ros.startup import warm_up
+    from scenes import random_scene
+
+    smap = SemanticMap(random_scene(0, n=10), 2)
+    logged: list[str] = []
+    warm_up(smap, NodeParams(backend="numba"), logged.append)
+    assert len(logged) == 1 and logged[0].startswith("rasteriser warm-up (numba) took")
+    try:
+        warm_up(smap, NodeParams(backend="cuda"), logged.append)
+    except CssError as exc:
+        assert "cuda" in str(exc) and "\n" not in str(exc) and len(logged) == 1
+    else:
+        pytest.skip("this machine runs backend cuda (a GPU or the simulator)")

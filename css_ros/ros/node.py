@@ -86,7 +86,7 @@ class CssNode(Node):
         self.checkpoint_path = engine.checkpoint_path
         self.resume_status = engine.resume_status
         if p.warmup:
-            warm_up(self.smap, p, log.info, log.warning)
+            warm_up(self.smap, p, log.info)  # CssError: fatal (cannot start)
 
         self.queue = WorkQueue(p.max_pending_frames)
         self.outputs = OutputPublisher(self, p, self.classes)

@@ -140,7 +140,7 @@ class NodeParams:
     # --- logging
     log_period: float = _p(10.0, "s", "time between status log lines and diagnostics messages (0: never)")
     warn_period: float = _p(5.0, "s", "minimum time between two warnings of the same topic and reason")
-    warmup: bool = _p(True, "", "compile the rasteriser kernels before subscribing")
+    warmup: bool = _p(True, "", "compile the rasteriser kernels before subscribing; a failed warm-up stops the node")
     # --- evidence exchange between nodes of one splat (css_ros/io/evidence.py)
     publish_evidence: bool = _p(False, "", "publish the evidence this node fuses on ~/evidence (never what it "
                                 "received)")

@@ -15,7 +15,7 @@ from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
 from ..engine.warmup import warm_up_kernels
-from ..errors import ConfigError, CssError, MapError, ModelError
+from ..errors import ConfigError, MapError, ModelError
 from ..io.paths import resolve_data_path
 from .params import DEFAULT_CLASSES, NodeParams, checkpoint_file
 
@@ -121,13 +121,14 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
     return Engine(smap, classes, model_path, ckpt, status)
 
 
-def warm_up(smap: SemanticMap, params: NodeParams, log_info: Callable[[str], None],
-            log_warning: Callable[[str], None]) -> None:
+def warm_up(smap: SemanticMap, params: NodeParams, log_info: Callable[[str], None]) -> None:
     """Compile the kernels on a tiny throwaway map (the node's map is not touched) so that the first real
-    frame is not slowed by JIT compilation."""
-    try:
-        seconds = warm_up_kernels(params.backend, smap.num_classes)
-    except CssError as exc:
-        log_warning(f"warm-up failed ({exc}); first frame will compile the kernels")
-        return
+    frame is not slowed by JIT compilation.
+
+    Raises:
+        CssError: the warm-up failed (one line naming cause and fix). Fatal for the node (``cannot start``):
+            every frame would fail the same way, so running on would only drop them one by one; start with
+            ``warmup: false`` to skip the check.
+    """
+    seconds = warm_up_kernels(params.backend, smap.num_classes)
     log_info(f"rasteriser warm-up ({params.backend}) took {seconds:.2f} s")

@@ -1,6 +1,8 @@
 """Stage 1 of the pipeline: project 3D Gaussians to screen-space ellipses (EWA splatting, SPEC §3).
 
-Numba kernel; float64 throughout so the result matches a float64 reference to rounding.
+Numba kernel; float64 throughout so the result matches a float64 reference to rounding. The
+per-Gaussian maths (:mod:`css_ros.engine.splat_math`, :func:`css_ros.engine.sh.sh_polynomial`) is
+shared with the CUDA kernels; this module adds the CPU's group culling, ordering and gathers.
 """
 from __future__ import annotations
 
@@ -11,8 +13,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit, prange
 
-from ..sh import SH_C0, SH_C1, SH_C2, SH_C3, eval_sh
-from ..spec import ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE
+from ..sh import eval_sh, sh_polynomial
+from ..spec import COV2D_DILATION, NEAR_PLANE
+from ..splat_math import camera_row, ewa_splat, fov_limits, view_direction
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -143,18 +146,21 @@ class ProjectedGaussians:
         return self.packed[:, 6]
 
 
+_fov_limits = njit(inline="always")(fov_limits)
+_ewa_splat = njit(inline="always")(ewa_splat)
+_view_direction = njit(inline="always")(view_direction)
+_sh_polynomial = njit(inline="always")(sh_polynomial)
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_spheres,
-                    rot, trans, fx, fy, cx, cy, width, height, out, out_bbox, out_valid):  # pragma: no cover
-    tan_x = width / (2.0 * fx)
-    tan_y = height / (2.0 * fy)
-    lo_x = -(cx + 0.5) / fx - FOV_CLAMP * tan_x
-    hi_x = (width - 0.5 - cx) / fx + FOV_CLAMP * tan_x
-    lo_y = -(cy + 0.5) / fy - FOV_CLAMP * tan_y
-    hi_y = (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y
-    jac_sq = fx * fx * (1.0 + max(lo_x * lo_x, hi_x * hi_x)) + fy * fy * (1.0 + max(lo_y * lo_y, hi_y * hi_y))
-    # Group test, implied by the per-Gaussian early cull below: that cull keeps a Gaussian only if
-    # its centre lies within `bound` px of the image, bound <= 3 sqrt(jac_sq) s / z + MARGIN_PX,
+                    cam, width, height, out, out_bbox, out_valid):  # pragma: no cover
+    """Project every group that can touch the image (:func:`css_ros.engine.splat_math.ewa_splat` per
+    Gaussian); cam is the view's (CAM_COLS,) row."""
+    lo_x, hi_x, lo_y, hi_y, jac_sq = _fov_limits(cam, width, height)
+    fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
+    # Group test, implied by the per-Gaussian early cull of ewa_splat: that cull keeps a Gaussian only
+    # if its centre lies within `bound` px of the image, bound <= 3 sqrt(jac_sq) s / z + MARGIN_PX,
     # i.e. x <= (t + MARGIN_PX / f) z + 3 sqrt(jac_sq) / f * s for the right edge slope t (likewise
     # for the other edges). A group whose bounding sphere of centres violates one of these for its
     # largest std s can be skipped as a whole; so can one entirely behind the near plane.
@@ -168,9 +174,9 @@ def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_
     for g in prange(group_offsets.shape[0] - 1):
         gx, gy, gz = group_spheres[g, 0], group_spheres[g, 1], group_spheres[g, 2]
         rad, s_max = group_spheres[g, 3], group_spheres[g, 4]
-        x = rot[0, 0] * gx + rot[0, 1] * gy + rot[0, 2] * gz + trans[0]
-        y = rot[1, 0] * gx + rot[1, 1] * gy + rot[1, 2] * gz + trans[1]
-        z = rot[2, 0] * gx + rot[2, 1] * gy + rot[2, 2] * gz + trans[2]
+        x = cam[0] * gx + cam[1] * gy + cam[2] * gz + cam[9]
+        y = cam[3] * gx + cam[4] * gy + cam[5] * gz + cam[10]
+        z = cam[6] * gx + cam[7] * gy + cam[8] * gz + cam[11]
         if z + rad <= NEAR_PLANE:
             continue
         if x - right * z - rad * math.sqrt(1.0 + right * right) > kx * s_max:
@@ -182,88 +188,26 @@ def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_
         if y - top * z + rad * math.sqrt(1.0 + top * top) < -ky * s_max:
             continue
         for i in range(group_offsets[g], group_offsets[g + 1]):
-            _project_one(i, means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, cx, cy, width, height,
-                         lo_x, hi_x, lo_y, hi_y, jac_sq, out, out_bbox, out_valid)
-
-
-@njit(inline="always")
-def _project_one(i, means, cov3d, opac, max_std, base_rgb, rot, trans, fx, fy, cx, cy, width, height,
-                 lo_x, hi_x, lo_y, hi_y, jac_sq, out, out_bbox, out_valid):  # pragma: no cover
-    """Project Gaussian row i; set out_valid[i] and its rows if it can touch the image."""
-    o = opac[i]
-    if not (o >= ALPHA_MIN):
-        return  # alpha <= opacity can never reach the 1/255 threshold
-    px, py, pz = means[i, 0], means[i, 1], means[i, 2]
-    x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
-    y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
-    z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
-    if not (z > NEAR_PLANE):
-        return
-    u = fx * x / z + cx
-    v = fy * y / z + cy
-    # Conservative early frustum cull before the covariance maths: lambda_max(Sigma') <=
-    # ||J||_F^2 s_max^2 + 0.3 with |t| bounded by the clamp, so a centre farther outside the
-    # image than 3 sqrt(that) + 1 px cannot have its 3-sigma square touch the image.
-    bound = 3.0 * math.sqrt(jac_sq * max_std[i] * max_std[i] / (z * z) + COV2D_DILATION) + 1.0
-    if u < -0.5 - bound or u > width - 0.5 + bound or v < -0.5 - bound or v > height - 0.5 + bound:
-        return
-    txz = min(max(x / z, lo_x), hi_x)
-    tyz = min(max(y / z, lo_y), hi_y)
-    # J = [[fx/z, 0, -fx*txz/z], [0, fy/z, -fy*tyz/z]];  M = J @ R_cam_map  (2 x 3)
-    j00, j02 = fx / z, -fx * txz / z
-    j11, j12 = fy / z, -fy * tyz / z
-    m00 = j00 * rot[0, 0] + j02 * rot[2, 0]
-    m01 = j00 * rot[0, 1] + j02 * rot[2, 1]
-    m02 = j00 * rot[0, 2] + j02 * rot[2, 2]
-    m10 = j11 * rot[1, 0] + j12 * rot[2, 0]
-    m11 = j11 * rot[1, 1] + j12 * rot[2, 1]
-    m12 = j11 * rot[1, 2] + j12 * rot[2, 2]
-    sxx, sxy, sxz = cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]
-    syy, syz, szz = cov3d[i, 3], cov3d[i, 4], cov3d[i, 5]
-    # rows of M @ Sigma
-    a0 = m00 * sxx + m01 * sxy + m02 * sxz
-    a1 = m00 * sxy + m01 * syy + m02 * syz
-    a2 = m00 * sxz + m01 * syz + m02 * szz
-    b0 = m10 * sxx + m11 * sxy + m12 * sxz
-    b1 = m10 * sxy + m11 * syy + m12 * syz
-    b2 = m10 * sxz + m11 * syz + m12 * szz
-    ca = a0 * m00 + a1 * m01 + a2 * m02 + COV2D_DILATION
-    cb = a0 * m10 + a1 * m11 + a2 * m12
-    cc = b0 * m10 + b1 * m11 + b2 * m12 + COV2D_DILATION
-    det = ca * cc - cb * cb
-    if not (det > 0.0):
-        return
-    mid = 0.5 * (ca + cc)
-    lam = mid + math.sqrt(max(0.0, mid * mid - det))
-    r = math.ceil(3.0 * math.sqrt(lam))
-    if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
-        return
-    qmax = 2.0 * math.log(255.0 * o)
-    # Exact axis-aligned box of the ellipse d^T Sigma'^-1 d <= qmax (tiny margin for rounding).
-    hx = math.sqrt(qmax * ca) * (1.0 + 1e-9) + 1e-9
-    hy = math.sqrt(qmax * cc) * (1.0 + 1e-9) + 1e-9
-    umin = max(0.0, math.ceil(u - hx))
-    umax = min(width - 1.0, math.floor(u + hx))
-    vmin = max(0.0, math.ceil(v - hy))
-    vmax = min(height - 1.0, math.floor(v + hy))
-    if umin > umax or vmin > vmax:
-        return
-    out[i, 0] = u
-    out[i, 1] = v
-    out[i, 2] = cc / det
-    out[i, 3] = -cb / det
-    out[i, 4] = ca / det
-    out[i, 5] = o
-    out[i, 6] = qmax
-    out[i, 7] = z
-    out[i, 8] = base_rgb[i, 0]
-    out[i, 9] = base_rgb[i, 1]
-    out[i, 10] = base_rgb[i, 2]
-    out_bbox[i, 0] = np.int32(umin)
-    out_bbox[i, 1] = np.int32(umax)
-    out_bbox[i, 2] = np.int32(vmin)
-    out_bbox[i, 3] = np.int32(vmax)
-    out_valid[i] = True
+            keep, u, v, a, b, c, qmax, depth, umin, umax, vmin, vmax = _ewa_splat(
+                cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
+            if not keep:
+                continue
+            out[i, 0] = u
+            out[i, 1] = v
+            out[i, 2] = a
+            out[i, 3] = b
+            out[i, 4] = c
+            out[i, 5] = opac[i]
+            out[i, 6] = qmax
+            out[i, 7] = depth
+            out[i, 8] = base_rgb[i, 0]
+            out[i, 9] = base_rgb[i, 1]
+            out[i, 10] = base_rgb[i, 2]
+            out_bbox[i, 0] = np.int32(umin)
+            out_bbox[i, 1] = np.int32(umax)
+            out_bbox[i, 2] = np.int32(vmin)
+            out_bbox[i, 3] = np.int32(vmax)
+            out_valid[i] = True
 
 
 class ProjectionScratch:
@@ -368,65 +312,37 @@ def project(geometry: GaussianGeometry, camera: "Camera", scratch: ProjectionScr
             term), for views whose colour is not rendered.
     """
     out, out_bbox, out_valid = (scratch or ProjectionScratch()).get(geometry.num_gaussians)
-    world_to_cam = np.asarray(camera.world_to_cam, dtype=np.float64)
-    k = np.asarray(camera.K, dtype=np.float64)
+    cam = camera_row(camera)
     out_valid[:] = False
     _project_kernel(geometry.means, geometry.cov3d, geometry.opacities, geometry.max_std, geometry.base_rgb,
-                    geometry.group_offsets, geometry.group_spheres,
-                    np.ascontiguousarray(world_to_cam[:3, :3]), np.ascontiguousarray(world_to_cam[:3, 3]),
-                    float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
-                    float(camera.width), float(camera.height),
-                    out, out_bbox, out_valid)
+                    geometry.group_offsets, geometry.group_spheres, cam,
+                    float(camera.width), float(camera.height), out, out_bbox, out_valid)
     block_x = (int(camera.width) + BLOCK - 1) // BLOCK
     block_y = (int(camera.height) + BLOCK - 1) // BLOCK
     rows = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
     packed, colors, bbox = _gather(rows, out, out_bbox)
     depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(rows) else np.empty(0, np.int32)
     if view_colors and geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
-        colors = _view_colors(geometry, rows, np.asarray(camera.position, dtype=np.float64))
+        colors = _view_colors_kernel(geometry.sh, geometry.means, rows, cam)
     return ProjectedGaussians(ids=geometry.perm[rows], depth_order=depth_order, packed=packed, bbox=bbox, colors=colors)
 
 
-def _view_colors(geometry: GaussianGeometry, rows: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
-    """(M, 3) max(0, SH(view direction) + 0.5) for SH degree >= 1 (rows of the geometry)."""
-    return _view_colors_kernel(geometry.sh, geometry.means, rows, cam_pos)
-
-
 @njit(parallel=True, cache=True, nogil=True)
-def _view_colors_kernel(sh, means, rows, cam_pos):  # pragma: no cover
-    """Compiled twin of :func:`css_ros.sh.eval_sh` fused with the gather, direction and clamp
-    (numpy's version allocates a temporary per term: ~25 ms for 50k degree-3 Gaussians).
+def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
+    """(M, 3) float64 colour max(0, SH(d) + 0.5) of the geometry ``rows``, d = unit direction camera ->
+    Gaussian (:func:`css_ros.engine.sh.sh_polynomial`, fused with the gather and the clamp: numpy's
+    version allocates a temporary per term, ~25 ms for 50k degree-3 Gaussians).
 
     Args:
         sh: (N, K, 3) float32 coefficients; means: (N, 3) map frame; rows: (M,) rows to evaluate;
-        cam_pos: (3,) camera centre, map frame.
-    Returns:
-        (M, 3) float64 colour max(0, SH(d) + 0.5), d = unit direction camera -> Gaussian.
+        cam: the view's (CAM_COLS,) row (its centre, map frame).
     """
     m = rows.shape[0]
     k = sh.shape[1]
     out = np.empty((m, 3))
     for r in prange(m):
         i = rows[r]
-        dx = means[i, 0] - cam_pos[0]
-        dy = means[i, 1] - cam_pos[1]
-        dz = means[i, 2] - cam_pos[2]
-        norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
-        x, y, z = dx / norm, dy / norm, dz / norm
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        x, y, z = _view_direction(cam, means, i)
         for c in range(3):
-            v = SH_C0 * sh[i, 0, c]
-            if k >= 4:
-                v += -SH_C1 * y * sh[i, 1, c] + SH_C1 * z * sh[i, 2, c] - SH_C1 * x * sh[i, 3, c]
-            if k >= 9:
-                v += (SH_C2[0] * xy * sh[i, 4, c] + SH_C2[1] * yz * sh[i, 5, c]
-                      + SH_C2[2] * (2.0 * zz - xx - yy) * sh[i, 6, c] + SH_C2[3] * xz * sh[i, 7, c]
-                      + SH_C2[4] * (xx - yy) * sh[i, 8, c])
-            if k >= 16:
-                v += (SH_C3[0] * y * (3.0 * xx - yy) * sh[i, 9, c] + SH_C3[1] * xy * z * sh[i, 10, c]
-                      + SH_C3[2] * y * (4.0 * zz - xx - yy) * sh[i, 11, c]
-                      + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12, c]
-                      + SH_C3[4] * x * (4.0 * zz - xx - yy) * sh[i, 13, c] + SH_C3[5] * z * (xx - yy) * sh[i, 14, c]
-                      + SH_C3[6] * x * (xx - 3.0 * yy) * sh[i, 15, c])
-            out[r, c] = max(v + 0.5, 0.0)
+            out[r, c] = max(_sh_polynomial(sh[i, :, c], k, x, y, z) + 0.5, 0.0)
     return out

@@ -20,6 +20,7 @@ from ...errors import CssError
 from ..backends import RasterBackend
 from ..buffers import RenderBuffers
 from ..spec import TILE_SIZE
+from ..splat_math import CAM_COLS, camera_row
 from .arrays import import_cuda, make_ops, simulator_enabled
 
 if TYPE_CHECKING:
@@ -173,14 +174,9 @@ class CudaBackend(RasterBackend):
         tiles_x = (width + self.tile - 1) // self.tile
         tiles_y = (height + self.tile - 1) // self.tile
         tiles_per_view = tiles_x * tiles_y
-        cam_rows = np.empty((n_views, k.CAM_COLS))
+        cam_rows = np.empty((n_views, CAM_COLS))
         for v, cam in enumerate(cams):
-            w2c = np.asarray(cam.world_to_cam, dtype=np.float64)
-            kk = np.asarray(cam.K, dtype=np.float64)
-            cam_rows[v, 0:9] = w2c[:3, :3].ravel()
-            cam_rows[v, 9:12] = w2c[:3, 3]
-            cam_rows[v, 12:16] = (kk[0, 0], kk[1, 1], kk[0, 2], kk[1, 2])
-            cam_rows[v, 16:19] = np.asarray(cam.position, dtype=np.float64)
+            camera_row(cam, cam_rows[v])
         cam_dev = ops.upload(cam_rows)
         cap = self._capacity.get(n_views, max(1, min(n_views * n, 4 * n)))
         while True:
@@ -271,7 +267,8 @@ class CudaBackend(RasterBackend):
             scores = ops.zeros((1, 2), np.float64)
         probs = ops.empty((n_views, frame.height, frame.width, num_classes) if want_probs else (1, 1, 1, 1),
                           np.float32)
-        kernel = self.k.make_render_kernel(num_classes, self.tile, bool(score), bool(want_probs))
+        kernel = self.k.make_render_kernel(num_classes, self.tile, bool(score), bool(want_probs),
+                                           self.k.RENDER_CLASS_CHUNK)
         kernel[n_views * frame.tiles_per_view, self.tile * self.tile](
             frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom,
             float(e_bg), float(v_bg), float(s_bg), ops.upload(np.asarray(bg_rgb, dtype=np.float64)),

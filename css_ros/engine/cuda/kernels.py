@@ -4,7 +4,8 @@ update and the render (SPEC §3-6). Imported only by :mod:`.backend` (it imports
 Pipeline per batch of views (one view for ``observe`` / ``render``, all candidates for
 ``score_views``), each stage one launch over all views:
 
-1. :func:`project_kernel`: one thread per (view, Gaussian): EWA projection, SPEC §3 culls, exact
+1. :func:`project_kernel`: one thread per (Gaussian, view), the views of a Gaussian on neighbouring
+   lanes: EWA projection, SPEC §3 culls, exact
    alpha >= 1/255 box, view-dependent colour; kept pairs are appended through an atomic counter.
 2. (array library) prefix sum of the number of tiles each kept pair's box overlaps.
 3. :func:`emit_keys_kernel`: one key ``(view * T + tile) << 32 | depth32`` and its pair index per
@@ -27,118 +28,70 @@ from typing import Any
 
 from numba import cuda, float32, float64, int32, int64
 
-from ..sh import SH_C0, SH_C1, SH_C2, SH_C3
-from ...errors import CssError
+from ..sh import sh_polynomial
 from .arrays import simulator_enabled
-from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, VAR_FLOOR
+from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, VAR_FLOOR
+from ..splat_math import ewa_splat, fov_limits, view_direction
 
 if simulator_enabled():  # the simulator has no warp intrinsics; add exact block-barrier versions
     from .simwarp import install
 
     install()
 
-CAM_COLS = 19   # per view: R_cam_map (9, row-major), t_cam_map (3), fx, fy, cx, cy, camera centre (3, map)
 PACK_COLS = 8   # per kept pair: u, v, conic a, b, c, opacity, qmax, depth
 SHARED_BUDGET = 40 * 1024  # bytes of static shared memory a block may stage per batch
-C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2        # scalars: the kernels read module-level floats as constants
-C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
+# The update's staged rows hold a float32 sum per class: up to C = 40 a batch of 64 Gaussians fits in
+# 12 KiB; beyond, the batch shrinks so that 12 blocks (37.5 % occupancy) stay resident on an sm_80 SM.
+UPDATE_SHARED_BUDGET = 12 * 1024
+
+
+_fov_limits = cuda.jit(device=True, inline=True)(fov_limits)
+_ewa_splat = cuda.jit(device=True, inline=True)(ewa_splat)
+_view_direction = cuda.jit(device=True, inline=True)(view_direction)
+_sh_polynomial = cuda.jit(device=True, inline=True)(sh_polynomial)
 
 
 @cuda.jit
 def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, want_color, capacity,
                    counter, out_packed, out_bbox, out_id, out_view, out_ntiles, out_color):  # pragma: no cover
-    """Project every (view, Gaussian) pair; append the kept ones at ``counter`` (atomic).
+    """Project every (view, Gaussian) pair (:func:`css_ros.engine.splat_math.ewa_splat`, the CPU's
+    maths); append the kept ones at ``counter`` (atomic).
 
     Args:
         means (N, 3) f64 [m, map]; cov3d (N, 6) f64 upper triangle [m^2]; opac (N,) f64;
-        max_std (N,) f64 [m]; sh (N, K, 3) f32; cams (V, CAM_COLS) f64; width, height [px] (float);
-        tile [px]; want_color: evaluate SH (else colours are 0); capacity: rows of the outputs.
+        max_std (N,) f64 [m]; sh (N, K, 3) f32; cams (V, CAM_COLS) f64 camera rows; width, height [px]
+        (float); tile [px]; want_color: evaluate SH (else colours are 0); capacity: rows of the outputs.
     Outputs (row = slot, valid below min(counter, capacity)):
         out_packed (cap, 8) f64 (u, v, a, b, c, opacity, qmax, depth); out_bbox (cap, 4) i32 inclusive
         pixel box (u0, u1, v0, v1) of the alpha >= 1/255 ellipse; out_id / out_view (cap,) i32;
         out_ntiles (cap,) i32 tiles the box overlaps; out_color (cap, 3) f32.
     """
-    n_g = means.shape[0]
-    total = n_g * cams.shape[0]
+    n_views = cams.shape[0]
+    total = means.shape[0] * n_views
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
     for flat in range(start, total, stride):
-        view = flat // n_g
-        i = flat - view * n_g
-        o = opac[i]
-        if not (o >= ALPHA_MIN):
-            continue
-        fx, fy, cx, cy = cams[view, 12], cams[view, 13], cams[view, 14], cams[view, 15]
-        px, py, pz = means[i, 0], means[i, 1], means[i, 2]
-        x = cams[view, 0] * px + cams[view, 1] * py + cams[view, 2] * pz + cams[view, 9]
-        y = cams[view, 3] * px + cams[view, 4] * py + cams[view, 5] * pz + cams[view, 10]
-        z = cams[view, 6] * px + cams[view, 7] * py + cams[view, 8] * pz + cams[view, 11]
-        if not (z > NEAR_PLANE):
-            continue
-        u = fx * x / z + cx
-        v = fy * y / z + cy
-        tan_x = width / (2.0 * fx)
-        tan_y = height / (2.0 * fy)
-        lo_x = -(cx + 0.5) / fx - FOV_CLAMP * tan_x
-        hi_x = (width - 0.5 - cx) / fx + FOV_CLAMP * tan_x
-        lo_y = -(cy + 0.5) / fy - FOV_CLAMP * tan_y
-        hi_y = (height - 0.5 - cy) / fy + FOV_CLAMP * tan_y
-        # conservative early cull (as the CPU kernel): lambda_max <= ||J||_F^2 s_max^2 + 0.3
-        jac_sq = fx * fx * (1.0 + max(lo_x * lo_x, hi_x * hi_x)) + fy * fy * (1.0 + max(lo_y * lo_y, hi_y * hi_y))
-        bound = 3.0 * math.sqrt(jac_sq * max_std[i] * max_std[i] / (z * z) + COV2D_DILATION) + 1.0
-        if u < -0.5 - bound or u > width - 0.5 + bound or v < -0.5 - bound or v > height - 0.5 + bound:
-            continue
-        txz = min(max(x / z, lo_x), hi_x)
-        tyz = min(max(y / z, lo_y), hi_y)
-        j00 = fx / z
-        j02 = -fx * txz / z
-        j11 = fy / z
-        j12 = -fy * tyz / z
-        m00 = j00 * cams[view, 0] + j02 * cams[view, 6]
-        m01 = j00 * cams[view, 1] + j02 * cams[view, 7]
-        m02 = j00 * cams[view, 2] + j02 * cams[view, 8]
-        m10 = j11 * cams[view, 3] + j12 * cams[view, 6]
-        m11 = j11 * cams[view, 4] + j12 * cams[view, 7]
-        m12 = j11 * cams[view, 5] + j12 * cams[view, 8]
-        sxx, sxy, sxz = cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]
-        syy, syz, szz = cov3d[i, 3], cov3d[i, 4], cov3d[i, 5]
-        a0 = m00 * sxx + m01 * sxy + m02 * sxz
-        a1 = m00 * sxy + m01 * syy + m02 * syz
-        a2 = m00 * sxz + m01 * syz + m02 * szz
-        b0 = m10 * sxx + m11 * sxy + m12 * sxz
-        b1 = m10 * sxy + m11 * syy + m12 * syz
-        b2 = m10 * sxz + m11 * syz + m12 * szz
-        ca = a0 * m00 + a1 * m01 + a2 * m02 + COV2D_DILATION
-        cb = a0 * m10 + a1 * m11 + a2 * m12
-        cc = b0 * m10 + b1 * m11 + b2 * m12 + COV2D_DILATION
-        det = ca * cc - cb * cb
-        if not (det > 0.0):
-            continue
-        mid = 0.5 * (ca + cc)
-        lam = mid + math.sqrt(max(0.0, mid * mid - det))
-        r = math.ceil(3.0 * math.sqrt(lam))
-        if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
-            continue
-        qmax = 2.0 * math.log(255.0 * o)
-        hx = math.sqrt(qmax * ca) * (1.0 + 1e-9) + 1e-9
-        hy = math.sqrt(qmax * cc) * (1.0 + 1e-9) + 1e-9
-        umin = max(0.0, math.ceil(u - hx))
-        umax = min(width - 1.0, math.floor(u + hx))
-        vmin = max(0.0, math.ceil(v - hy))
-        vmax = min(height - 1.0, math.floor(v + hy))
-        if umin > umax or vmin > vmax:
+        # consecutive threads take the views of one Gaussian: its 88 bytes come from DRAM once per batch
+        # of views (L1 serves the rest), not once per view (a 1M model is 88 MB, more than the L2)
+        i = flat // n_views
+        view = flat - i * n_views
+        cam = cams[view]
+        lo_x, hi_x, lo_y, hi_y, jac_sq = _fov_limits(cam, width, height)
+        keep, u, v, a, b, c, qmax, depth, umin, umax, vmin, vmax = _ewa_splat(
+            cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
+        if not keep:
             continue
         slot = cuda.atomic.add(counter, 0, 1)
         if slot >= capacity:
             continue  # the host grows the buffers and projects again
         out_packed[slot, 0] = u
         out_packed[slot, 1] = v
-        out_packed[slot, 2] = cc / det
-        out_packed[slot, 3] = -cb / det
-        out_packed[slot, 4] = ca / det
-        out_packed[slot, 5] = o
+        out_packed[slot, 2] = a
+        out_packed[slot, 3] = b
+        out_packed[slot, 4] = c
+        out_packed[slot, 5] = opac[i]
         out_packed[slot, 6] = qmax
-        out_packed[slot, 7] = z
+        out_packed[slot, 7] = depth
         bu0 = int32(umin)
         bu1 = int32(umax)
         bv0 = int32(vmin)
@@ -151,34 +104,13 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
         out_view[slot] = view
         out_ntiles[slot] = (bu1 // tile - bu0 // tile + 1) * (bv1 // tile - bv0 // tile + 1)
         if want_color:
-            dx = px - cams[view, 16]
-            dy = py - cams[view, 17]
-            dz = pz - cams[view, 18]
-            norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
-            dx /= norm
-            dy /= norm
-            dz /= norm
+            x, y, z = _view_direction(cam, means, i)
             k = sh.shape[1]
-            xx, yy, zz, xy, yz, xz = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
-            for c in range(3):
-                val = SH_C0 * float64(sh[i, 0, c])
-                if k >= 4:
-                    val += (-SH_C1 * dy * sh[i, 1, c] + SH_C1 * dz * sh[i, 2, c] - SH_C1 * dx * sh[i, 3, c])
-                if k >= 9:
-                    val += (C2_0 * xy * sh[i, 4, c] + C2_1 * yz * sh[i, 5, c]
-                            + C2_2 * (2.0 * zz - xx - yy) * sh[i, 6, c] + C2_3 * xz * sh[i, 7, c]
-                            + C2_4 * (xx - yy) * sh[i, 8, c])
-                if k >= 16:
-                    val += (C3_0 * dy * (3.0 * xx - yy) * sh[i, 9, c] + C3_1 * xy * dz * sh[i, 10, c]
-                            + C3_2 * dy * (4.0 * zz - xx - yy) * sh[i, 11, c]
-                            + C3_3 * dz * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12, c]
-                            + C3_4 * dx * (4.0 * zz - xx - yy) * sh[i, 13, c]
-                            + C3_5 * dz * (xx - yy) * sh[i, 14, c]
-                            + C3_6 * dx * (xx - 3.0 * yy) * sh[i, 15, c])
-                out_color[slot, c] = max(val + 0.5, 0.0)
+            for ch in range(3):
+                out_color[slot, ch] = max(_sh_polynomial(sh[i, :, ch], k, x, y, z) + 0.5, 0.0)
         else:
-            for c in range(3):
-                out_color[slot, c] = 0.0
+            for ch in range(3):
+                out_color[slot, ch] = 0.0
 
 
 @cuda.jit
@@ -277,6 +209,25 @@ def pixel_alpha(s_g, k, fu, fv):  # pragma: no cover
     return alpha
 
 
+@cuda.jit(device=True, inline=True)
+def walk_step(s_g, k, fu, fv, trans):  # pragma: no cover
+    """One front-to-back compositing step of a pixel over staged Gaussian k (SPEC §3, float32), the
+    one definition the update and render kernels share.
+
+    Returns:
+        (kappa, trans_next, stop): kappa = alpha T, the Gaussian's weight in the pixel (0 where the
+        INRIA rules skip it); the transmittance after it; stop True when compositing it would take T
+        below T_MIN (the Gaussian is then not composited: kappa 0, T unchanged; the walk ends).
+    """
+    alpha = pixel_alpha(s_g, k, fu, fv)
+    if alpha == float32(0.0):
+        return float32(0.0), trans, False
+    test_t = trans * (float32(1.0) - alpha)
+    if test_t < float32(T_MIN_WALK):
+        return float32(0.0), trans, True
+    return alpha * trans, test_t, False
+
+
 @lru_cache(maxsize=None)
 def make_update_kernel(num_classes: int, tile: int) -> Any:
     """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants).
@@ -295,7 +246,7 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     if nt % WARP:
         raise ValueError(f"tile {tile}: the update kernel needs tile * tile to be a multiple of {WARP}")
     C = num_classes
-    batch = batch_size(4 * STAGE_COLS + 4 + 4 * C, nt)
+    batch = batch_size(4 * STAGE_COLS + 4 + 4 * C, nt, UPDATE_SHARED_BUDGET)
 
     @cuda.jit
     def update_kernel(offsets, order, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
@@ -335,14 +286,8 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
             for k in range(n):  # every lane walks every Gaussian: the warp shuffles need all 32
                 contrib = float32(0.0)
                 if not done:
-                    alpha = pixel_alpha(s_g, k, fu, fv)
-                    if alpha > float32(0.0):
-                        test_t = trans * (float32(1.0) - alpha)
-                        if test_t < float32(T_MIN_WALK):
-                            done = True
-                        else:
-                            contrib = alpha * trans * w
-                            trans = test_t
+                    kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
+                    contrib = kappa * w
                 active = cuda.ballot_sync(FULL_MASK, contrib != float32(0.0))
                 if active != 0:
                     lead = cuda.shfl_sync(FULL_MASK, lab, cuda.ffs(active) - 1)
@@ -362,23 +307,25 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     return update_kernel
 
 
-MAX_RENDER_CLASSES = 80  # per-pixel E and Var sums of every class in shared memory: 2 C x 64 x 4 B <= 40 KiB
+RENDER_CLASS_CHUNK = 40  # classes per pass of the render walk: 2 x 40 x 64 x 4 B = 20 KiB of per-pixel sums
 
 
-def render_layout(num_classes: int, tile: int) -> tuple[int, int]:
-    """(staged Gaussians per batch, static shared bytes per block) of the render kernel: per-pixel
-    per-class E and Var sums (2 C x tile^2 float32) plus the staged rows (geometry, colour, S, row);
-    the class moments are read from global memory (every lane of a warp reads the same row: one
-    broadcast transaction, L1-resident for the block's batch)."""
+def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK) -> tuple[int, int, int]:
+    """(staged Gaussians per batch, classes per pass, static shared bytes per block) of the render
+    kernel: per-pixel E and Var sums of one pass's classes (2 x classes x tile^2 float32) plus the
+    staged rows (geometry, colour, S, row); the class moments are read from global memory (every lane
+    of a warp reads the same row: one broadcast transaction, L1-resident for the block's batch)."""
     nt = tile * tile
-    acc = 2 * num_classes * nt * 4
+    per_pass = min(num_classes, chunk)
+    acc = 2 * per_pass * nt * 4
     row = 4 * STAGE_COLS + 4 * 4 + 4
-    return nt, acc + nt * row
+    return nt, per_pass, acc + nt * row
 
 
 @lru_cache(maxsize=None)
-def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) -> Any:
-    """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode).
+def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
+                       chunk: int = RENDER_CLASS_CHUNK) -> Any:
+    """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode, classes per pass).
 
     Launch: grid = views * tiles, block = tile * tile threads (a multiple of 32). Kernel arguments:
     offsets (V T + 1,) i64; order (P,) i32 pair of each sorted key; packed (M, 8) f64; colors (M, 3) f32;
@@ -390,18 +337,19 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
     - ``score`` True: scores (V, 2) f64 += (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i) per view,
       reduced per warp with shuffles, one float64 atomic per warp and view.
 
-    The pixel walk is float32; each pixel's E and Var sums of every class live in shared memory
-    (column ``tid`` of a (2C, tile^2) array: no runtime-indexed local arrays, no bank conflicts).
+    The pixel walk is float32; each pixel's E and Var sums of the classes of one pass live in shared
+    memory (column ``tid`` of a (2 chunk, tile^2) array: no runtime-indexed local arrays, no bank
+    conflicts). Up to ``chunk`` classes take one pass; more classes walk the tile's list again per
+    pass of ``chunk`` classes, carrying the running argmax (first maximum, as the CPU) and its Var
+    in registers, so shared memory and occupancy do not depend on C beyond ``chunk``.
     """
     nt = tile * tile
     if nt % WARP:
         raise ValueError(f"tile {tile}: the render kernel needs tile * tile to be a multiple of {WARP}")
     C = num_classes
-    if C > MAX_RENDER_CLASSES:
-        raise CssError(f"backend 'cuda' renders at most {MAX_RENDER_CLASSES} classes (its per-pixel class sums "
-                       f"live in shared memory); {C} asked: use backend 'numba'")
-    batch, _ = render_layout(C, tile)
-    n_acc = 2 * C  # shared array shapes must be compile-time constants
+    batch, per_pass, _ = render_layout(C, tile, chunk)
+    n_acc = 2 * per_pass  # shared array shapes must be compile-time constants
+    n_pass = -(-C // per_pass)
 
     @cuda.jit
     def render_kernel(offsets, order, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
@@ -415,13 +363,10 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
         inside = u < width and v < height
-        done = not inside
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
         s_a = cuda.shared.array((batch, 4), float32)  # r, g, b, S
         s_row = cuda.shared.array(batch, int32)
         acc = cuda.shared.array((n_acc, nt), float32)
-        for c in range(n_acc):
-            acc[c, tid] = float32(0.0)
         cr = float32(0.0)
         cg = float32(0.0)
         cb = float32(0.0)
@@ -429,52 +374,65 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
         fu = float32(u)
         fv = float32(v)
         trans = float32(1.0)
+        best = 0
+        best_e = float32(0.0)
+        best_v = float32(0.0)
         start = offsets[b]
         end = offsets[b + 1]
-        for b0 in range(start, end, batch):
-            if cuda.syncthreads_count(0 if done else 1) == 0:
-                break
-            n = min(batch, end - b0)
-            if tid < n:
-                j = order[b0 + tid]
-                stage_geometry(s_g, tid, packed, j)
-                row = pair_row[j]
-                s_row[tid] = row
-                s_a[tid, 0] = colors[j, 0]
-                s_a[tid, 1] = colors[j, 1]
-                s_a[tid, 2] = colors[j, 2]
-                s_a[tid, 3] = mom[row, 2 * C]
-            cuda.syncthreads()
-            if not done:
-                for k in range(n):
-                    alpha = pixel_alpha(s_g, k, fu, fv)
-                    if alpha == float32(0.0):
-                        continue
-                    test_t = trans * (float32(1.0) - alpha)
-                    if test_t < float32(T_MIN_WALK):
-                        done = True
-                        break
-                    w1 = alpha * trans
-                    w2 = w1 * w1
-                    row = s_row[k]
-                    for c in range(C):
-                        acc[c, tid] += w1 * mom[row, c]
-                        acc[C + c, tid] += w2 * mom[row, C + c]
-                    cr += w1 * s_a[k, 0]
-                    cg += w1 * s_a[k, 1]
-                    cb += w1 * s_a[k, 2]
-                    ev += w1 * s_a[k, 3]
-                    trans = test_t
-        best = 0
-        best_e = acc[0, tid]
-        for c in range(1, C):
-            e = acc[c, tid]
-            if e > best_e:
-                best = c
-                best_e = e
+        for p in range(n_pass):
+            c0 = p * per_pass
+            nc = min(per_pass, C - c0)
+            for c in range(n_acc):
+                acc[c, tid] = float32(0.0)
+            first = p == 0
+            done = not inside
+            trans = float32(1.0)
+            for b0 in range(start, end, batch):
+                if cuda.syncthreads_count(0 if done else 1) == 0:
+                    break
+                n = min(batch, end - b0)
+                if tid < n:
+                    j = order[b0 + tid]
+                    stage_geometry(s_g, tid, packed, j)
+                    row = pair_row[j]
+                    s_row[tid] = row
+                    s_a[tid, 0] = colors[j, 0]
+                    s_a[tid, 1] = colors[j, 1]
+                    s_a[tid, 2] = colors[j, 2]
+                    s_a[tid, 3] = mom[row, 2 * C]
+                cuda.syncthreads()
+                if not done:
+                    for k in range(n):
+                        w1, trans, done = walk_step(s_g, k, fu, fv, trans)
+                        if done:
+                            break
+                        if w1 == float32(0.0):
+                            continue
+                        w2 = w1 * w1
+                        row = s_row[k]
+                        for c in range(nc):
+                            acc[c, tid] += w1 * mom[row, c0 + c]
+                            acc[per_pass + c, tid] += w2 * mom[row, C + c0 + c]
+                        if first:
+                            cr += w1 * s_a[k, 0]
+                            cg += w1 * s_a[k, 1]
+                            cb += w1 * s_a[k, 2]
+                            ev += w1 * s_a[k, 3]
+            for c in range(nc):
+                e = acc[c, tid]
+                if (first and c == 0) or e > best_e:
+                    best = c0 + c
+                    best_e = e
+                    best_v = acc[per_pass + c, tid]
+            if probs and not score and inside:
+                tr_p = float64(trans)
+                for c in range(nc):
+                    probs_out[view, v, u, c0 + c] = float64(acc[c, tid]) + tr_p * e_bg
+            if n_pass > 1:
+                cuda.syncthreads()  # the next pass re-stages the shared rows
         tr = float64(trans)
         e_hat = float64(best_e) + tr * e_bg
-        v_hat = float64(acc[C + best, tid]) + tr * tr * v_bg
+        v_hat = float64(best_v) + tr * tr * v_bg
         if score:
             lv = 0.0
             le = 0.0
@@ -495,9 +453,6 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool) ->
             out[view, v, u, 5] = float64(cr) + tr * bg_rgb[0]
             out[view, v, u, 6] = float64(cg) + tr * bg_rgb[1]
             out[view, v, u, 7] = float64(cb) + tr * bg_rgb[2]
-            if probs:
-                for c in range(C):
-                    probs_out[view, v, u, c] = float64(acc[c, tid]) + tr * e_bg
     return render_kernel
 
 
