@@ -50,9 +50,8 @@ def estimate_scene(name: str, candidates: int) -> dict:
     out = dict(scene=name, counts=counts.__dict__, observe=[c.__dict__ for c in costs],
                observe_ms=sum(c.ms for c in costs), target_ms=TARGETS_MS.get(name))
     if candidates:
-        K = intrinsics(cfg["width"], cfg["height"], cfg["kitti"])
-        views = [Camera(K, cfg["width"], cfg["height"], T).scaled(160 / cfg["width"])
-                 for T in robot_trajectory(candidates, seed=1).T_map_cam]
+        K = intrinsics(160, 120, False)   # the target's 160 x 120 candidate views (75 deg horizontal FoV)
+        views = [Camera(K, 160, 120, T) for T in robot_trajectory(candidates, seed=1).T_map_cam]
         ccounts = frame_counts(geometry, views, C)
         scosts = score_costs(ccounts)
         out.update(candidates=dict(views=len(views), size=f"{views[0].width}x{views[0].height}",
@@ -86,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", nargs="+", default=["100k", "1M", "3M", "biker", "biker8"],
                         choices=sorted(SCENES), help="scenes of bench_frame.py (default: the target table)")
     parser.add_argument("--candidates", type=int, default=256,
-                        help="candidate views at 160 px width scored on the 1M scene (default 256; 0 = none)")
+                        help="candidate views of 160 x 120 px scored on the 1M scene (default 256; 0 = none)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     results = []
