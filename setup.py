@@ -42,8 +42,8 @@ setup(
         "cuda": ["numba-cuda==0.30.4"],
         # css_view: the semantic splat in a browser (viser draws the Gaussians with WebGL)
         "view": ["viser==1.1.1"],
-        "test": ["pytest>=7", "pytest-timeout>=2.1", "pytest-xdist==3.8.0", "torch==2.13.0", "numba-cuda==0.30.4", "ruff==0.17.5",
-                 "mypy==2.4.1"],
+        "test": ["pytest>=7", "pytest-timeout>=2.1", "pytest-xdist==3.8.0", "torch==2.13.0", "numba-cuda==0.30.4",
+                 "ruff==0.17.5", "mypy==2.4.1"],
         # proves the package builds as an ament_python package (test/test_node_colcon.py)
         "colcon": ["colcon-core", "colcon-ros", "colcon-python-setup-py", "ros-jazzy-ament-package"],
         "all": [
@@ -54,6 +54,7 @@ setup(
             "ros-jazzy-rmw-fastrtps-cpp",
             "pytest>=7",
             "pytest-timeout>=2.1",
+            "pytest-xdist==3.8.0",  # the suite runs on two workers (README, .ci/run)
             "colcon-core",
             "colcon-ros",
             "colcon-python-setup-py",

@@ -95,8 +95,8 @@ class NumpyOps:
         return x[perm], perm
 
     def float32_bits(self, x: Any) -> Any:
-        """int64 bit patterns of x rounded to float32 (for x > 0 they order as the values)."""
-        return x.astype(np.float32).view(np.int32).astype(np.int64)
+        """int32 bit patterns of x rounded to float32 (for x > 0 they order as the values)."""
+        return x.astype(np.float32).view(np.int32)
 
     def scalars(self, *xs: Any) -> list[int]:
         """Several one-element device values -> Python ints in one transfer."""
@@ -197,7 +197,7 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         return res.values, res.indices
 
     def float32_bits(self, x: Any) -> Any:
-        return x.to(self.torch.float32).view(self.torch.int32).to(self.torch.int64)
+        return x.to(self.torch.float32).view(self.torch.int32)
 
     def scalars(self, *xs: Any) -> list[int]:
         return [int(v) for v in self.torch.stack([x.reshape(()) for x in xs]).cpu().tolist()]

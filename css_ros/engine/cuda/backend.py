@@ -198,16 +198,22 @@ class CudaBackend(RasterBackend):
                 break
             cap = m
         self._capacity[n_views] = cap
-        keys = ops.empty(max(total, 1), np.int64)
+        if n_views * tiles_per_view >= 2 ** 31:
+            raise ValueError(f"{n_views} views x {tiles_per_view} tiles do not fit 32-bit tile keys: score fewer views")
+        keys = ops.empty(max(total, 1), np.int32)
         order = ops.empty(max(total, 1), np.int32)
         if m:
+            # depth order of the pairs (positive float32 depths order as their int32 bit patterns), then the
+            # tile keys emitted front to back and sorted stably by (view, tile) alone: two 32-bit radix sorts
+            _, by_depth = ops.sort_stable(ops.float32_bits(packed[:m, 7]))
+            nt_depth = ntiles[by_depth]
+            first = ops.cumsum(nt_depth) - nt_depth
             blocks, threads = self._launch_1d(m)
-            k.emit_keys_kernel[blocks, threads](bbox, views, ends - ntiles, ops.float32_bits(packed[:m, 7]), m,
-                                                self.tile, tiles_x, tiles_per_view, keys, order)
-            sorted_keys, perm = ops.sort_stable(keys[:total])  # one radix sort of (view, tile | depth32)
+            k.emit_keys_kernel[blocks, threads](bbox, views, by_depth, first, m, self.tile, tiles_x, tiles_per_view,
+                                                keys, order)
+            sorted_keys, perm = ops.sort_stable(keys[:total])
             order = order[perm]
-            bounds = ops.arange(n_views * tiles_per_view + 1) * (1 << 32)
-            offsets = ops.searchsorted(sorted_keys, bounds)
+            offsets = ops.searchsorted(sorted_keys, ops.arange(n_views * tiles_per_view + 1, np.int32))
         else:
             offsets = ops.zeros(n_views * tiles_per_view + 1, np.int64)
         ids = ids[:max(m, 1)]

@@ -5,7 +5,7 @@ No numba import: the counts come from the CPU engine (the same projection and ti
 GPU's, :func:`frame_counts`), the formulas below from what each kernel of :mod:`.kernels` reads,
 writes and executes per item. The estimate is a roofline floor with stated efficiencies, not a
 simulation: a kernel takes max(bytes / (DRAM bandwidth x MEM_EFFICIENCY), instructions / (issue
-rate x ISSUE_EFFICIENCY)) plus its launch, the radix sort is scaled from a sort timed on the lent
+rate x ISSUE_EFFICIENCY)) plus its launch, the radix sorts are scaled from a sort timed on the lent
 H100 (torch.sort, 5M int64 keys: 0.83 ms), transfers cross PCIe. ``docs/cuda.md`` holds the table
 and says how it compares with gsplat's measured times on the same scenes.
 """
@@ -39,7 +39,9 @@ ISSUE_EFFICIENCY = 0.35   # fraction of peak issue the compositing walks reach (
 LAUNCH_MS = 0.02          # per launch or array-library call issued from Python (numba-cuda's argument
 #                           marshalling and torch's dispatch, ~10-30 us each, host-side)
 SYNC_MS = 0.02            # the frame's one device -> host synchronisation
-SORT_MS_PER_KEY = 0.83 / 5e6 * 1.5   # torch.sort of int64 keys on the lent H100, x1.5 for the int32 values
+# torch.sort on the lent H100: 5M int64 keys (with their int64 indices) in 0.83 ms, i.e. 8 radix passes reading
+# and writing 16 B per element. The backend sorts int32 keys (4 passes of 12 B): 4 x 12 / (8 x 16) of that.
+SORT_MS_PER_KEY = 0.83 / 5e6 * (4 * 12) / (8 * 16)
 SORT_MIN_MS = 0.03
 
 # Per-item instruction counts of the kernels (read off kernels.py; a thread instruction is one lane's)
@@ -139,11 +141,12 @@ def _project(c: FrameCounts, gpu: GpuSpec, color: bool) -> KernelCost:
 
 
 def _order(c: FrameCounts, gpu: GpuSpec) -> KernelCost:
-    """Prefix sum of tile counts, key emission, the radix sort, gathers and searchsorted."""
-    nbytes = c.kept * (4 + 4 + 32) + c.keys * (12 + 4 + 8)
-    emit = _kernel("order", nbytes, c.keys * 12, gpu, launches=7)  # cumsum, emit, sort, gather, searchsorted, ...
-    sort_bytes = c.keys * 12 * 2 * 8   # 8 digit passes, each reading and writing key + value
-    sort_ms = max(SORT_MIN_MS, c.keys * SORT_MS_PER_KEY)
+    """Depth sort of the kept pairs, prefix sum of their tile counts, key emission in depth order, the
+    stable sort of the 32-bit (view, tile) keys, the gather of the pair order, searchsorted."""
+    nbytes = c.kept * (4 + 8 + 12 + 8 + 36) + c.keys * (8 + 16)
+    emit = _kernel("order", nbytes, c.keys * 12, gpu, launches=8)
+    sort_bytes = (c.kept + c.keys) * 4 * 2 * 12   # 4 digit passes, each reading and writing key + index
+    sort_ms = 2 * SORT_MIN_MS + (c.kept + c.keys) * SORT_MS_PER_KEY
     return KernelCost("order", nbytes + sort_bytes, emit.instructions, emit.ms + sort_ms)
 
 

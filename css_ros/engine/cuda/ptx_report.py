@@ -98,7 +98,7 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
         ("project", k.project_kernel.py_func,
          (f64_2, f64_2, f64_1, f64_1, float32[:, :, ::1], f64_2, float64, float64, int64, boolean, int64, i64_1,
           f64_2, i32_2, i32_1, i32_1, i32_1, f32_2), 256),
-        ("emit_keys", k.emit_keys_kernel.py_func, (i32_2, i32_1, i64_1, i64_1, int64, int64, int64, int64, i64_1,
+        ("emit_keys", k.emit_keys_kernel.py_func, (i32_2, i32_1, i64_1, i64_1, int64, int64, int64, int64, i32_1,
                                                    i32_1), 256),
         ("moments", k.moments_kernel.py_func, (f64_2, i32_1, f32_2), 256),
         (f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func,
