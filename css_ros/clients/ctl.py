@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -17,6 +16,7 @@ from ..io.clouds import pack_cloud, unpack_cloud
 from ..io.messages import unpack_view_points
 from ..io.point_queries import ANSWER_FIELDS
 from ..io.topics import INPUT_TOPICS
+from .node_link import NodeLink
 
 SERVICES = {"save": "save_map", "load": "load_map", "reset": "reset_map"}
 DEFAULT_TIMEOUT_S = 10.0
@@ -76,43 +76,6 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
-
-
-class NodeLink:
-    """An rclpy node with its own context and executor thread, for one request."""
-
-    def __init__(self) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"css_ctl_{time.monotonic_ns() % 10**9}", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.05)
-        except Exception:  # noqa: BLE001 - shutting down
-            pass
-
-    @staticmethod
-    def wait(cond, timeout: float) -> bool:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if cond():
-                return True
-            time.sleep(0.02)
-        return bool(cond())
-
-    def close(self) -> None:
-        self.context.try_shutdown()
-        self._thread.join(2.0)
 
 
 def call_service(link: NodeLink, node: str, name: str, timeout: float) -> tuple[bool, str]:

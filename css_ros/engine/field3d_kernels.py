@@ -8,11 +8,12 @@ import math
 
 from numba import njit, prange
 
-__all__ = ["count_cells", "fill_cells", "query_kernel"]
+__all__ = ["cell_coord", "count_cells", "fill_cells", "query_kernel"]
 
 
 @njit(inline="always")
-def _cell_coord(v, origin, h, d):  # pragma: no cover - compiled
+def cell_coord(v, origin, h, d):  # pragma: no cover - compiled
+    """Index of the grid cell of coordinate ``v`` along one axis (cells of size h from origin), clamped to 0..d-1."""
     k = math.floor((v - origin) / h)
     if k < 0:
         return 0
@@ -60,9 +61,9 @@ def query_kernel(points, means, inv_cov, opac, alpha, totals, origin, cell_size,
         for lv in range(nlev):
             h = cell_size[lv]
             dx, dy, dz = dims[lv, 0], dims[lv, 1], dims[lv, 2]
-            ix = _cell_coord(px, origin[0], h, dx)
-            iy = _cell_coord(py, origin[1], h, dy)
-            iz = _cell_coord(pz, origin[2], h, dz)
+            ix = cell_coord(px, origin[0], h, dx)
+            iy = cell_coord(py, origin[1], h, dy)
+            iz = cell_coord(pz, origin[2], h, dz)
             cell = level_offsets[lv] + (ix * dy + iy) * dz + iz
             for j in range(cell_start[cell], cell_start[cell + 1]):
                 g = items[j]

@@ -151,6 +151,23 @@ def ewa_splat(cam, means, cov3d, i, opacity, max_std, width, height,  # type: ig
     return (True, u, v, cc / det, -cb / det, ca / det, qmax, z, umin, umax, vmin, vmax)
 
 
+def store_splat(packed, bbox, row, splat, opacity):  # type: ignore[no-untyped-def]
+    """Write a kept :func:`ewa_splat` result into ``packed[row, 0:8]`` (u, v, a, b, c, opacity, qmax, depth)
+    and ``bbox[row]`` (int32 u_min, u_max, v_min, v_max: the inclusive pixel box)."""
+    packed[row, 0] = splat[1]
+    packed[row, 1] = splat[2]
+    packed[row, 2] = splat[3]
+    packed[row, 3] = splat[4]
+    packed[row, 4] = splat[5]
+    packed[row, 5] = opacity
+    packed[row, 6] = splat[6]
+    packed[row, 7] = splat[7]
+    bbox[row, 0] = int(splat[8])
+    bbox[row, 1] = int(splat[9])
+    bbox[row, 2] = int(splat[10])
+    bbox[row, 3] = int(splat[11])
+
+
 def view_direction(cam, means, i):  # type: ignore[no-untyped-def]
     """Unit direction (x, y, z) from the camera centre to Gaussian ``i``'s centre (map frame), the
     argument of the SH colour."""

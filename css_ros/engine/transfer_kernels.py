@@ -10,26 +10,18 @@ import math
 
 from numba import njit, prange
 
+from .field3d_kernels import cell_coord
+
 __all__ = ["nearest_old", "overlap_denominators", "gather_mass"]
-
-
-@njit(inline="always")
-def _cell_coord(v, origin, h, d):  # pragma: no cover - compiled
-    k = math.floor((v - origin) / h)
-    if k < 0:
-        return 0
-    if k > d - 1:
-        return d - 1
-    return int(k)
 
 
 @njit(inline="always")
 def _cell(px, py, pz, lv, origin, cell_size, dims, level_offsets):  # pragma: no cover - compiled
     h = cell_size[lv]
     dx, dy, dz = dims[lv, 0], dims[lv, 1], dims[lv, 2]
-    ix = _cell_coord(px, origin[0], h, dx)
-    iy = _cell_coord(py, origin[1], h, dy)
-    iz = _cell_coord(pz, origin[2], h, dz)
+    ix = cell_coord(px, origin[0], h, dx)
+    iy = cell_coord(py, origin[1], h, dy)
+    iz = cell_coord(pz, origin[2], h, dz)
     return level_offsets[lv] + (ix * dy + iy) * dz + iz
 
 

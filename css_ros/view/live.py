@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..clients.node_link import NodeLink
 from ..engine.classes import ClassSet
 from ..engine.field3d import GaussianSemantics
 from ..errors import CssError
@@ -42,20 +43,14 @@ class LiveFollower:
     """Subscribes to a node's view stream and keeps the page up to date."""
 
     def __init__(self, node_name: str, on_status) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
         from std_msgs.msg import String
 
         self.node_name = "/" + node_name.strip("/")
         self.on_status = on_status
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"css_view_{time.monotonic_ns() % 10**9}", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self.link = NodeLink("css_view", start=False)
+        self.node, self.context = self.link.node, self.link.context
         self.lock = threading.Lock()
         self.info: dict[str, Any] | None = None
         self.chunks: dict[int, Any] = {}
@@ -73,15 +68,7 @@ class LiveFollower:
         self.node.create_subscription(PointCloud2, f"{n}/view/semantics", self._on_semantics, reliable)
         self.node.create_subscription(PointCloud2, f"{n}/view_uncertainty", self._on_frame, reliable)
         self.node.create_subscription(PointCloud2, f"{n}/candidate_scores", self._on_candidates, reliable)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.05)
-        except Exception:  # noqa: BLE001 - shutting down
-            pass
+        self.link.start()
 
     def _on_info(self, msg: Any) -> None:
         try:
@@ -174,8 +161,7 @@ class LiveFollower:
         return changed
 
     def close(self) -> None:
-        self.context.try_shutdown()
-        self.thread.join(2.0)
+        self.link.close()
 
 
 def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
@@ -257,15 +243,11 @@ def _draw_views(view, prefix: str, rows: np.ndarray, cmap: str, mark_best: bool 
 
 def _node_query(follower: LiveFollower):
     """SPEC §9 point query answered by the node (its ``point_queries`` topic)."""
-    from ..clients.ctl import NodeLink, query
+    from ..clients.ctl import query
     from ..io.point_queries import ANSWER_FIELDS
 
-    class _Link(NodeLink):
-        def __init__(self) -> None:  # reuse the follower's node and executor
-            self.node, self.context = follower.node, follower.context
-
     def ask(xyz: np.ndarray):
-        rows = query(_Link(), follower.node_name, np.asarray(xyz, np.float64).reshape(-1, 3), 5.0)
+        rows = query(follower.link, follower.node_name, np.asarray(xyz, np.float64).reshape(-1, 3), 5.0)
         names = [n for n in rows.dtype.names if n not in ANSWER_FIELDS]
         e = np.stack([rows[n] for n in names], axis=1).astype(np.float64)
         v = np.full_like(e, np.nan)

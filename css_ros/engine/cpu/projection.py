@@ -15,7 +15,7 @@ from numba import njit, prange
 
 from ..sh import eval_sh, sh_polynomial
 from ..spec import COV2D_DILATION, NEAR_PLANE
-from ..splat_math import camera_row, ewa_splat, fov_limits, view_direction
+from ..splat_math import camera_row, ewa_splat, fov_limits, store_splat, view_direction
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -148,6 +148,7 @@ class ProjectedGaussians:
 
 _fov_limits = njit(inline="always")(fov_limits)
 _ewa_splat = njit(inline="always")(ewa_splat)
+_store_splat = njit(inline="always")(store_splat)
 _view_direction = njit(inline="always")(view_direction)
 _sh_polynomial = njit(inline="always")(sh_polynomial)
 
@@ -188,25 +189,13 @@ def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_
         if y - top * z + rad * math.sqrt(1.0 + top * top) < -ky * s_max:
             continue
         for i in range(group_offsets[g], group_offsets[g + 1]):
-            keep, u, v, a, b, c, qmax, depth, umin, umax, vmin, vmax = _ewa_splat(
-                cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
-            if not keep:
+            splat = _ewa_splat(cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
+            if not splat[0]:
                 continue
-            out[i, 0] = u
-            out[i, 1] = v
-            out[i, 2] = a
-            out[i, 3] = b
-            out[i, 4] = c
-            out[i, 5] = opac[i]
-            out[i, 6] = qmax
-            out[i, 7] = depth
+            _store_splat(out, out_bbox, i, splat, opac[i])
             out[i, 8] = base_rgb[i, 0]
             out[i, 9] = base_rgb[i, 1]
             out[i, 10] = base_rgb[i, 2]
-            out_bbox[i, 0] = np.int32(umin)
-            out_bbox[i, 1] = np.int32(umax)
-            out_bbox[i, 2] = np.int32(vmin)
-            out_bbox[i, 3] = np.int32(vmax)
             out_valid[i] = True
 
 

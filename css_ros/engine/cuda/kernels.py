@@ -34,7 +34,7 @@ from numba import cuda, float32, float64, int32
 from ..sh import sh_polynomial
 from .arrays import simulator_enabled
 from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, VAR_FLOOR
-from ..splat_math import ewa_splat, fov_limits, view_direction
+from ..splat_math import ewa_splat, fov_limits, store_splat, view_direction
 
 if simulator_enabled():  # the simulator has no warp intrinsics; add exact block-barrier versions
     from .simwarp import install
@@ -50,6 +50,7 @@ UPDATE_SHARED_BUDGET = 12 * 1024
 
 _fov_limits = cuda.jit(device=True, inline=True)(fov_limits)
 _ewa_splat = cuda.jit(device=True, inline=True)(ewa_splat)
+_store_splat = cuda.jit(device=True, inline=True)(store_splat)
 _view_direction = cuda.jit(device=True, inline=True)(view_direction)
 _sh_polynomial = cuda.jit(device=True, inline=True)(sh_polynomial)
 
@@ -80,29 +81,17 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
         view = flat - i * n_views
         cam = cams[view]
         lo_x, hi_x, lo_y, hi_y, jac_sq = _fov_limits(cam, width, height)
-        keep, u, v, a, b, c, qmax, depth, umin, umax, vmin, vmax = _ewa_splat(
-            cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
-        if not keep:
+        splat = _ewa_splat(cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
+        if not splat[0]:
             continue
         slot = cuda.atomic.add(counter, 0, 1)
         if slot >= capacity:
             continue  # the host grows the buffers and projects again
-        out_packed[slot, 0] = u
-        out_packed[slot, 1] = v
-        out_packed[slot, 2] = a
-        out_packed[slot, 3] = b
-        out_packed[slot, 4] = c
-        out_packed[slot, 5] = opac[i]
-        out_packed[slot, 6] = qmax
-        out_packed[slot, 7] = depth
-        bu0 = int32(umin)
-        bu1 = int32(umax)
-        bv0 = int32(vmin)
-        bv1 = int32(vmax)
-        out_bbox[slot, 0] = bu0
-        out_bbox[slot, 1] = bu1
-        out_bbox[slot, 2] = bv0
-        out_bbox[slot, 3] = bv1
+        _store_splat(out_packed, out_bbox, slot, splat, opac[i])
+        bu0 = int32(splat[8])
+        bu1 = int32(splat[9])
+        bv0 = int32(splat[10])
+        bv1 = int32(splat[11])
         out_id[slot] = i
         out_view[slot] = view
         out_ntiles[slot] = (bu1 // tile - bu0 // tile + 1) * (bv1 // tile - bv0 // tile + 1)
@@ -172,18 +161,9 @@ STAGE_COLS = 7  # staged geometry per Gaussian, float32: u, v, conic a, b, c, op
 
 
 @cuda.jit(device=True, inline=True)
-def warp_sum_f32(x):  # pragma: no cover
-    """Sum of ``x`` over the 32 lanes of a full warp (every lane gets it)."""
-    off = 16
-    while off > 0:
-        x += cuda.shfl_xor_sync(FULL_MASK, x, off)
-        off //= 2
-    return x
-
-
-@cuda.jit(device=True, inline=True)
-def warp_sum_f64(x):  # pragma: no cover
-    """float64 sum of ``x`` over the 32 lanes of a full warp (every lane gets it)."""
+def warp_sum(x):  # pragma: no cover
+    """Sum of ``x`` over the 32 lanes of a full warp, in x's own type (float32 or float64; every lane
+    gets it)."""
     off = 16
     while off > 0:
         x += cuda.shfl_xor_sync(FULL_MASK, x, off)
@@ -296,7 +276,7 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
                 if active != 0:
                     lead = cuda.shfl_sync(FULL_MASK, lab, cuda.ffs(active) - 1)
                     if cuda.all_sync(FULL_MASK, contrib == float32(0.0) or lab == lead):
-                        total = warp_sum_f32(contrib)
+                        total = warp_sum(contrib)
                         if lane == 0:
                             cuda.atomic.add(s_acc, (k, lead), total)
                     elif contrib != float32(0.0):
@@ -443,8 +423,8 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
             if inside:
                 lv = math.log(max(v_hat, VAR_FLOOR))
                 le = e_hat
-            lv = warp_sum_f64(lv)
-            le = warp_sum_f64(le)
+            lv = warp_sum(lv)
+            le = warp_sum(le)
             if tid % WARP == 0:
                 cuda.atomic.add(scores, (view, 0), lv)
                 cuda.atomic.add(scores, (view, 1), le)
