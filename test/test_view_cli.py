@@ -196,3 +196,48 @@ def test_a_replay_folder_names_its_model_classes_and_trajectory(tmp_path, tiny_m
     args = argparse.Namespace(map=out, model=tmp_path / "other.ply", classes=None)
     with pytest.raises(Exception, match="model file not found"):
         resolve_inputs(args)
+
+
+def test_a_replay_made_with_splat_to_map_is_shown_and_queried_in_the_map_frame(tmp_path):
+    """A robot's replay (splat_to_map: scale 2, 90 deg about z, shifted) is drawn in the map frame: centres
+    s R mu + t and covariances s^2 R Sigma R^T (R written out by hand), frustums carried along, and a click at a
+    Gaussian's map-frame centre answers what the map holds at its splat-frame centre."""
+    import argparse
+    import json
+
+    from css_ros.engine.camera import Camera, intrinsics_from_fov
+    from css_ros.engine.classes import ClassSet
+    from css_ros.io.trajectory import load_trajectory, write_replay_trajectory
+    from css_ros.view.cli import display_frame, map_frame_query
+    from css_ros.view.data import build_view_data
+
+    model = tiny_model(tmp_path / "model.ply")
+    smap = SemanticMap(model, 3)
+    conc = np.full((model.num_gaussians, 3), 1e-3)
+    conc[np.arange(model.num_gaussians), np.arange(model.num_gaussians) % 3] = 20.0
+    smap.concentrations = conc
+    out = tmp_path / "replay"
+    out.mkdir()
+    h = np.sqrt(0.5)
+    params = [2.0, 1.0, -2.0, 0.5, 0.0, 0.0, h, h]          # qz = qw = sqrt(1/2): +90 deg about z
+    (out / "metrics.json").write_text(json.dumps({"config": {"splat_to_map": params}}))
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    t = np.array([1.0, -2.0, 0.5])
+    to_map = display_frame(argparse.Namespace(map=out, splat_to_map=None))
+    data = build_view_data(smap, ClassSet.default(3), splat_to_map=to_map)
+    mu = model.means.astype(np.float64)
+    np.testing.assert_allclose(data.centers, 2.0 * mu @ R.T + t, atol=1e-5)
+    np.testing.assert_allclose(data.covariances, 4.0 * R @ model.covariances() @ R.T, rtol=1e-4, atol=1e-9)
+    # --splat-to-map wins over the folder's; no folder and no option: the splat frame
+    assert display_frame(argparse.Namespace(map=out, splat_to_map=[1.0, 0, 0, 0, 0, 0, 0, 1])).is_identity
+    assert display_frame(argparse.Namespace(map=tmp_path / "map.npz", splat_to_map=None)).is_identity
+    # the click query: at the map-frame centre of Gaussian k, the field of the splat-frame centre
+    labels, e, _ = map_frame_query(smap, to_map)(data.centers[:4].astype(np.float64))
+    ref = smap.query_points(mu[:4])
+    assert np.array_equal(labels, ref.labels) and np.allclose(e, ref.expectation, atol=1e-6)
+    # the trajectory is written in the map frame: centre moved, axes turned by R (not scaled)
+    cam = Camera.from_pose(intrinsics_from_fov(64, 48, 60.0), 64, 48, [0.3, 0.1, -1.0], [0, 0, 0, 1.0])
+    write_replay_trajectory(out / "trajectory.npz", [(cam, 0.01)], to_map)
+    pose = load_trajectory(out / "trajectory.npz")[0][0]
+    np.testing.assert_allclose(pose[:3, 3], 2.0 * R @ cam.T_map_cam[:3, 3] + t, atol=1e-12)
+    np.testing.assert_allclose(pose[:3, :3], R @ cam.T_map_cam[:3, :3], atol=1e-12)

@@ -84,3 +84,44 @@ def test_live_view_follows_the_node(tmp_path, monkeypatch):
         client.close()
         node.stop()
     assert result == [0]
+
+
+def test_live_view_draws_the_splat_in_the_nodes_map_frame(tmp_path, monkeypatch):
+    """A node with splat_to_map publishes everything 3D in the map frame; so must the viewer's model stream,
+    or frustums (map frame) and Gaussians (splat frame) would not line up: centres s R mu + t, covariances
+    s^2 R Sigma R^T (R written out by hand: +90 deg about z)."""
+    from css_ros.engine.gaussians import GaussianModel
+    from css_ros.view import live, server
+
+    domain = rh.next_domain_id()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    model_path = rh.write_wall_model(tmp_path / "wall.ply")
+    model = GaussianModel.from_ply(model_path)
+    h = float(np.sqrt(0.5))
+    node = rh.NodeProcess(dict(model_path=str(model_path), class_file="", num_classes=rh.NUM_CLASSES,
+                               checkpoint_period=0.0, view_period=0.3,
+                               splat_to_map=[2.0, 1.0, -2.0, 0.5, 0.0, 0.0, h, h]),
+                          domain, tmp_path / "node.log")
+    views: list = []
+    orig_init = server.MapView.__init__
+
+    def capture(self, *a, **kw):
+        orig_init(self, *a, **kw)
+        views.append(self)
+
+    monkeypatch.setattr(server.MapView, "__init__", capture)
+    ready, stop = threading.Event(), threading.Event()
+    args = argparse.Namespace(node="/css_node", host="127.0.0.1", port=free_port(), exit_after=60.0)
+    thread = threading.Thread(target=lambda: live.serve_live(args, ready, stop), daemon=True)
+    try:
+        thread.start()
+        assert ready.wait(60.0), node.log()[-3000:]
+        R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        data = views[0].data
+        np.testing.assert_allclose(data.centers, 2.0 * model.means.astype(np.float64) @ R.T + [1.0, -2.0, 0.5],
+                                   atol=1e-5)
+        np.testing.assert_allclose(data.covariances, 4.0 * R @ model.covariances() @ R.T, rtol=1e-4, atol=1e-9)
+    finally:
+        stop.set()
+        thread.join(15.0)
+        node.stop()

@@ -145,8 +145,8 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     # Map, viewer files (semantic and uncertainty splats) and the bird's-eye picture.
     t3 = time.perf_counter()
     smap.save(cfg.out / "map.npz")
-    write_replay_trajectory(cfg.out / "trajectory.npz", trajectory)
     splat_to_map = Similarity.from_params(cfg.splat_to_map)
+    write_replay_trajectory(cfg.out / "trajectory.npz", trajectory, splat_to_map)
     export_map(smap, classes, cfg.out, "map", formats=("semantic", "uncertainty"), splat_to_map=splat_to_map)
     birdseye = _birdseye(smap, classes, cfg.out / "birdseye.png", splat_to_map)
 

@@ -3,10 +3,14 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import CssError
+
+if TYPE_CHECKING:
+    from ..engine.similarity import Similarity
 
 #: (T_map_cam (4, 4), vertical field of view [rad], aspect width/height, U_var or NaN)
 Frustum = tuple[np.ndarray, float, float, float]
@@ -32,12 +36,18 @@ def load_trajectory(path: Path) -> list[Frustum]:
     return [(poses[i], float(fov[i]), float(aspect[i]), float(u[i])) for i in range(f)]
 
 
-def write_replay_trajectory(path: Path, frames: list) -> None:
-    """Write the fused frames' cameras (``(camera, u_var or None)`` pairs, :class:`css_ros.Camera`) as a
-    trajectory file; nothing when ``frames`` is empty."""
+def write_replay_trajectory(path: Path, frames: list, splat_to_map: "Similarity | None" = None) -> None:
+    """Write the fused frames' cameras (``(camera, u_var or None)`` pairs, :class:`css_ros.Camera`, poses in the
+    splat frame as the engine sees them) as a trajectory file in the map frame (moved by ``splat_to_map``, which
+    turns the camera axes by its rotation and carries the centre along; the scale moves the centre only);
+    nothing when ``frames`` is empty."""
     if not frames:
         return
     poses = np.stack([cam.T_map_cam for cam, _ in frames])
+    if splat_to_map is not None and not splat_to_map.is_identity:
+        poses = poses.copy()
+        poses[:, :3, :3] = splat_to_map.R[None] @ poses[:, :3, :3]
+        poses[:, :3, 3] = splat_to_map.apply(poses[:, :3, 3])
     fov = np.array([2.0 * np.arctan(cam.height / (2.0 * cam.fy)) for cam, _ in frames])
     aspect = np.array([(cam.width / cam.fx) / (cam.height / cam.fy) for cam, _ in frames])
     u = np.array([np.nan if uv is None else float(uv) for _, uv in frames])

@@ -96,7 +96,8 @@ class CssNode(Node):
         self.model_watcher = ModelWatcher(self, p, self.warn, self.stats.count, log.info)
         if p.view_period > 0:  # css_view --live
             self.worker.view_stream = ViewPublisher(self, self.smap, self.classes, p.view_period,
-                                                    p.view_max_changes, p.min_evidence)
+                                                    p.view_max_changes, p.min_evidence,
+                                                    Similarity.from_params(p.splat_to_map))
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
                               self._confidence_published, log.warning)
         frames = self.gate.frames

@@ -14,6 +14,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..engine.field3d import gaussian_semantics
+from ..engine.similarity import Similarity
 from ..io.view_stream import MODEL_CHUNK, changed_gaussians, info_json, model_chunks, semantics_columns
 from . import conversions as rc
 
@@ -28,7 +29,7 @@ class ViewPublisher:
     the next messages resend every Gaussian (a viewer that joins late calls it)."""
 
     def __init__(self, node: Node, smap: Any, classes: Any, period: float, max_changes: int,
-                 min_evidence: float) -> None:
+                 min_evidence: float, splat_to_map: Similarity | None = None) -> None:
         self.smap, self.period, self.max_changes, self.min_evidence = smap, period, max_changes, min_evidence
         self.clock = node.get_clock()
         n = smap.model.num_gaussians
@@ -51,6 +52,8 @@ class ViewPublisher:
         header = rc.header_msg(self.clock.now().nanoseconds, "map")
         self.pub_info.publish(String(data=info_json(n, model.fingerprint, classes.names, classes.palette,
                                                     min_evidence, smap.prior)))
+        if splat_to_map is not None and not splat_to_map.is_identity:
+            model = splat_to_map.transform_model(model)   # the map frame, as every other 3D output
         for cols in model_chunks(model.means, model.covariances(), model.base_colors, model.opacities):
             self.pub_model.publish(rc.cloud_msg(header, cols))
 

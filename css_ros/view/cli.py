@@ -14,6 +14,7 @@ import numpy as np
 from ..console import run_console
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
+from ..engine.similarity import Similarity
 from ..errors import CssError
 from .data import build_view_data, classes_for_map
 from ..io.trajectory import load_trajectory
@@ -44,7 +45,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N",
                    help="draw only the N most informative Gaussians (observed first, by evidence)")
-    p.add_argument("--live", action="store_true", help="follow a running css_node over DDS")
+    p.add_argument("--splat-to-map", type=float, nargs=8, metavar=("S", "X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                   help="show the map in the map frame of this similarity (css_node's splat_to_map; default: the "
+                   "replay folder's, else the splat's own frame)")
+    p.add_argument("--live", action="store_true", help="follow a running css_node over DDS (shows the node's "
+                   "map frame)")
     p.add_argument("--node", default="/css_node", help="node name to follow with --live (default /css_node)")
     p.add_argument("--exit-after", type=float, default=None, help=argparse.SUPPRESS)  # tests and benchmarks
     return p
@@ -86,6 +91,33 @@ def resolve_inputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None, P
     return map_file, model, classes, traj
 
 
+def display_frame(args: argparse.Namespace) -> Similarity:
+    """The splat -> map similarity the page is drawn in: ``--splat-to-map``, else the one a css_replay output
+    folder was made with (its metrics.json config), else the identity (the splat's own frame)."""
+    if args.splat_to_map is not None:
+        return Similarity.from_params(args.splat_to_map, "--splat-to-map")
+    metrics = args.map / "metrics.json" if args.map is not None and args.map.is_dir() else None
+    if metrics is not None and metrics.is_file():
+        try:
+            cfg = json.loads(metrics.read_text()).get("config", {})
+        except (OSError, ValueError, AttributeError) as exc:
+            raise CssError(f"cannot read {metrics}: {exc}") from None
+        if isinstance(cfg, dict) and cfg.get("splat_to_map") is not None:
+            return Similarity.from_params(cfg["splat_to_map"], f"{metrics}: splat_to_map")
+    return Similarity.identity()
+
+
+def map_frame_query(smap: SemanticMap, to_map: Similarity):
+    """The page's click query: points in the page's (map) frame, answered by the map in the splat's frame.
+    Returns a function (M, 3) -> (labels (M,), E (M, C), Var (M, C))."""
+    to_splat = to_map.inverse()
+
+    def query(xyz: np.ndarray):
+        q = smap.query_points(to_splat.apply(np.asarray(xyz, np.float64).reshape(-1, 3)))
+        return q.labels, q.expectation, q.variance
+    return query
+
+
 def serve_offline(args: argparse.Namespace) -> int:
     """Load the map, serve it, block until interrupted (or ``--exit-after`` seconds)."""
     from .server import MapView, check_port_free
@@ -98,15 +130,11 @@ def serve_offline(args: argparse.Namespace) -> int:
     model = GaussianModel.from_ply(model_file)
     smap = SemanticMap.load(map_file, model)
     classes = classes_for_map(smap, class_file)
-    data = build_view_data(smap, classes, args.max_gaussians)
+    to_map = display_frame(args)
+    data = build_view_data(smap, classes, args.max_gaussians, splat_to_map=to_map)
     if traj_file is not None:
-        data.trajectory = load_trajectory(traj_file)
-
-    def query(xyz: np.ndarray):
-        q = smap.query_points(xyz)
-        return q.labels, q.expectation, q.variance
-
-    view = MapView(data, args.host, args.port, query=query, title=f"{map_file.name} on {model_file.name}")
+        data.trajectory = load_trajectory(traj_file)   # css_replay writes it in the map frame
+    view = MapView(data, args.host, args.port, query=map_frame_query(smap, to_map), title=f"{map_file.name} on {model_file.name}")
     print(f"css_view: {len(data.index):,} of {model.num_gaussians:,} Gaussians loaded in "
           f"{time.perf_counter() - t0:.1f} s", flush=True)
     print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)

@@ -1,6 +1,7 @@
 """What the viewer shows of a map: per-Gaussian geometry and SPEC §9 semantics, and the informative subset.
 
-All arrays are per displayed Gaussian, in the map frame (metres).
+All arrays are per displayed Gaussian, in the map frame (metres): the splat moved by ``splat_to_map`` (the
+node's parameter of that name) when one is given, else the splat's own frame.
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 from ..engine.classes import ClassSet
 from ..engine.field3d import GaussianSemantics
 from ..engine.semantic_map import SemanticMap
+from ..engine.similarity import Similarity
 from ..engine.spec import DEFAULT_MIN_EVIDENCE
 from ..errors import CssError
 
@@ -56,8 +58,9 @@ def subset_semantics(sem: GaussianSemantics, index: np.ndarray) -> GaussianSeman
 
 
 def build_view_data(smap: SemanticMap, classes: ClassSet, max_gaussians: int | None = None,
-                    min_evidence: float = DEFAULT_MIN_EVIDENCE) -> ViewData:
-    """Per-Gaussian arrays of ``smap`` for the page, keeping the ``max_gaussians`` most informative ones."""
+                    min_evidence: float = DEFAULT_MIN_EVIDENCE, splat_to_map: Similarity | None = None) -> ViewData:
+    """Per-Gaussian arrays of ``smap`` for the page, keeping the ``max_gaussians`` most informative ones;
+    centres and covariances moved into the map frame by ``splat_to_map`` when given."""
     model = smap.model
     if classes.num_classes != smap.num_classes:
         raise CssError(f"the map has {smap.num_classes} classes but the class file has {classes.num_classes}")
@@ -69,6 +72,8 @@ def build_view_data(smap: SemanticMap, classes: ClassSet, max_gaussians: int | N
     else:
         index = np.arange(n)
     sub = model if len(index) == n else model.select(index)
+    if splat_to_map is not None and not splat_to_map.is_identity:
+        sub = splat_to_map.transform_model(sub)
     return ViewData(index=index, centers=sub.means.astype(np.float32),
                     covariances=sub.covariances().astype(np.float32), rgb=sub.base_colors,
                     opacity=sub.opacities, classes=classes,
