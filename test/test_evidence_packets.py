@@ -77,8 +77,48 @@ def test_outbox_publishes_only_its_own_evidence():
         got[p.rows] = p.values
     np.testing.assert_allclose(got, own_true, rtol=1e-12, atol=1e-14)
     assert not np.any(np.isin(np.arange(10), np.concatenate([p.rows for p in packets])))  # no echo
-    assert box.deltas(box.own(alpha, received), alpha) == []        # nothing new: nothing sent
+    assert box.deltas(alpha, received) == []                         # nothing new: nothing sent
     alpha[12] += 0.5
-    (delta,) = [decode_packet(p, 16) for p in box.deltas(box.own(alpha, received), alpha)]
+    (delta,) = [decode_packet(p, 16) for p in box.deltas(alpha, received)]
     assert delta.seq == 4 and delta.rows.tolist() == [12]
     np.testing.assert_allclose(delta.values[0], 0.5, rtol=1e-12)
+
+
+def test_deltas_equal_the_plain_formula_and_the_received_total_is_kept_in_step():
+    """The publisher's one-pass delta test (numba) sends exactly the rows and values of the plain numpy rule
+    (own = alpha - prior - received, rounding-level own is 0, rows where some class grew beyond rounding);
+    the ledger's maintained total equals the sum of its sources after deltas, snapshots and a reset."""
+    rng = np.random.default_rng(5)
+    n, c = 400, 5
+    box = EvidenceOutbox("me", FP, n, c, PRIOR, max_rows=64)
+    received = rng.uniform(0, 3, (n, c))
+    alpha = PRIOR + received + rng.uniform(0, 1, (n, c)) * (rng.random((n, c)) < 0.3)
+    box.snapshot(box.own(alpha, received))
+    grow = rng.choice(n, 50, replace=False)
+    alpha[grow, rng.integers(0, c, 50)] += rng.uniform(0.01, 2.0, 50)
+    alpha[::37, 1] += 1e-15                                            # rounding-level alone: not sent
+    own = alpha - PRIOR - received
+    own[own <= 1e-12 * alpha.sum(axis=1, keepdims=True)] = 0.0
+    delta = own - box.published
+    want_rows = np.flatnonzero(np.any(delta > 1e-12 * alpha.sum(axis=1, keepdims=True), axis=1))
+    want_vals = np.maximum(delta[want_rows], 0.0)
+    packets = [decode_packet(p, n) for p in box.deltas(alpha, received)]
+    assert np.array_equal(np.concatenate([p.rows for p in packets]), want_rows) and set(want_rows) == set(grow)
+    np.testing.assert_array_equal(np.concatenate([p.values for p in packets]), want_vals)
+    assert box.deltas(alpha, received) == []
+
+    ledger = EvidenceLedger("me", FP, n, c, PRIOR, max_sources=4)
+    conc = np.full((n, c), PRIOR)
+    for origin, seq0 in (("a", 1), ("b", 1)):
+        rows = np.sort(rng.choice(n, 30, replace=False))
+        vals = rng.uniform(0, 2, (30, c))
+        assert ledger.apply(decode_packet(encode_packet(SNAPSHOT, origin, FP, seq0, rows, vals, PRIOR, n,
+                                                        snapshot_id=seq0, range_start=0, range_end=n, part=0,
+                                                        parts=1), n), conc) is None
+        rows2 = np.sort(rng.choice(n, 20, replace=False))
+        assert ledger.apply(decode_packet(encode_packet(DELTA, origin, FP, seq0 + 1, rows2, vals[:20], PRIOR, n),
+                                          n), conc) is None
+    np.testing.assert_allclose(ledger.received_total(), sum(s.evidence for s in ledger.sources.values()), rtol=1e-15)
+    np.testing.assert_allclose(conc, PRIOR + ledger.received_total(), rtol=1e-14)
+    ledger.forget()
+    assert not ledger.received_total().any() and not any(s.in_step for s in ledger.sources.values())

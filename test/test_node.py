@@ -61,11 +61,14 @@ class Live:
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Live]:
     lv = Live(tmp_path_factory.mktemp("css_node"))
-    # Missing camera_info: the node has not received any yet.
-    lv.no_info_stamp = lv.stamp()
-    lv.client.send_pose(lv.no_info_stamp)
-    lv.client.send_image("segmentation", lv.no_info_stamp, rh.wall_labels(), "mono8")
-    lv.client.wait_diag("warn[segmentation: no camera_info received yet]", 1, timeout=10.0)
+    # Missing camera_info: the node has not received any yet. Inputs are best effort, so a first message can
+    # still be lost to discovery: send again (a fresh stamp each time) until the node has warned once.
+    for _ in range(5):
+        lv.no_info_stamp = lv.stamp()
+        lv.client.send_pose(lv.no_info_stamp)
+        lv.client.send_image("segmentation", lv.no_info_stamp, rh.wall_labels(), "mono8")
+        if lv.client.wait_diag("warn[segmentation: no camera_info received yet]", 1, timeout=4.0) >= 1:
+            break
     yield lv
     lv.client.close()
     code = lv.node.stop()

@@ -37,6 +37,7 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..errors import InputError
 
@@ -159,13 +160,19 @@ class EvidenceLedger:
         self.max_sources = max_sources
         self.max_concentration = max_concentration
         self.sources: dict[str, SourceState] = {}
+        self._total = np.zeros((num_gaussians, num_classes))   # Σ over sources of their evidence, kept in step
 
     def received_total(self) -> np.ndarray:
-        """(N, C) float64 Σ over sources of their evidence in the map."""
-        total = np.zeros((self.n, self.c))
+        """(N, C) float64 Σ over sources of their evidence in the map, maintained as packets are applied (no
+        pass over the sources: the publisher reads it every period). Read-only for the caller."""
+        return self._total
+
+    def forget(self) -> None:
+        """The map was reset or replaced: every source's evidence in it is gone; each must re-sync by snapshot."""
         for s in self.sources.values():
-            total += s.evidence
-        return total
+            s.evidence[...] = 0.0
+            s.in_step = False
+        self._total[...] = 0.0
 
     def apply(self, pkt: EvidencePacket, concentrations: np.ndarray) -> str | None:
         """Apply one decoded packet to ``concentrations`` (N, C) in place, or return why it was refused."""
@@ -197,6 +204,7 @@ class EvidenceLedger:
                 return "evidence would exceed the concentration bound"
             concentrations[rows] = new_alpha
             state.evidence[rows] += pkt.values
+            self._total[rows] += pkt.values
         else:
             if pkt.part == 0:
                 state.snapshot_id, state.snapshot_next_part = pkt.seq, 0
@@ -211,6 +219,7 @@ class EvidenceLedger:
             if np.any(new_alpha > self.max_concentration):
                 return "evidence would exceed the concentration bound"
             concentrations[lo:hi] = np.maximum(new_alpha, self.prior)
+            self._total[lo:hi] += block - state.evidence[lo:hi]
             state.evidence[lo:hi] = block
             state.snapshot_next_part += 1
             if state.snapshot_next_part == pkt.parts:
@@ -235,6 +244,8 @@ class EvidenceOutbox:
         self.max_rows = max(1, int(max_rows))
         self.published = np.zeros((num_gaussians, num_classes))
         self.seq = 0
+        z = np.zeros((1, 1))
+        _grown_rows(z, z, z, 0.0, 0.0, np.empty(1, np.int64))   # compile (or load) now, not under the map lock
 
     def own(self, concentrations: np.ndarray, received: np.ndarray) -> np.ndarray:
         """(N, C) this node's own evidence (rounding-level values set to 0)."""
@@ -246,15 +257,21 @@ class EvidenceOutbox:
         """Forget what was published (after a map reset / load: the next snapshot re-states the total)."""
         self.published[...] = 0.0
 
-    def deltas(self, own: np.ndarray, concentrations: np.ndarray) -> list[bytes]:
-        """Packets of the evidence added since the last call (rows that grew), at most ``max_rows`` rows each."""
-        delta = own - self.published
-        floor = ROUNDING_FRACTION * concentrations.sum(axis=1, keepdims=True)
-        changed = np.flatnonzero(np.any(delta > floor, axis=1))
+    def deltas(self, concentrations: np.ndarray, received: np.ndarray) -> list[bytes]:
+        """Packets of the own evidence added since the last call (rows that grew), at most ``max_rows`` rows each.
+
+        One fused pass over the map (:func:`_grown_rows`, no (N, C) temporaries): the publisher runs this every
+        ``evidence_period`` while holding the map lock. The same rule as :meth:`own` and :meth:`snapshot`: own
+        evidence below ROUNDING_FRACTION of a row's total counts as 0, and a row is sent when some class grew by
+        more than that.
+        """
+        changed = _grown_rows(concentrations, received, self.published, self.prior, ROUNDING_FRACTION,
+                              np.empty(self.n, np.int64))
         out = []
         for a in range(0, changed.size, self.max_rows):
             rows = changed[a:a + self.max_rows]
-            vals = np.maximum(delta[rows], 0.0)
+            own = self.own(concentrations[rows], received[rows])
+            vals = np.maximum(own - self.published[rows], 0.0)
             self.published[rows] += vals
             self.seq += 1
             out.append(encode_packet(DELTA, self.origin, self.fingerprint, self.seq, rows, vals, self.prior, self.n))
@@ -275,3 +292,24 @@ class EvidenceOutbox:
                                      self.n, snapshot_id=first, range_start=lo, range_end=hi, part=k,
                                      parts=len(chunks)))
         return out
+
+
+@njit(cache=True, nogil=True)
+def _grown_rows(alpha, received, published, prior, frac, scratch):  # pragma: no cover - compiled
+    """Rows n where some class c has own - published > frac * sum_c alpha[n] (own = alpha - prior - received,
+    set to 0 at or below that floor), in increasing order: :meth:`EvidenceOutbox.deltas`' test in one pass."""
+    m = 0
+    for n in range(alpha.shape[0]):
+        total = 0.0
+        for c in range(alpha.shape[1]):
+            total += alpha[n, c]
+        floor = frac * total
+        for c in range(alpha.shape[1]):
+            own = alpha[n, c] - prior - received[n, c]
+            if own <= floor:
+                own = 0.0
+            if own - published[n, c] > floor:
+                scratch[m] = n
+                m += 1
+                break
+    return scratch[:m].copy()

@@ -83,9 +83,7 @@ class EvidenceLink:
     def map_replaced(self) -> None:
         """The map was reset or loaded: received evidence is gone, every source must re-sync by snapshot."""
         with self.worker.map_lock:
-            for s in self.ledger.sources.values():
-                s.evidence[...] = 0.0
-                s.in_step = False
+            self.ledger.forget()
             self._next_snapshot = 0.0
 
     # ------------------------------------------------------------------ out
@@ -96,13 +94,13 @@ class EvidenceLink:
             return
         with self.worker.map_lock:
             alpha = self.worker.smap.concentrations
-            own = self.outbox.own(alpha, self.ledger.received_total())
+            received = self.ledger.received_total()
             if now >= self._next_snapshot:
-                packets = self.outbox.snapshot(own)
+                packets = self.outbox.snapshot(self.outbox.own(alpha, received))
                 self._next_snapshot = now + self.p.evidence_snapshot_period
                 self.count("evidence_snapshots_sent")
             else:
-                packets = self.outbox.deltas(own, alpha)
+                packets = self.outbox.deltas(alpha, received)
         for data in packets:
             msg = UInt8MultiArray()
             msg.data = data
