@@ -127,7 +127,7 @@ def test_class_file_matches_scene():
 
 # ------------------------------------------------------------------------------------------------ rendering
 def _renderer(num_gaussians: int = 30_000):
-    from css_ros.demo.make_demo import DemoRenderer
+    from css_ros.demo.renderer import DemoRenderer
 
     s = build_scene_arrays(num_gaussians, seed=0)
     model, _ = build_indoor_scene(num_gaussians, seed=0)
@@ -176,7 +176,7 @@ def test_gt_labels_match_the_visible_surface_looking_down_at_the_rug_corner(rend
 
 
 def test_systematic_rules_relabel_only_their_objects():
-    from css_ros.demo.make_demo import DemoRenderer, systematic_rule_masks
+    from css_ros.demo.renderer import DemoRenderer, systematic_rule_masks
     from css_ros.demo.segmentation_noise import DEFAULT_SYSTEMATIC
 
     s = build_scene_arrays(30_000, seed=0)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -26,16 +25,11 @@ from typing import Any, Literal, Sequence
 import numpy as np
 
 from ..errors import CssError
-from ..io.bag import BagWriter
-from ..io.topics import BAG_TOPICS
+from ..io.topics import BAG_CAMERA_FRAME, BAG_MAP_FRAME, BAG_START_NS, BAG_TOPICS
+from .renderer import FOV_X_DEG, DemoRenderer, bag_in_place, camera_k, systematic_rule_masks
+from .robot_demo import ROBOT_DEFAULTS, make_robot_demo
 
-__all__ = ["DemoRenderer", "DemoStats", "main", "make_demo", "systematic_rule_masks"]
-
-CAMERA_FRAME = "camera_optical"
-MAP_FRAME = "map"
-START_NS = 1_700_000_000_000_000_000  #: stamp of frame 0 (fixed: no wall clock in the output)
-GT_CONCENTRATION = 1e4  #: one-hot concentration used to render ground-truth labels
-FOV_X_DEG = 64.0  #: horizontal field of view of the demo camera
+__all__ = ["DemoStats", "main", "make_demo"]
 #: Defaults of the shipped demo (sized so bags/demo stays well under 15 MB and replays in well under 2 min).
 DEFAULTS = {"num_gaussians": 50_000, "frames": 120, "width": 256, "height": 192}
 
@@ -56,105 +50,6 @@ class DemoStats:
     late_first_frame: int           # first frame of the trajectory's late phase (unseen south-west corner)
     bytes_total: int = 0
     seconds: float = 0.0
-
-
-def _camera_k(width: int, height: int) -> np.ndarray:
-    from ..engine.camera import intrinsics_from_fov
-
-    return intrinsics_from_fov(width, height, FOV_X_DEG)
-
-
-class DemoRenderer:
-    """Renders colour, ground-truth labels and the systematically biased labels of stage 0 (see
-    :mod:`css_ros.segmentation_noise`) in one rasterisation per view.
-
-    Each Gaussian belongs to a *group*: its class id, or ``C + r`` if stage-0 rule r selects it. A semantic map
-    over the G groups with one-hot concentrations (x 1e4) is rendered with per-group probabilities; summing
-    the group channels into class channels gives the ground truth (every group to its own class) or the
-    biased labels (groups of active rules to their target class). Pixels whose background weight exceeds 0.5
-    get 255 (no surface).
-
-    Args:
-        model: the splat (map frame).
-        class_ids: (N,) ground-truth class per Gaussian, in [0, C).
-        num_classes: C.
-        rule_masks: per stage-0 rule, (N,) bool selection of Gaussians (earlier rules win on overlap).
-        rule_targets: per rule, the class id the biased labels use.
-    """
-
-    def __init__(self, model: Any, class_ids: np.ndarray, num_classes: int,
-                 rule_masks: Sequence[np.ndarray] = (), rule_targets: Sequence[int] = (),
-                 backend: str = "numba") -> None:
-        from ..engine.semantic_map import SemanticMap
-
-        class_ids = np.asarray(class_ids, dtype=np.int64)
-        C = int(num_classes)
-        group = class_ids.copy()
-        source = []
-        for r, mask in enumerate(rule_masks):
-            sel = np.asarray(mask, dtype=bool) & (group < C)
-            group[sel] = C + r
-            src = np.unique(class_ids[sel])
-            if src.size > 1:
-                raise CssError(f"systematic rule {r} selects Gaussians of several classes {src.tolist()}")
-            source.append(int(src[0]) if src.size else 0)
-        self.num_classes = C
-        self.num_groups = C + len(rule_masks)
-        self.source = np.asarray(source, dtype=np.int64)
-        self.targets = np.asarray(list(rule_targets), dtype=np.int64)
-        if self.targets.shape != self.source.shape:
-            raise CssError("rule_targets must have one class id per rule mask")
-        self.smap = SemanticMap(model, num_classes=self.num_groups, prior=1e-3, ignore_label=255,
-                                unknown_threshold=0.5, backend=backend)
-        self.smap.concentrations[np.arange(model.num_gaussians), group] = GT_CONCENTRATION
-
-    def _merge(self, active: Sequence[bool]) -> np.ndarray:
-        M = np.zeros((self.num_groups, self.num_classes))
-        M[np.arange(self.num_classes), np.arange(self.num_classes)] = 1.0
-        for r in range(len(self.source)):
-            on = bool(active[r]) if r < len(active) else False
-            M[self.num_classes + r, self.targets[r] if on else self.source[r]] = 1.0
-        return M
-
-    def render(self, camera: Any, active: Sequence[bool] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(rgb (H,W,3) uint8, gt (H,W) uint8, biased (H,W) uint8) at ``camera``; ``active[r]`` turns rule r on."""
-        view = self.smap.render(camera, probabilities=True)
-        P = view.probabilities.astype(np.float64)
-        bg = view.background.astype(np.float64)
-        P -= bg[..., None] / self.num_groups  # drop the background Dirichlet's uniform share
-        empty = bg > 0.5
-        gt = np.argmax(P @ self._merge(()), axis=-1).astype(np.uint8)
-        gt[empty] = 255
-        if any(active):
-            biased = np.argmax(P @ self._merge(active), axis=-1).astype(np.uint8)
-            biased[empty] = 255
-        else:
-            biased = gt.copy()
-        return view.rgb, gt, biased
-
-
-def systematic_rule_masks(scene: Any, class_names: Sequence[str], rules: Sequence[Any]
-                          ) -> tuple[list[np.ndarray], list[int]]:
-    """Per stage-0 rule, the (N,) Gaussian selection in ``scene`` (a demo_scene.SceneArrays) and its target id.
-
-    Rules naming classes that do not exist are skipped (empty selection, target = source)."""
-    idx = {n: i for i, n in enumerate(class_names)}
-    names = np.array([p.name for p in scene.primitives])
-    masks, targets = [], []
-    for rule in rules:
-        if rule.source_class not in idx or rule.target_class not in idx:
-            masks.append(np.zeros(len(scene.class_ids), dtype=bool))
-            targets.append(idx.get(rule.source_class, 0))
-            continue
-        mask = scene.class_ids == idx[rule.source_class]
-        if rule.name_prefix is not None:
-            ok = np.array([n.startswith(rule.name_prefix) for n in names], dtype=bool)
-            mask &= ok[scene.primitive_ids]
-        if rule.min_z is not None:
-            mask &= scene.means[:, 2] >= rule.min_z
-        masks.append(mask)
-        targets.append(idx[rule.target_class])
-    return masks, targets
 
 
 def _dir_bytes(path: Path) -> int:
@@ -195,25 +90,16 @@ def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], f
     classes = demo_class_set()
     traj = robot_trajectory(frames, seed=seed)
     noise = SegmentationNoise(CLASS_NAMES, seed=seed)
-    stamps = START_NS + np.rint(traj.times * 1e3).astype(np.int64) * 1_000_000  # millisecond-aligned
-    K = _camera_k(width, height)
-
-    # write into a scratch parent with the final directory name (rosbags names the storage file after it),
-    # then move it into place: an interrupted run never leaves a half-written OUT/bag
-    scratch = out / ".css_make_demo.tmp"
-    if scratch.exists():
-        shutil.rmtree(scratch)
-    scratch.mkdir()
-    tmp_dir = scratch / bag_dir.name
-    writer = BagWriter(tmp_dir, storage, zstd_level=19)
-    writer.set_custom_data("css_ros.demo", json.dumps(
-        {"generator": "css_make_demo", "num_gaussians": num_gaussians, "frames": frames, "width": width,
-         "height": height, "seed": seed}, sort_keys=True))
+    stamps = BAG_START_NS + np.rint(traj.times * 1e3).astype(np.int64) * 1_000_000  # millisecond-aligned
+    K = camera_k(width, height)
     masks, targets = systematic_rule_masks(scene, CLASS_NAMES, DEFAULT_SYSTEMATIC)
     renderer = DemoRenderer(model, scene.class_ids, classes.num_classes, masks, targets, backend=backend)
     errors: list[float] = []
     unlabelled = 0
-    try:
+    with bag_in_place(out, storage) as writer:
+        writer.set_custom_data("css_ros.demo", json.dumps(
+            {"generator": "css_make_demo", "num_gaussians": num_gaussians, "frames": frames, "width": width,
+             "height": height, "seed": seed}, sort_keys=True))
         with writer:
             frame_iter: Any = range(frames)
             if progress:
@@ -227,22 +113,15 @@ def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], f
                 rgb, gt, biased = renderer.render(cam, active)
                 seg, conf = noise.apply(biased, i)
                 stamp = int(stamps[i])
-                writer.write_camera_info(BAG_TOPICS["camera_info"], K, width, height, stamp, CAMERA_FRAME)
-                writer.write_pose(BAG_TOPICS["pose"], traj.positions[i], traj.quaternions_xyzw[i], stamp, MAP_FRAME)
-                writer.write_image(BAG_TOPICS["image"], rgb, "rgb8", stamp, CAMERA_FRAME)
-                writer.write_image(BAG_TOPICS["segmentation"], seg, "mono8", stamp, CAMERA_FRAME)
-                writer.write_image(BAG_TOPICS["confidence"], conf, "32FC1", stamp, CAMERA_FRAME)
-                writer.write_image(BAG_TOPICS["gt"], gt, "mono8", stamp, CAMERA_FRAME)
+                writer.write_camera_info(BAG_TOPICS["camera_info"], K, width, height, stamp, BAG_CAMERA_FRAME)
+                writer.write_pose(BAG_TOPICS["pose"], traj.positions[i], traj.quaternions_xyzw[i], stamp, BAG_MAP_FRAME)
+                writer.write_image(BAG_TOPICS["image"], rgb, "rgb8", stamp, BAG_CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["segmentation"], seg, "mono8", stamp, BAG_CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["confidence"], conf, "32FC1", stamp, BAG_CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["gt"], gt, "mono8", stamp, BAG_CAMERA_FRAME)
                 valid = gt != 255
                 unlabelled += int(np.count_nonzero(~valid))
                 errors.append(float(np.count_nonzero((seg != gt) & valid)) / max(1, int(np.count_nonzero(valid))))
-    except BaseException:
-        shutil.rmtree(scratch, ignore_errors=True)
-        raise
-    if bag_dir.exists():
-        shutil.rmtree(bag_dir)
-    tmp_dir.rename(bag_dir)
-    scratch.rmdir()
 
     model.to_ply(out / "model.ply", extra_fields={"class_id": scene.class_ids.astype(np.uint8)})
     classes.to_yaml(out / "classes.yaml")
@@ -423,8 +302,6 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"in {stats.seconds:.0f} s")
     return 0
 
-
-from .robot_demo import ROBOT_DEFAULTS, make_robot_demo  # noqa: E402 - robot_demo imports this module's helpers
 
 if __name__ == "__main__":
     sys.exit(main())

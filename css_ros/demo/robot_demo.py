@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +31,8 @@ from ..engine.similarity import Similarity
 from ..errors import CssError
 from ..io.bag import BagWriter
 from ..io.params_file import PARAMS_FILE_NAME, write_params_file
-from ..io.topics import BAG_TOPICS, POSE_TYPES
+from ..io.topics import BAG_START_NS, BAG_TOPICS, POSE_TYPES
+from .renderer import DemoRenderer, bag_in_place, camera_k, systematic_rule_masks
 
 #: Odometry rate [Hz] and the delay [s] between an odometry sample's stamp and its log time.
 ODOM_RATE_HZ = 100.0
@@ -143,7 +143,6 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
 
     ``frames`` per camera, equally spaced over the path; the left camera's stamps are offset by half a period.
     """
-    from .make_demo import START_NS, DemoRenderer, _camera_k, systematic_rule_masks
     from .scene import CLASS_NAMES, build_scene_arrays, demo_class_set
     from .segmentation_noise import DEFAULT_SYSTEMATIC, SegmentationNoise
     from ..engine.gaussians import GaussianModel
@@ -162,25 +161,18 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
     noise = SegmentationNoise(CLASS_NAMES, seed=seed)
     masks, targets = systematic_rule_masks(scene, CLASS_NAMES, DEFAULT_SYSTEMATIC)
     renderer = DemoRenderer(model, scene.class_ids, classes.num_classes, masks, targets)
-    K = _camera_k(width, height)
+    K = camera_k(width, height)
     period = path.duration / frames
-    scratch = out / ".css_make_demo.tmp"
-    shutil.rmtree(scratch, ignore_errors=True)
-    scratch.mkdir()
-    writer = BagWriter(scratch / bag_dir.name, "mcap", zstd_level=19)
-    writer.set_custom_data("css_ros.demo", json.dumps({"generator": "css_make_demo --robot", "frames": frames,
-                                                       "width": width, "height": height, "seed": seed,
-                                                       "num_gaussians": num_gaussians}, sort_keys=True))
     events: list[tuple[int, int, Any]] = []   # (log time, order, write function)
     n_odom = int(path.duration * ODOM_RATE_HZ) + 1
     for k in range(n_odom):
         t = k / ODOM_RATE_HZ
-        stamp = START_NS + int(round(t * 1e9))
+        stamp = BAG_START_NS + int(round(t * 1e9))
         events.append((stamp + int(ODOM_DELAY_S * 1e9), 0, ("odom", stamp, *path.pose(t))))
     for c, ns in enumerate(CAMERAS):
         for i in range(frames):
             t = (i + 0.5 * c) * period
-            stamp = START_NS + int(round(t * 1e9))
+            stamp = BAG_START_NS + int(round(t * 1e9))
             events.append((stamp, 1, ("camera", stamp, ns, c, i, t)))
             events.append((stamp + int(SEGMENTATION_LATENCY_S * 1e9), 2, ("seg", stamp, ns)))
     events.sort(key=lambda e: (e[0], e[1]))
@@ -190,7 +182,10 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
         from tqdm import tqdm
 
         iterator = tqdm(events, desc="css_make_demo --robot", unit="msg", file=sys.stderr, mininterval=0.5)
-    try:
+    with bag_in_place(out) as writer:
+        writer.set_custom_data("css_ros.demo", json.dumps({"generator": "css_make_demo --robot", "frames": frames,
+                                                           "width": width, "height": height, "seed": seed,
+                                                           "num_gaussians": num_gaussians}, sort_keys=True))
         with writer:
             for log_ns, _, ev in iterator:
                 if ev[0] == "odom":
@@ -216,13 +211,6 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
                     # written at their arrival (log) time, stamped with the image's time
                     _write_late_image(writer, f"/{ns}{BAG_TOPICS['confidence']}", conf, "32FC1", stamp, log_ns, ns)
                     _write_late_image(writer, f"/{ns}{BAG_TOPICS['segmentation']}", seg, "mono8", stamp, log_ns, ns)
-    except BaseException:
-        shutil.rmtree(scratch, ignore_errors=True)
-        raise
-    if bag_dir.exists():
-        shutil.rmtree(bag_dir)
-    (scratch / bag_dir.name).rename(bag_dir)
-    scratch.rmdir()
     to_map = splat_to_map()
     to_map.inverse().transform_model(model).to_ply(out / "model.ply",
                                                     extra_fields={"class_id": scene.class_ids.astype(np.uint8)})

@@ -8,7 +8,7 @@ OUT is complete or untouched: everything is written into a temporary folder besi
 (``.<OUT name>.css_import-*``) and moved into OUT by renames at the end; a failure (full disk, a bad
 label file, SIGINT/SIGTERM) removes the temporary folder and leaves an earlier import in OUT as it was.
 
-Every frame i gets the stamp ``START_NS + round(i * 1e9 / rate_hz)`` on all its messages; frame ids
+Every frame i gets the stamp ``BAG_START_NS + round(i * 1e9 / rate_hz)`` on all its messages; frame ids
 are the demo's (``camera_optical`` for images and camera_info, ``map`` for the pose).
 """
 from __future__ import annotations
@@ -27,14 +27,11 @@ from ..engine.classes import ClassSet
 from ..errors import BagError, CssError
 from ..io.bag import BagWriter
 from ..io.params_file import PARAMS_FILE_NAME, write_params_file
-from ..io.topics import BAG_TOPICS
+from ..io.topics import BAG_CAMERA_FRAME, BAG_MAP_FRAME, BAG_START_NS, BAG_TOPICS
 from .labels import LabelDecoder, read_confidence, read_rgb
 from .pairing import ImportFrame
 from .views import ImportFormatError, PosedView
 
-CAMERA_FRAME = "camera_optical"   #: frame id of images and camera_info (as the demo bag)
-MAP_FRAME = "map"                 #: frame id of the poses (as the demo bag)
-START_NS = 1_700_000_000_000_000_000  #: stamp of frame 0 [ns] (fixed: byte-identical output for equal input)
 #: What an import writes into OUT (each is replaced as a whole by a rename).
 OUTPUTS = ("bag", "model.ply", "classes.yaml", PARAMS_FILE_NAME)
 
@@ -54,10 +51,10 @@ class ImportSummary:
 
 
 def stamps_ns(n: int, rate_hz: float) -> np.ndarray:
-    """(n,) int64 stamps [ns]: frame i at ``START_NS + round(i * 1e9 / rate_hz)``."""
+    """(n,) int64 stamps [ns]: frame i at ``BAG_START_NS + round(i * 1e9 / rate_hz)``."""
     if not (np.isfinite(rate_hz) and rate_hz > 0):
         raise ImportFormatError(f"--rate must be > 0 Hz, got {rate_hz}")
-    return START_NS + np.rint(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
+    return BAG_START_NS + np.rint(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
 
 
 def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | Path, classes: ClassSet,
@@ -151,17 +148,17 @@ def _write_into(tmp: Path, out: Path, frames: Sequence[ImportFrame], model: Path
             valid = seg != ignore_label
             labelled += int(valid.sum())
             out_of_range += int((valid & (seg >= C)).sum())
-            bag.write_camera_info(BAG_TOPICS["camera_info"], v.K, v.width, v.height, s, CAMERA_FRAME)
-            bag.write_pose(BAG_TOPICS["pose"], v.position, v.quaternion_xyzw, s, MAP_FRAME)
+            bag.write_camera_info(BAG_TOPICS["camera_info"], v.K, v.width, v.height, s, BAG_CAMERA_FRAME)
+            bag.write_pose(BAG_TOPICS["pose"], v.position, v.quaternion_xyzw, s, BAG_MAP_FRAME)
             if f.image is not None:
-                bag.write_image(BAG_TOPICS["image"], _sized(read_rgb(f.image), v, f.image), "rgb8", s, CAMERA_FRAME)
-            bag.write_image(BAG_TOPICS["segmentation"], seg, enc, s, CAMERA_FRAME)
+                bag.write_image(BAG_TOPICS["image"], _sized(read_rgb(f.image), v, f.image), "rgb8", s, BAG_CAMERA_FRAME)
+            bag.write_image(BAG_TOPICS["segmentation"], seg, enc, s, BAG_CAMERA_FRAME)
             if f.confidence is not None:
                 conf = _sized(read_confidence(f.confidence), v, f.confidence)
-                bag.write_image(BAG_TOPICS["confidence"], conf, "32FC1", s, CAMERA_FRAME)
+                bag.write_image(BAG_TOPICS["confidence"], conf, "32FC1", s, BAG_CAMERA_FRAME)
             if f.gt is not None:
                 bag.write_image(BAG_TOPICS["gt"], _ids(decoder.read(f.gt), v, f.gt, limit, dtype), enc, s,
-                                CAMERA_FRAME)
+                                BAG_CAMERA_FRAME)
             if progress is not None:
                 progress(1)
     model_out = out / "model.ply"

@@ -53,6 +53,12 @@ BAG_TOPICS: dict[str, str] = {
 }
 #: Kinds every usable bag must have; the others are optional.
 REQUIRED_BAG_KINDS = ("segmentation", "pose", "camera_info")
+#: Header frame ids and first stamp of the bags this package writes (demo generator, importers): images and
+#: camera_info in the camera's optical frame, poses in the map frame; frame 0 at a fixed stamp [ns] (no wall
+#: clock in the output, so equal input gives byte-identical bags).
+BAG_CAMERA_FRAME = "camera_optical"
+BAG_MAP_FRAME = "map"
+BAG_START_NS = 1_700_000_000_000_000_000
 
 #: name -> message type of the node's private outputs (``~/<name>``), in publishing order.
 OUTPUT_TOPICS: dict[str, str] = {
