@@ -19,11 +19,35 @@ pytestmark = pytest.mark.slow
 UPDATE_BOUND_S = 6.0   # generous on a loaded 2-core CI machine; benchmarks/view_stream.py measures the latency
 
 
+class Follower:
+    """css_view --live in a thread of this process (as its console script runs it), with the page it builds."""
+
+    def __init__(self, monkeypatch, exit_after: float) -> None:
+        from css_ros.view import live, server
+
+        self.views: list = []
+        orig_init = server.MapView.__init__
+
+        def capture(view, *a, **kw):
+            orig_init(view, *a, **kw)
+            self.views.append(view)
+
+        monkeypatch.setattr(server.MapView, "__init__", capture)
+        self.ready, self.stop = threading.Event(), threading.Event()
+        args = argparse.Namespace(node="/css_node", host="127.0.0.1", port=free_port(), exit_after=exit_after)
+        self.result: list = []
+        self.thread = threading.Thread(target=lambda: self.result.append(live.serve_live(args, self.ready, self.stop)),
+                                       daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(15.0)
+
+
 def test_live_view_follows_the_node(tmp_path, monkeypatch):
     from css_ros.engine.field3d import gaussian_semantics
     from css_ros.engine.gaussians import GaussianModel
-    from css_ros.view import live, server
-
     domain = rh.next_domain_id()
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     model_path = rh.write_wall_model(tmp_path / "wall.ply")
@@ -32,23 +56,11 @@ def test_live_view_follows_the_node(tmp_path, monkeypatch):
     node = rh.NodeProcess(dict(model_path=str(model_path), class_file="", num_classes=rh.NUM_CLASSES,
                                checkpoint_path=str(npz), checkpoint_period=0.0, view_period=0.3),
                           domain, tmp_path / "node.log")
-    views: list = []
-    orig_init = server.MapView.__init__
-
-    def capture(self, *a, **kw):
-        orig_init(self, *a, **kw)
-        views.append(self)
-
-    monkeypatch.setattr(server.MapView, "__init__", capture)
-    ready, stop = threading.Event(), threading.Event()
-    args = argparse.Namespace(node="/css_node", host="127.0.0.1", port=free_port(), exit_after=90.0)
-    result: list = []
-    thread = threading.Thread(target=lambda: result.append(live.serve_live(args, ready, stop)), daemon=True)
     client = rh.RosClient(domain)
+    follower = Follower(monkeypatch, 90.0)
     try:
-        thread.start()
-        assert ready.wait(60.0), node.log()[-3000:]
-        view = views[0]
+        assert follower.ready.wait(60.0), node.log()[-3000:]
+        view = follower.views[0]
         assert view.data.num_gaussians == model.num_gaussians
         np.testing.assert_allclose(view.data.centers, model.means, atol=1e-6)
         np.testing.assert_allclose(view.data.covariances, model.covariances(), rtol=1e-5, atol=1e-9)
@@ -77,13 +89,12 @@ def test_live_view_follows_the_node(tmp_path, monkeypatch):
         # the node goes away: the page says so; nothing crashes
         assert node.stop() == 0
         assert client.wait_until(lambda: "node gone" in view.status.content, 15.0), view.status.content
-        assert thread.is_alive()
+        assert follower.thread.is_alive()
     finally:
-        stop.set()
-        thread.join(15.0)
+        follower.close()
         client.close()
         node.stop()
-    assert result == [0]
+    assert follower.result == [0]
 
 
 def test_live_view_draws_the_splat_in_the_nodes_map_frame(tmp_path, monkeypatch):
@@ -91,8 +102,6 @@ def test_live_view_draws_the_splat_in_the_nodes_map_frame(tmp_path, monkeypatch)
     or frustums (map frame) and Gaussians (splat frame) would not line up: centres s R mu + t, covariances
     s^2 R Sigma R^T (R written out by hand: +90 deg about z)."""
     from css_ros.engine.gaussians import GaussianModel
-    from css_ros.view import live, server
-
     domain = rh.next_domain_id()
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     model_path = rh.write_wall_model(tmp_path / "wall.ply")
@@ -102,26 +111,14 @@ def test_live_view_draws_the_splat_in_the_nodes_map_frame(tmp_path, monkeypatch)
                                checkpoint_period=0.0, view_period=0.3,
                                splat_to_map=[2.0, 1.0, -2.0, 0.5, 0.0, 0.0, h, h]),
                           domain, tmp_path / "node.log")
-    views: list = []
-    orig_init = server.MapView.__init__
-
-    def capture(self, *a, **kw):
-        orig_init(self, *a, **kw)
-        views.append(self)
-
-    monkeypatch.setattr(server.MapView, "__init__", capture)
-    ready, stop = threading.Event(), threading.Event()
-    args = argparse.Namespace(node="/css_node", host="127.0.0.1", port=free_port(), exit_after=60.0)
-    thread = threading.Thread(target=lambda: live.serve_live(args, ready, stop), daemon=True)
+    follower = Follower(monkeypatch, 60.0)
     try:
-        thread.start()
-        assert ready.wait(60.0), node.log()[-3000:]
+        assert follower.ready.wait(60.0), node.log()[-3000:]
         R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-        data = views[0].data
+        data = follower.views[0].data
         np.testing.assert_allclose(data.centers, 2.0 * model.means.astype(np.float64) @ R.T + [1.0, -2.0, 0.5],
                                    atol=1e-5)
         np.testing.assert_allclose(data.covariances, 4.0 * R @ model.covariances() @ R.T, rtol=1e-4, atol=1e-9)
     finally:
-        stop.set()
-        thread.join(15.0)
+        follower.close()
         node.stop()
