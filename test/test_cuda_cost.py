@@ -38,6 +38,8 @@ def test_frame_counts_against_the_brute_force_compositing():
     assert counts.keys <= counts.label_sums <= 2 * counts.keys
     two = cm.frame_counts(smap._backend.geometry, [cam, cam], 3, [labels, labels])
     assert two == counts + counts and two.views == 2
+    big = cm.frame_counts(smap._backend.geometry, [cam], 3, [labels], tile=16)
+    assert big.walked == 256 * big.keys and big.keys < counts.keys and big.contributions == counts.contributions
 
 
 def _counts(**kw):

@@ -165,13 +165,14 @@ def _render(c: FrameCounts, gpu: GpuSpec, score: bool) -> KernelCost:
 
 
 def frame_counts(geometry: "GaussianGeometry", cameras: "list[Camera]", classes: int,
-                 labels: "list[np.ndarray] | None" = None) -> FrameCounts:
+                 labels: "list[np.ndarray] | None" = None, tile: int = 8) -> FrameCounts:
     """Counts of a batch of views of one image size, measured with the CPU engine (same culls, same
     alpha boxes, same 8 x 8 tile lists as the GPU; contributions from the exact compositing walk).
 
     Args:
         labels: per view (H, W) int labels (-1 = none) for the update's atomics; None counts one
             label per tile.
+        tile: tile edge [px] (the backend's is 8; other sizes show what a tile size would cost).
     """
     from ..cpu.projection import project
     from ..cpu.raster import bin_tiles, kappa_lists
@@ -180,15 +181,15 @@ def frame_counts(geometry: "GaussianGeometry", cameras: "list[Camera]", classes:
     kept = keys = walked = contributions = label_sums = 0
     for v, cam in enumerate(cameras):
         proj = project(geometry, cam, view_colors=False)
-        bins = bin_tiles(proj, width, height, 8)
+        bins = bin_tiles(proj, width, height, tile)
         lengths = np.diff(bins.offsets)
         kept += proj.count
         keys += int(bins.offsets[-1])
-        walked += int(lengths.sum()) * 64
+        walked += int(lengths.sum()) * tile * tile
         contributions += int(kappa_lists(proj, bins, width, height).kappa.size)
         distinct = np.ones_like(lengths)
         if labels is not None:
-            distinct = _labels_per_tile(np.asarray(labels[v]), bins.tiles_x, bins.tiles_y, 8)
+            distinct = _labels_per_tile(np.asarray(labels[v]), bins.tiles_x, bins.tiles_y, tile)
         label_sums += int((lengths * distinct).sum())
     return FrameCounts(geometry.num_gaussians, len(cameras), width, height, classes, int(geometry.sh.shape[1]),
                        kept, keys, walked, contributions, label_sums)
