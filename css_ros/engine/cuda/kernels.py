@@ -12,7 +12,7 @@ Pipeline per batch of views (one view for ``observe`` / ``render``, all candidat
    :func:`emit_keys_kernel` writes one int32 key ``view * T + tile`` and its pair index per (pair,
    tile) in that depth order, and one stable radix sort of these 32-bit keys gives every tile its
    front-to-back list (equal float32 depths keep their emission order); searchsorted its range. Two
-   4-pass sorts of 32-bit keys move about a third of the bytes of one 8-pass sort of 64-bit
+   4-pass sorts of 32-bit keys move less than half the bytes of one 8-pass sort of 64-bit
    ``(view, tile) << 32 | depth`` keys.
 4. :func:`moments_kernel`: E, Var, S per visible Gaussian in float32, once per frame.
 5. update / render kernels (:func:`make_update_kernel`, :func:`make_render_kernel`): one block per
