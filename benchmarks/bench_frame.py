@@ -41,8 +41,9 @@ SCENES = {
     "3M": dict(gaussians=3_000_000, width=1280, height=720, classes=40, kitti=False),
     "biker": dict(gaussians=152_746, width=640, height=480, classes=20, kitti=False, ply="biker", copies=1),
     "biker8": dict(gaussians=8 * 152_746, width=1280, height=720, classes=28, kitti=False, ply="biker", copies=8),
-    # the code path of --simulate (numba-cuda simulator: each GPU thread is a Python thread)
-    "tiny": dict(gaussians=1400, width=16, height=12, classes=4, kitti=False),
+    # the code path of --simulate (numba-cuda simulator: each GPU thread is a Python thread, and every warp
+    # intrinsic a barrier of the block's threads): the smallest demo room, of which 200 Gaussians are kept
+    "tiny": dict(gaussians=1400, width=16, height=12, classes=4, kitti=False, keep=200),
 }
 DEFAULT_SCENES = {"numba": ["100k", "500k", "1M", "biker", "biker8"],
                   "cuda": ["100k", "500k", "1M", "3M", "biker", "biker8"]}
@@ -92,6 +93,9 @@ def build_scene(cfg: dict, num_cams: int) -> tuple:
         return model, gt.astype(np.int64) % cfg["classes"], orbit_cameras(centre, radius, num_cams, K,
                                                                            cfg["width"], cfg["height"])
     model, gt = build_indoor_scene(cfg["gaussians"], seed=0)
+    if cfg.get("keep"):
+        keep = np.sort(np.random.default_rng(0).choice(model.num_gaussians, cfg["keep"], replace=False))
+        model, gt = model.select(keep), gt[keep]
     model = with_view_dependent_colour(model, cfg.get("sh_degree", 3))
     traj = robot_trajectory(num_cams, seed=0)
     return model, gt, [Camera(K, cfg["width"], cfg["height"], T) for T in traj.T_map_cam]
@@ -312,8 +316,25 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
         result["candidates"] = len(cand)
         result["candidate_size"] = f"{cand[0].width}x{cand[0].height}"
     result.update(gpu_memory())
+    result.update(paper_estimate(model, C, cams[1], labels[1], cand if candidates else None))
     result["peak_rss_mib"] = peak_rss_mib()
     return result
+
+
+def paper_estimate(model, num_classes: int, cam, labels, candidates) -> dict:
+    """The cost model's expected ms (docs/cuda.md, benchmarks/cuda_estimate.py) for the first timed pose and the
+    candidate batch, counted with the CPU engine, to print beside the measured times."""
+    from css_ros.engine.cpu.projection import GaussianGeometry
+    from css_ros.engine.cuda.cost_model import bench_stages, frame_counts, observe_costs, score_costs
+
+    geometry = GaussianGeometry.from_model(model)
+    lab = np.asarray(labels).astype(np.int64)
+    lab[lab >= num_classes] = -1
+    stages = bench_stages(observe_costs(frame_counts(geometry, [cam], num_classes, [lab])))
+    out = {"paper_stages_ms": stages, "paper_cycle_ms": sum(stages.values())}
+    if candidates:
+        out["paper_score_ms"] = sum(c.ms for c in score_costs(frame_counts(geometry, list(candidates), num_classes)))
+    return out
 
 
 def image_uncertainty_(buf) -> None:
@@ -354,22 +375,27 @@ CUDA_TARGETS_MS = {"100k": 2.5, "1M": 5.5, "3M": 18.0}
 
 def print_cuda_table(results: list[dict]) -> None:
     print()
-    print(f"{'scene':>7} {'Gaussians':>9} {'res':>10} {'C':>3} {'pairs':>8} {'cycle ms':>8} {'target':>6} "
-          f"{'query ms':>8} {'peak GPU MiB':>12} {'score ms':>12}")
+    print(f"{'scene':>7} {'Gaussians':>9} {'res':>10} {'C':>3} {'pairs':>8} {'cycle ms':>8} {'paper':>6} "
+          f"{'target':>6} {'query ms':>8} {'peak GPU MiB':>12} {'score ms':>12}")
     for r in results:
         target = CUDA_TARGETS_MS.get(r["name"])
         print(f"{r['name']:>7} {r['gaussians']:>9} {r['width']}x{r['height']:<5} {r['classes']:>3} {r['visible']:>8} "
-              f"{r['cycle_ms']:>8.2f} {'' if target is None else f'<={target:g}':>6} {r['query_ms']:>8.2f} "
+              f"{r['cycle_ms']:>8.2f} {r.get('paper_cycle_ms', float('nan')):>6.2f} "
+              f"{'' if target is None else f'<={target:g}':>6} {r['query_ms']:>8.2f} "
               f"{r['gpu_peak_alloc_mib']:>12.0f} {r.get('score_ms', float('nan')):>12.2f}")
     print()
-    print("per-stage median ms (prepare = project + sort + bin; render includes the one download):")
+    print("per-stage median ms, measured / on paper (cost_model.py; prepare = project + sort + bin; render includes "
+          "the moments and the one download):")
     for r in results:
-        print(f"{r['name']:>7}: " + "  ".join(f"{k}={v:.2f}" for k, v in r["stages_ms"].items())
+        paper = r.get("paper_stages_ms", {})
+        print(f"{r['name']:>7}: " + "  ".join(f"{k}={v:.2f}/{paper.get(k, float('nan')):.2f}"
+                                              for k, v in r["stages_ms"].items())
               + f"   | first frame (kernel compile) {r['first_frame_s']:.2f} s, device {r['device_name']}")
     for r in results:
         if "score_ms" in r:
             print(f"score_views: {r['candidates']} views at {r['candidate_size']} on {r['name']}: "
-                  f"{r['score_ms']:.2f} ms (target <= 15 ms on 1M)")
+                  f"{r['score_ms']:.2f} ms, {r.get('paper_score_ms', float('nan')):.2f} ms on paper "
+                  "(target <= 15 ms on 1M)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -427,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
         elif name == "500k":
             cfg["candidates"] = 0 if args.no_candidates else 16
             cfg["torch_frames"] = 0 if args.no_torch else 3
-        print(f"[{name}] {cfg['gaussians']} Gaussians (SH degree {cfg['sh_degree']}), "
+        print(f"[{name}] {cfg.get('keep', cfg['gaussians'])} Gaussians (SH degree {cfg['sh_degree']}), "
               f"{cfg['width']}x{cfg['height']}, {cfg['classes']} classes ...",
               flush=True)
         out = subprocess.run([sys.executable, __file__, "--frames", str(args.frames), "--warmup", str(args.warmup),

@@ -64,3 +64,12 @@ def test_roofline_rule_and_linearity():
     r20, r41 = (next(c for c in cm.observe_costs(_counts(classes=n)) if c.stage == "render") for n in (20, 41))
     assert r41.instructions > r20.instructions + _counts().walked * cm.INSTR_WALK * 0.99
     assert [c.stage for c in cm.score_costs(_counts(views=4))][-2] == "score"
+
+
+def test_bench_stages_split_the_observe_cost():
+    costs = cm.observe_costs(_counts())
+    stages = cm.bench_stages(costs)
+    assert set(stages) == {"prepare", "update", "render"}
+    assert sum(stages.values()) == pytest.approx(sum(c.ms for c in costs))
+    ms = {c.stage: c.ms for c in costs}
+    assert stages["prepare"] == pytest.approx(ms["project"] + ms["order"])

@@ -116,6 +116,18 @@ def observe_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM, color: bool = True) -
     return costs
 
 
+#: How bench_frame.py --backend cuda splits the observe cycle (it synchronises after each of these), in terms of the
+#: stages priced here: prepare = projection + ordering, render = moments + render kernel + the transfers and sync.
+BENCH_STAGES = {"prepare": ("project", "order"), "update": ("update",),
+                "render": ("moments", "render", "transfers + sync")}
+
+
+def bench_stages(costs: list[KernelCost]) -> dict[str, float]:
+    """Expected ms per stage of ``bench_frame.py --backend cuda`` (:data:`BENCH_STAGES`) from observe costs."""
+    ms = {c.stage: c.ms for c in costs}
+    return {name: sum(ms[s] for s in parts) for name, parts in BENCH_STAGES.items()}
+
+
 def render_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM) -> list[KernelCost]:
     """Per-stage costs of a query render (``SemanticMap.render``)."""
     pixels = c.width * c.height * c.views
