@@ -174,6 +174,9 @@ class CudaBackend(RasterBackend):
         tiles_x = (width + self.tile - 1) // self.tile
         tiles_y = (height + self.tile - 1) // self.tile
         tiles_per_view = tiles_x * tiles_y
+        if n_views * tiles_per_view >= 2 ** 31:
+            raise CssError(f"{n_views} views x {tiles_per_view} tiles do not fit the 32-bit tile keys: score fewer "
+                           "views per call")
         cam_rows = np.empty((n_views, CAM_COLS))
         for v, cam in enumerate(cams):
             camera_row(cam, cam_rows[v])
@@ -198,8 +201,6 @@ class CudaBackend(RasterBackend):
                 break
             cap = m
         self._capacity[n_views] = cap
-        if n_views * tiles_per_view >= 2 ** 31:
-            raise ValueError(f"{n_views} views x {tiles_per_view} tiles do not fit 32-bit tile keys: score fewer views")
         keys = ops.empty(max(total, 1), np.int32)
         order = ops.empty(max(total, 1), np.int32)
         if m:
