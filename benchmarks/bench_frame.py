@@ -127,6 +127,24 @@ def with_view_dependent_colour(model, degree: int):
                          rotations=model.rotations)
 
 
+def synthetic_sensor_model(num_classes: int, kind: str):
+    """A sensor model for timing (``kind``: none, weights, confusion): 0.5 m bins to 10 m, random weights in
+    [0.2, 1] and, for ``confusion``, dense random confusion rows (the worst case: every class non-zero)."""
+    if kind == "none":
+        return None
+    from css_ros.engine.sensor_model import SensorModel, uniform_edges
+
+    rng = np.random.default_rng(7)
+    edges = uniform_edges(10.0, 0.5)
+    bins = edges.size - 1
+    weight = rng.uniform(0.2, 1.0, (num_classes, bins))
+    confusion = None
+    if kind == "confusion":
+        confusion = rng.uniform(0.0, 1.0, (num_classes, bins, num_classes))
+        confusion /= confusion.sum(axis=2, keepdims=True)
+    return SensorModel(tuple(f"class{i}" for i in range(num_classes)), edges, weight, confusion)
+
+
 def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int, cand_h: int,
               torch_frames: int) -> dict:
     from css_ros import SemanticMap
@@ -147,7 +165,9 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
     labels = [gt_map.render(c).labels for c in cams]
     del gt_map
 
-    smap = SemanticMap(model, C)
+    sensor = synthetic_sensor_model(C, cfg.get("sensor_model", "none"))
+    soft = None if sensor is None else sensor.soft_labels()
+    smap = SemanticMap(model, C, sensor_model=sensor)
     t0 = time.perf_counter()
     smap.observe(cams[0], labels[0])  # compiles (or loads cached) numba kernels
     first_s = time.perf_counter() - t0
@@ -168,10 +188,10 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         bins = bin_tiles(proj, cam.width, cam.height)
         t.append(time.perf_counter())
         lab32, w32, _ = smap._prepare_labels(cam, lab, None)
-        acc = accumulate_update(proj, bins, lab32, w32, C, store)
+        acc, _ = accumulate_update(proj, bins, lab32, w32, C, store, soft)
         add_increments(conc, proj.ids, acc)
         t.append(time.perf_counter())
-        attrs = dirichlet_attributes(conc, proj.ids, proj.colors)
+        attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         t.append(time.perf_counter())
         buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0,
                               np.zeros(3), False, store)
@@ -417,6 +437,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-candidates", action="store_true", help="skip the 16-candidate batch on the 500k scene")
     p.add_argument("--no-torch", action="store_true", help="skip the PyTorch-path comparison on the 500k scene")
     p.add_argument("--json", type=Path, help="also write the results as JSON here")
+    p.add_argument("--sensor-model", choices=("none", "weights", "confusion"), default="none",
+                   help="update with a synthetic sensor model: 0.5 m depth bins, random weights, and for "
+                        "'confusion' dense random confusion rows (numba backend; default none: the paper's update)")
     p.add_argument("--_child", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
@@ -444,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
         args.frames, args.warmup = min(args.frames, 2), min(args.warmup, 1)
     results = []
     for name, cfg in jobs.items():
-        cfg = dict(cfg, name=name, sh_degree=args.sh_degree, backend=args.backend)
+        cfg = dict(cfg, name=name, sh_degree=args.sh_degree, backend=args.backend, sensor_model=args.sensor_model)
         if args.backend == "cuda":
             if name in ("1M", "tiny"):
                 cfg["candidates"] = 0 if args.no_candidates else (8 if args.simulate else 256)

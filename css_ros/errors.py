@@ -28,3 +28,7 @@ class BagError(CssError):
 
 class ConfigError(CssError):
     """A parameter, command-line option or configuration file holds an invalid value."""
+
+
+class SensorModelError(CssError):
+    """A sensor-model file is missing, malformed, holds invalid values or does not fit the map's classes."""

@@ -12,6 +12,7 @@ if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
     from .buffers import RenderBuffers
+    from .sensor_model import SoftLabels
 
 
 class RasterBackend(ABC):
@@ -26,14 +27,20 @@ class RasterBackend(ABC):
 
     @abstractmethod
 
-    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
-        """concentrations[n, c] += sum_i kappa_in y_i^c (labels (H, W) int32, -1 = none; weights (H, W))."""
+    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> int:
+        """concentrations[n, c] += sum_i kappa_in y_i^c (labels (H, W) int32, -1 = none; weights (H, W)).
+
+        With ``soft`` (a sensor model, docs/spec.md "Sensor model"), y_i^c = weight_i * table[label_i * B + b_i, c]
+        with b_i the depth bin of the pixel's expected depth sum kappa z / sum kappa. Returns the labelled pixels
+        without any contribution (no depth) when ``soft`` is given, else 0."""
 
     @abstractmethod
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> "RenderBuffers":
-        """Composite colour, E, Var (argmax class), kappa_b and evidence from the current concentrations."""
+        """Composite colour, E, Var (argmax class), kappa_b, evidence and the expected depth from the current
+        concentrations."""
 
     @abstractmethod
 

@@ -17,3 +17,4 @@ class RenderBuffers:
     evidence: np.ndarray      # (H, W) float64
     rgb: np.ndarray           # (H, W, 3) float64 in [0, inf)
     probabilities: np.ndarray | None  # (H, W, C) float64
+    depth: np.ndarray | None = None   # (H, W) float64 expected depth sum kappa z / sum kappa [splat units], NaN: none

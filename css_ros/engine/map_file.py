@@ -38,6 +38,7 @@ class MapInfo:
         evidence_per_class: (C,) float64 the same per class.
         observed_gaussians: Gaussians whose evidence S_n - C α_0 is > 0.
         evidence_max: largest per-Gaussian evidence S_n - C α_0.
+        sensor_model: fingerprint of the sensor model the evidence was fused with ("" = the paper's update).
     """
 
     path: Path
@@ -52,6 +53,7 @@ class MapInfo:
     evidence_per_class: np.ndarray = field(repr=False)
     observed_gaussians: int
     evidence_max: float
+    sensor_model: str = ""
 
 
 def _read_num_gaussians(path: Path) -> int:
@@ -90,6 +92,7 @@ def read_map_info(path: str | os.PathLike[str]) -> MapInfo:
             background = float(data["background"])
             frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
             sources = sorted(str(v) for v in data["sources"]) if "sources" in data.files else []
+            sensor_model = str(data["sensor_model"]) if "sensor_model" in data.files else ""
             conc = np.asarray(data["concentrations"], dtype=np.float64)
     except MapError:
         raise
@@ -106,4 +109,4 @@ def read_map_info(path: str | os.PathLike[str]) -> MapInfo:
                    background=background, frames_observed=frames, sources=sources,
                    evidence_total=float(per_gaussian.sum()), evidence_per_class=evidence.sum(axis=0),
                    observed_gaussians=int(np.count_nonzero(per_gaussian > 0)),
-                   evidence_max=float(per_gaussian.max()))
+                   evidence_max=float(per_gaussian.max()), sensor_model=sensor_model)

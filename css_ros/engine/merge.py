@@ -29,6 +29,10 @@ def check_compatible(a: "SemanticMap", b: "SemanticMap", name_a: str = "first ma
         raise MapError(f"{name_a} has prior {a.prior:g}, {name_b} {b.prior:g}: their evidence is not comparable")
     if a.background != b.background:
         raise MapError(f"{name_a} has background {a.background:g}, {name_b} {b.background:g}")
+    if a.fused_sensor_model != b.fused_sensor_model:
+        raise MapError(f"{name_a} and {name_b} were fused with different sensor models "
+                       f"({a.fused_sensor_model[:12] or 'none'} vs {b.fused_sensor_model[:12] or 'none'}): their "
+                       "evidence is weighted differently and does not add up")
 
 
 def add_evidence(target: "SemanticMap", source: "SemanticMap") -> None:
@@ -65,6 +69,7 @@ def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None
     out = SemanticMap(first.model, first.num_classes, prior=first.prior, background=first.background,
                       ignore_label=first.ignore_label, unknown_threshold=first.unknown_threshold,
                       backend=first.backend_name)
+    out.fused_sensor_model = first.fused_sensor_model
     for m in maps:
         add_evidence(out, m)
     out.frames_observed = int(sum(m.frames_observed for m in maps))

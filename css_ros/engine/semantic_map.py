@@ -12,8 +12,9 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 
 import numpy as np
 
-from ..errors import InputError, MapError
+from ..errors import InputError, MapError, SensorModelError
 from .backends import make_backend
+from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD, VAR_FLOOR)
@@ -21,6 +22,7 @@ from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENC
 if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
+    from .sensor_model import SensorModel, SoftLabels
 
 MAP_FORMAT_VERSION = 1
 #: Largest concentration / prior / background accepted from a map file (beyond: a crafted or broken file).
@@ -38,8 +40,9 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "model_fingerprint": ("U", ()),
     "frames_observed": ("iu", ()),
     "sources": ("U", ("S",)),
+    "sensor_model": ("U", ()),
 }
-_OPTIONAL_MEMBERS = ("frames_observed", "sources")
+_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model")
 #: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
 MAX_SOURCES = 4096
 
@@ -129,6 +132,11 @@ def _check_map_headers(path: Path, model: "GaussianModel | int", num_classes: in
     if num_classes is not None and file_classes != num_classes:
         raise MapError(f"map file {path} has {file_classes} classes, expected {num_classes}")
 
+def _update_name(fingerprint: str) -> str:
+    """How logs name the update a map was fused with."""
+    return f"sensor model {fingerprint[:12]}" if fingerprint else "the paper's update (no sensor model)"
+
+
 BackendName = Literal["numba", "torch", "cuda"]
 
 
@@ -148,6 +156,11 @@ class RenderedView:
         u_var: geometric mean of the variance image (SPEC §6).
         u_exp: one minus the mean of the expectation image (SPEC §6).
         probabilities: (H, W, C) float32 full per-class E_i^c, only when requested.
+        depth: (H, W) float32 expected depth sum_n kappa_in z_n / sum_n kappa_in of the rendered Gaussians
+            (camera z, metres: splat units times the map's ``depth_scale``); NaN where nothing is rendered.
+        confidence: (H, W) float32 calibrated probability that ``labels`` is right (the sensor model's
+            :class:`~css_ros.engine.sensor_model.ConfidenceMap` of E and evidence; 0 where the label is
+            ``ignore_label``), or None when the map has no calibrated confidence.
     """
 
     labels: np.ndarray
@@ -159,16 +172,20 @@ class RenderedView:
     u_var: float
     u_exp: float
     probabilities: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    confidence: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class UpdateStats:
     """Pixel counts of one update: used (labelled, weight > 0), ignored (ignore value or zero
-    confidence) and out_of_range (ids >= C or negative, treated as ignored)."""
+    confidence), out_of_range (ids >= C or negative, treated as ignored) and, with a sensor model,
+    no_depth (used pixels that no Gaussian covers: they have no rendered depth and add nothing)."""
 
     used: int
     ignored: int
     out_of_range: int
+    no_depth: int = 0
 
 
 def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
@@ -198,19 +215,30 @@ class SemanticMap:
             (numba-cuda kernels, concentrations kept on the GPU; docs/cuda.md).
         background_rgb: colour behind all Gaussians, RGB in [0, 1].
         device: GPU index for backend "cuda" (default: the current device).
+        sensor_model: the segmenter's sensor model (docs/spec.md "Sensor model"): each labelled pixel adds
+            kappa * confidence * w(y, d) * p(. | y, d) instead of kappa * confidence * onehot(y). None (default):
+            the paper's update, bit for bit.
+        depth_scale: metres per splat unit (the scale of ``splat_to_map``): the sensor model's depth bins
+            and ``RenderedView.depth`` are in metres.
     """
 
     def __init__(self, model: "GaussianModel", num_classes: int, prior: float = DEFAULT_PRIOR,
                  background: float = DEFAULT_BACKGROUND, ignore_label: int = DEFAULT_IGNORE_LABEL,
                  unknown_threshold: float = DEFAULT_UNKNOWN_THRESHOLD,
                  backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 device: int | None = None) -> None:
+                 device: int | None = None, sensor_model: "SensorModel | None" = None,
+                 depth_scale: float = 1.0) -> None:
         if int(num_classes) < 1:
             raise MapError(f"num_classes must be >= 1, got {num_classes}")
         if not (np.isfinite(prior) and prior > 0):
             raise MapError(f"prior must be a positive finite number, got {prior}")
         if not (np.isfinite(background) and background > 0):
             raise MapError(f"background must be a positive finite number, got {background}")
+        if not (np.isfinite(depth_scale) and depth_scale > 0):
+            raise MapError(f"depth_scale must be a positive finite number, got {depth_scale}")
+        if sensor_model is not None and sensor_model.num_classes != int(num_classes):
+            raise SensorModelError(f"{sensor_model.source or 'sensor model'} is for {sensor_model.num_classes} "
+                                   f"classes, the map has {num_classes}")
         self.model = model
         self.num_classes = int(num_classes)
         self.prior = float(prior)
@@ -221,12 +249,41 @@ class SemanticMap:
         self.backend_name = backend
         self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
+        self.depth_scale = float(depth_scale)
+        self._sensor_model: SensorModel | None = None
+        self._soft: SoftLabels | None = None
         self.frames_observed = 0
+        #: fingerprint of the sensor model the evidence was fused with ("" = the paper's update); kept from the
+        #: file by :meth:`load`, compared by merges (maps fused with different sensor models are not merged)
+        self.fused_sensor_model = NO_SENSOR_MODEL
+        self.sensor_model = sensor_model
         #: origin ids of the sources whose evidence this map holds (css_node's own and received ones), sorted
         self.sources: list[str] = []
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
     # ------------------------------------------------------------------ state
+    @property
+    def sensor_model(self) -> "SensorModel | None":
+        """The active sensor model (None: the paper's update)."""
+        return self._sensor_model
+
+    @sensor_model.setter
+    def sensor_model(self, model: "SensorModel | None") -> None:
+        if model is not None and model.num_classes != self.num_classes:
+            raise SensorModelError(f"{model.source or 'sensor model'} is for {model.num_classes} classes, the map "
+                                   f"has {self.num_classes}")
+        if model is not None and self.backend_name == "cuda":
+            raise SensorModelError("sensor models run on the numba and torch backends, not yet on cuda")
+        self._sensor_model = model
+        self._soft = None if model is None else model.soft_labels(self.depth_scale)
+        if self.frames_observed == 0:
+            self.fused_sensor_model = self.sensor_fingerprint
+
+    @property
+    def sensor_fingerprint(self) -> str:
+        """Fingerprint of the update's sensor model ("" = the paper's update), as stored in map files."""
+        return NO_SENSOR_MODEL if self._sensor_model is None else self._sensor_model.fingerprint
+
     @property
     def concentrations(self) -> np.ndarray:
         """(N, C) float64 alpha, for writing: a backend that keeps them on a device brings this host
@@ -247,6 +304,7 @@ class SemanticMap:
         """Forget every observation: all concentrations back to the prior."""
         self.concentrations[...] = self.prior
         self.frames_observed = 0
+        self.fused_sensor_model = self.sensor_fingerprint
 
     def _background_moments(self) -> tuple[float, float, float]:
         c = self.num_classes
@@ -288,7 +346,11 @@ class SemanticMap:
     def _update_frame(self, frame: Any, camera: "Camera", labels: np.ndarray,
                       confidence: np.ndarray | None) -> UpdateStats:
         lab, weights, stats = self._prepare_labels(camera, labels, confidence)
-        self._backend.update(frame, lab, weights, self._concentrations)
+        if self._soft is None:
+            self._backend.update(frame, lab, weights, self._concentrations)
+        else:
+            no_depth = self._backend.update(frame, lab, weights, self._concentrations, self._soft)
+            stats = UpdateStats(stats.used, stats.ignored, stats.out_of_range, int(no_depth))
         self.frames_observed += 1
         return stats
 
@@ -299,6 +361,12 @@ class SemanticMap:
         labels[buf.background > self.unknown_threshold] = self.ignore_label
         u_var, u_exp = image_uncertainty(buf.expectation, buf.variance)
         rgb = np.clip(np.rint(buf.rgb * 255.0), 0, 255).astype(np.uint8)
+        depth = None if buf.depth is None else (buf.depth * self.depth_scale).astype(np.float32)
+        confidence = None
+        cmap = None if self._sensor_model is None else self._sensor_model.confidence
+        if cmap is not None:
+            confidence = cmap(buf.expectation, buf.evidence)
+            confidence[labels == self.ignore_label] = 0.0
         return RenderedView(
             labels=labels,
             expectation=buf.expectation.astype(np.float32),
@@ -309,6 +377,8 @@ class SemanticMap:
             u_var=u_var,
             u_exp=u_exp,
             probabilities=None if buf.probabilities is None else buf.probabilities.astype(np.float32),
+            depth=depth,
+            confidence=confidence,
         )
 
     # ------------------------------------------------------------------ public API
@@ -396,6 +466,7 @@ class SemanticMap:
                     model_fingerprint=np.array(self.model.fingerprint),
                     frames_observed=np.int64(self.frames_observed),
                     sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
+                    sensor_model=np.array(self.fused_sensor_model),
                 )
                 fh.flush()
                 os.fsync(fh.fileno())
@@ -443,6 +514,7 @@ class SemanticMap:
                 background = float(data["background"])
                 frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
                 sources = [str(v) for v in data["sources"]] if "sources" in data.files else []
+                fused_sm = str(data["sensor_model"]) if "sensor_model" in data.files else NO_SENSOR_MODEL
                 if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
                     raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not "
                                    f"{getattr(model, 'source', None) or 'the given model'}")
@@ -462,7 +534,12 @@ class SemanticMap:
         if frames < 0:
             raise MapError(f"map file {path}: frames_observed={frames} < 0")
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
+        if "sensor_model" in kwargs and fused_sm != smap.sensor_fingerprint and np.any(conc != prior):
+            raise MapError(f"map file {path} was fused with {_update_name(fused_sm)}, this map uses "
+                           f"{_update_name(smap.sensor_fingerprint)}: their evidence is not in the same units (start a new "
+                           "map, or use the sensor model it was made with)")
         smap.concentrations[...] = conc
         smap.frames_observed = frames
         smap.sources = sources
+        smap.fused_sensor_model = fused_sm
         return smap

@@ -12,6 +12,7 @@ ALPHA_MAX = 0.99            # per-pixel alpha clamp
 T_MIN = 1e-4                # compositing stops before transmittance would drop below this
 FOV_CLAMP = 0.3             # J is evaluated at the view ray clamped to 1.3 x the half field of view
 TILE_SIZE = 8               # px; tile edge of the binning (results do not depend on it: exact support)
+RENDER_CLASS_CHUNK = 40     # classes per pass of the CUDA render walk (2 x 40 x 64 x 4 B = 20 KiB of per-pixel sums)
 
 # --- Semantic state (SPEC §4-6) -----------------------------------------------------------------
 DEFAULT_PRIOR = 1e-3              # alpha_0: initial concentration of every class of every Gaussian

@@ -165,4 +165,5 @@ def transfer_map(smap: "SemanticMap", new_model: GaussianModel,
     out.concentrations[...] = conc
     out.frames_observed = smap.frames_observed
     out.sources = list(smap.sources)
+    out.fused_sensor_model = smap.fused_sensor_model
     return out, report

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..engine.camera import quaternion_xyzw_to_matrix
 from ..errors import CssError
 
 if TYPE_CHECKING:
@@ -45,9 +46,10 @@ def write_replay_trajectory(path: Path, frames: list, splat_to_map: "Similarity 
         return
     poses = np.stack([cam.T_map_cam for cam, _ in frames])
     if splat_to_map is not None and not splat_to_map.is_identity:
-        poses = poses.copy()
-        poses[:, :3, :3] = splat_to_map.R[None] @ poses[:, :3, :3]
-        poses[:, :3, 3] = splat_to_map.apply(poses[:, :3, 3])
+        pos, quat = splat_to_map.apply_poses(np.stack([cam.position for cam, _ in frames]),
+                                             np.stack([cam.quaternion_xyzw for cam, _ in frames]))
+        poses[:, :3, :3] = quaternion_xyzw_to_matrix(quat)
+        poses[:, :3, 3] = pos
     fov = np.array([2.0 * np.arctan(cam.height / (2.0 * cam.fy)) for cam, _ in frames])
     aspect = np.array([(cam.width / cam.fx) / (cam.height / cam.fy) for cam, _ in frames])
     u = np.array([np.nan if uv is None else float(uv) for _, uv in frames])

@@ -60,6 +60,7 @@ def format_info(info: MapInfo) -> str:
         f"background:   {info.background:g}",
         f"frames:       {info.frames_observed}",
         f"sources:      {', '.join(info.sources) if info.sources else '(none listed)'}",
+        f"sensor model: {info.sensor_model or '(none: the paper update)'}",
         f"evidence:     {info.evidence_total:.6g} total, {info.observed_gaussians} Gaussians observed "
         f"({100.0 * info.observed_gaussians / info.num_gaussians:.1f} %), max {info.evidence_max:.6g} per Gaussian",
         f"per class:    {per_class}",
@@ -84,6 +85,10 @@ def _merge(args: argparse.Namespace) -> None:
         if info.prior != first.prior or info.background != first.background:
             raise MapError(f"{info.path} has prior/background {info.prior:g}/{info.background:g}, {first.path} "
                            f"{first.prior:g}/{first.background:g}: their evidence is not comparable")
+        if info.sensor_model != first.sensor_model:
+            raise MapError(f"{info.path} and {first.path} were fused with different sensor models "
+                           f"({info.sensor_model[:12] or 'none'} vs {first.sensor_model[:12] or 'none'}): their "
+                           "evidence is weighted differently and does not add up")
     model = _model(args.model)
     maps = [SemanticMap.load(p, model) for p in args.maps]
     merged = merge_maps(maps, [str(p) for p in args.maps])

@@ -55,6 +55,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def replay_config(folder: Path) -> dict:
+    """The options a css_replay output folder was made with (``config`` of its metrics.json), or {} when the
+    folder has no metrics.json."""
+    metrics = folder / "metrics.json"
+    if not metrics.is_file():
+        return {}
+    try:
+        info = json.loads(metrics.read_text())
+    except (OSError, ValueError) as exc:
+        raise CssError(f"cannot read {metrics}: {exc}") from None
+    cfg = info.get("config", {}) if isinstance(info, dict) else {}
+    return cfg if isinstance(cfg, dict) else {}
+
+
 def resolve_inputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None, Path | None]:
     """(map file, model PLY, class file or None, trajectory file or None) from the arguments."""
     if args.map is None:
@@ -67,17 +81,11 @@ def resolve_inputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None, P
         map_file = target / "map.npz"
         if not map_file.is_file():
             raise CssError(f"{target} holds no map.npz (not a css_replay output folder)")
-        metrics = target / "metrics.json"
-        if metrics.is_file():
-            try:
-                info = json.loads(metrics.read_text())
-            except (OSError, ValueError) as exc:
-                raise CssError(f"cannot read {metrics}: {exc}") from None
-            cfg = info.get("config", {}) if isinstance(info, dict) else {}
-            if model is None and cfg.get("model"):
-                model = Path(cfg["model"])
-            if classes is None and cfg.get("classes"):
-                classes = Path(cfg["classes"])
+        cfg = replay_config(target)
+        if model is None and cfg.get("model"):
+            model = Path(cfg["model"])
+        if classes is None and cfg.get("classes"):
+            classes = Path(cfg["classes"])
         if (target / "trajectory.npz").is_file():
             traj = target / "trajectory.npz"
     else:
@@ -96,14 +104,9 @@ def display_frame(args: argparse.Namespace) -> Similarity:
     folder was made with (its metrics.json config), else the identity (the splat's own frame)."""
     if args.splat_to_map is not None:
         return Similarity.from_params(args.splat_to_map, "--splat-to-map")
-    metrics = args.map / "metrics.json" if args.map is not None and args.map.is_dir() else None
-    if metrics is not None and metrics.is_file():
-        try:
-            cfg = json.loads(metrics.read_text()).get("config", {})
-        except (OSError, ValueError, AttributeError) as exc:
-            raise CssError(f"cannot read {metrics}: {exc}") from None
-        if isinstance(cfg, dict) and cfg.get("splat_to_map") is not None:
-            return Similarity.from_params(cfg["splat_to_map"], f"{metrics}: splat_to_map")
+    cfg = replay_config(args.map) if args.map is not None and args.map.is_dir() else {}
+    if cfg.get("splat_to_map") is not None:
+        return Similarity.from_params(cfg["splat_to_map"], f"{args.map / 'metrics.json'}: splat_to_map")
     return Similarity.identity()
 
 

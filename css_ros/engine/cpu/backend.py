@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     from ..buffers import RenderBuffers
     from ..camera import Camera
     from ..gaussians import GaussianModel
+    from ..sensor_model import SoftLabels
 
 
 class NumbaBackend(RasterBackend):
@@ -34,17 +35,19 @@ class NumbaBackend(RasterBackend):
         proj = project(self.geometry, camera, self._scratch)
         return proj, bin_tiles(proj, camera.width, camera.height), camera
 
-    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> int:
         proj, bins, _ = frame
         self._store.owner = None
-        acc = accumulate_update(proj, bins, labels, weights, concentrations.shape[1], self._store)
+        acc, no_depth = accumulate_update(proj, bins, labels, weights, concentrations.shape[1], self._store, soft)
         self._store.owner = frame
         add_increments(concentrations, proj.ids, acc)
+        return no_depth
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
-        attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors)
+        attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
         store = self._store if self._store.owner is frame else None
         return render_semantic(proj, bins, camera.width, camera.height, attrs,
                                e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
@@ -69,7 +72,7 @@ class NumbaBackend(RasterBackend):
         def score(cam: "Camera", scratch: "ProjectionScratch") -> tuple[np.ndarray, np.ndarray]:
             proj = project(self.geometry, cam, scratch, view_colors=False)
             bins = bin_tiles(proj, cam.width, cam.height)
-            attrs = dirichlet_attributes(concentrations, proj.ids, no_colors)
+            attrs = dirichlet_attributes(concentrations, proj.ids, no_colors, proj.packed)
             buf = render_semantic(proj, bins, cam.width, cam.height, attrs, e_bg, v_bg, s_bg, np.zeros(3), False)
             return buf.expectation, buf.variance
 

@@ -14,6 +14,7 @@ the render pass replays instead of walking and exponentiating again.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -22,6 +23,9 @@ from numba import njit, prange
 from ..buffers import RenderBuffers
 from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 from .projection import ProjectedGaussians
+
+if TYPE_CHECKING:
+    from ..sensor_model import SoftLabels
 
 # Floating-point reassociation and contraction (FMA) for the hot loops; no-NaN/no-Inf assumptions are
 # not made (inputs are sanitised, but comparisons against NaN must keep their meaning).
@@ -229,8 +233,13 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
 
 @njit(parallel=True, cache=True, fastmath=_FAST)
 def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height, tile, tiles_x, acc,
-                   store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
+                   store, st_k, st_v, pix_off, pix_cnt, pix_t, use_model, edges, table, no_depth):  # pragma: no cover
     """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows).
+
+    With ``use_model`` (a sensor model), a pixel labelled y at expected depth d = sum kappa z / sum kappa
+    (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[y * B + b, c] to every class c
+    instead; labelled pixels without any contribution are counted in ``no_depth[chunk]`` (they add nothing).
+    Without it the arithmetic is exactly the paper's update.
 
     With ``store``, each labelled pixel's contributions (tile-list index, kappa) are appended to its
     chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T); pixels that were
@@ -239,13 +248,16 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
     cap = st_k.shape[1]
+    num_bins = edges.shape[0] - 1 if use_model else 1
     for ch in prange(nchunks):
         local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
         num_classes = acc.shape[2]
-        # Tile-local accumulator (class, list position): the per-contribution scatter stays in
-        # cache; only the classes present in the tile are zeroed and flushed to the chunk's rows.
-        lacc = np.empty((num_classes, 256))
-        present = np.empty(num_classes, dtype=np.bool_)
+        num_rows = num_classes * num_bins
+        # Tile-local accumulator (label row, list position): the per-contribution scatter stays in
+        # cache; only the rows present in the tile are zeroed and flushed to the chunk's rows. A row is a
+        # class (paper's update) or a (label, depth bin) pair whose soft label the flush applies.
+        lacc = np.empty((num_rows, 256))
+        present = np.empty(num_rows, dtype=np.bool_)
         pos = 0
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
@@ -256,7 +268,7 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
             if n > 0:
                 local = _load_columns(packed, bbox, lists, start, end, local)
             if n > lacc.shape[1]:
-                lacc = np.empty((num_classes, n))
+                lacc = np.empty((num_rows, n))
             kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
             present[:] = False
             for v in range(ty * tile, min(height, ty * tile + tile)):
@@ -280,12 +292,28 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                             pix_cnt[v * width + u] = -1
                         continue
                     c = cnt[p]
-                    if not present[lab]:
-                        present[lab] = True
+                    row = lab
+                    if use_model:
+                        zsum = 0.0
+                        ksum = 0.0
+                        for i in range(c):
+                            kv = kval[p, i]
+                            zsum += kv * packed[lists[start + kidx[p, i]], 7]
+                            ksum += kv
+                        b = 0
+                        if ksum > 0.0:
+                            d = zsum / ksum
+                            while b < num_bins - 1 and d >= edges[b + 1]:
+                                b += 1
+                        else:
+                            no_depth[ch] += 1
+                        row = lab * num_bins + b
+                    if not present[row]:
+                        present[row] = True
                         for k in range(n):
-                            lacc[lab, k] = 0.0
+                            lacc[row, k] = 0.0
                     for i in range(c):
-                        lacc[lab, kidx[p, i]] += kval[p, i] * w
+                        lacc[row, kidx[p, i]] += kval[p, i] * w
                     if store:
                         q = v * width + u
                         if pos + c <= cap:
@@ -298,24 +326,34 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                             pos += c
                         else:
                             pix_cnt[q] = -1
-            for c in range(num_classes):
-                if present[c]:
-                    for k in range(n):
-                        acc[ch, lists[start + k], c] += lacc[c, k]
+            if use_model:
+                for r in range(num_rows):
+                    if present[r]:
+                        for c in range(num_classes):
+                            pc = table[r, c]
+                            if pc != 0.0:
+                                for k in range(n):
+                                    acc[ch, lists[start + k], c] += lacc[r, k] * pc
+            else:
+                for c in range(num_classes):
+                    if present[c]:
+                        for k in range(n):
+                            acc[ch, lists[start + k], c] += lacc[c, k]
 
 
 @njit(inline="always", fastmath=_FAST)
 def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
-                 out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
+                 out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth):  # pragma: no cover
     """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs.
 
-    lattr rows are (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}) float32: one loop over the first
-    C + 4 columns accumulates expectation, colour and evidence. Contributions are taken four at a
+    lattr rows are (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}) float32: one loop over the first
+    C + 5 columns accumulates expectation, colour, evidence and kappa-weighted depth (the expected depth
+    sum kappa z / sum kappa, with sum kappa = 1 - T; NaN without any contribution). Contributions are taken four at a
     time, so the accumulator round trip through memory (the loop over C + 4 columns is too short
     for LLVM's wide vector body) is paid once per four.
     """
-    num_classes = (lattr.shape[1] - 4) // 2
-    lin = num_classes + 4
+    num_classes = (lattr.shape[1] - 5) // 2
+    lin = num_classes + 5
     for c in range(lin):
         acc[c] = 0.0
     i = 0
@@ -353,6 +391,7 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, wa
     out_rgb[v, u, 0] = acc[num_classes] + tr * bg_rgb[0]
     out_rgb[v, u, 1] = acc[num_classes + 1] + tr * bg_rgb[1]
     out_rgb[v, u, 2] = acc[num_classes + 2] + tr * bg_rgb[2]
+    out_depth[v, u] = acc[num_classes + 4] / (1.0 - tr) if cnt > 0 else np.nan
     if want_probs:
         for c in range(num_classes):
             out_probs[v, u, c] = acc[c] + tr * e_bg
@@ -361,15 +400,16 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, wa
 @njit(parallel=True, cache=True, nogil=True, fastmath=_FAST)
 def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
-                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs):  # pragma: no cover
-    """attrs rows: (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}). With ``use_store``,
+                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs,
+                   out_depth):  # pragma: no cover
+    """attrs rows: (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}). With ``use_store``,
     pixels recorded by the update pass (pix_cnt >= 0) replay their contributions."""
     num_tiles = offsets.shape[0] - 1
-    num_classes = (attrs.shape[1] - 4) // 2
+    num_classes = (attrs.shape[1] - 5) // 2
     for ch in prange(nchunks):
         local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
         lattr = np.empty((256, attrs.shape[1]), dtype=attrs.dtype)
-        eacc = np.empty(num_classes + 4, dtype=np.float32)
+        eacc = np.empty(num_classes + 5, dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
@@ -398,11 +438,11 @@ def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb
                         c = pix_cnt[q]
                         _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, eacc,
                                      e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
-                                     out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs)
+                                     out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
                     else:
                         _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, eacc,
                                      e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
-                                     out_evidence, out_rgb, out_probs)
+                                     out_evidence, out_rgb, out_probs, out_depth)
 
 
 @njit(cache=True)
@@ -498,25 +538,34 @@ _NO_STORE = (np.empty((1, 0), np.int32), np.empty((1, 0)), np.empty(0, np.int64)
              np.empty(0))
 
 
+_NO_MODEL = (np.zeros(2), np.zeros((1, 1)))
+
+
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarray, weights: np.ndarray,
-                      num_classes: int, store: ContributionStore | None = None) -> np.ndarray:
+                      num_classes: int, store: ContributionStore | None = None,
+                      soft: SoftLabels | None = None) -> tuple[np.ndarray, int]:
     """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums.
 
     Args:
         labels: (H, W) int32 class id per pixel, -1 where the pixel contributes nothing.
         weights: (H, W) float32 confidence per pixel (1 without a confidence image).
         store: if given, records the contributions for a following :func:`render_semantic`.
+        soft: the sensor model's tables (depth bins in splat units), or None for the paper's one-hot votes.
     Returns:
-        (chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations
-        (sum over axis 0, or apply with :func:`add_increments`).
+        ((chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations (sum over
+        axis 0, or apply with :func:`add_increments`), labelled pixels without any contribution when ``soft``
+        is given (0 otherwise)).
     """
     height, width = labels.shape
     nchunks = _num_chunks(bins)
     acc = np.zeros((nchunks, proj.count, num_classes))
     arrays = _NO_STORE if store is None else (*_store_arrays(store.reserve(width * height, nchunks)),)
+    no_depth = np.zeros(nchunks, dtype=np.int64)
+    edges, table = _NO_MODEL if soft is None else (soft.edges, soft.table)
     _update_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, labels, weights, width, height,
-                   bins.tile_size, bins.tiles_x, acc, store is not None, *arrays)
-    return acc
+                   bins.tile_size, bins.tiles_x, acc, store is not None, *arrays, soft is not None, edges, table,
+                   no_depth)
+    return acc, int(no_depth.sum())
 
 
 @njit(parallel=True, cache=True)
@@ -533,19 +582,20 @@ def add_increments(concentrations, ids, acc):  # pragma: no cover
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
-    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, Var_0..Var_{C-1}) (SPEC §4 moments).
+def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cover
+    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}) (SPEC §4 moments).
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
-            (0, 3) for zero colour (views that are only scored).
+            (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
+            camera depth z, splat units).
     Returns:
-        attrs (M, 2C + 4) float32 (halves the render's memory traffic; the tile-local copies of
+        attrs (M, 2C + 5) float32 (halves the render's memory traffic; the tile-local copies of
         these rows are all the shading reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
-    attrs = np.empty((m, 4 + 2 * num_classes), dtype=np.float32)
+    attrs = np.empty((m, 5 + 2 * num_classes), dtype=np.float32)
     for j in prange(m):
         row = ids[j]
         total = 0.0
@@ -556,10 +606,11 @@ def dirichlet_attributes(concentrations, ids, colors):  # pragma: no cover
         for c in range(3):
             attrs[j, num_classes + c] = np.float32(colors[j, c]) if colors.shape[0] else np.float32(0.0)
         attrs[j, num_classes + 3] = np.float32(total)
+        attrs[j, num_classes + 4] = np.float32(packed[j, 7])
         for c in range(num_classes):
             e = concentrations[row, c] * inv
             attrs[j, c] = np.float32(e)
-            attrs[j, 4 + num_classes + c] = np.float32(e * (1.0 - e) * denom)
+            attrs[j, 5 + num_classes + c] = np.float32(e * (1.0 - e) * denom)
     return attrs
 
 
@@ -575,11 +626,11 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
 
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
-        attrs: (M, 2C + 4) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, Var[theta_n^0..C-1]) of the
+        attrs: (M, 2C + 5) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, Var[theta_n^0..C-1]) of the
             projected Gaussians (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
     """
-    num_classes = (attrs.shape[1] - 4) // 2
+    num_classes = (attrs.shape[1] - 5) // 2
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))
@@ -587,10 +638,11 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_ev = np.empty((height, width))
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
+    out_depth = np.empty((height, width))
     _render_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, attrs, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
                    want_probs, _num_chunks(bins), store is not None,
                    *(_NO_STORE if store is None else _store_arrays(store)),
-                   out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs)
+                   out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
-                         out_probs if want_probs else None)
+                         out_probs if want_probs else None, out_depth)

@@ -25,6 +25,7 @@ from .arrays import import_cuda, make_ops, simulator_enabled
 
 if TYPE_CHECKING:
     from ..camera import Camera
+    from ..sensor_model import SoftLabels
     from ..gaussians import GaussianModel
 
 
@@ -234,13 +235,17 @@ class CudaBackend(RasterBackend):
                          ids, pair_row, rows)
 
     # ------------------------------------------------------------------ update
-    def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+    def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> int:
         """concentrations[n, c] += sum_i kappa_in y_i^c on the device (labels (H, W) int32, -1 = none;
-        weights (H, W) float32). The host array is brought up to date lazily (``host_view``)."""
+        weights (H, W) float32). The host array is brought up to date lazily (``host_view``). Sensor models
+        (``soft``) are not implemented on this backend (SemanticMap refuses them before)."""
+        if soft is not None:
+            raise CssError("the cuda backend does not run sensor models yet")
         self._bind()
         conc = self._device_concentrations(concentrations)
         if frame.num_pairs == 0:
-            return
+            return 0
         ops = self.ops
         lab = ops.upload_frame("labels", labels, np.int32)
         wts = ops.upload_frame("weights", weights, np.float32)
@@ -248,6 +253,7 @@ class CudaBackend(RasterBackend):
         kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.order, frame.packed,
                                                             frame.ids, lab, wts, frame.tiles_x, conc)
         self._device_newer = True
+        return 0
 
     # ------------------------------------------------------------------ render
     def _moments(self, frame: CudaFrame, conc: Any) -> Any:

@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..spec import RENDER_CLASS_CHUNK, TILE_SIZE
+
 if TYPE_CHECKING:
     from ..camera import Camera
     from ..cpu.projection import GaussianGeometry
@@ -128,14 +130,6 @@ def bench_stages(costs: list[KernelCost]) -> dict[str, float]:
     return {name: sum(ms[s] for s in parts) for name, parts in BENCH_STAGES.items()}
 
 
-def render_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM) -> list[KernelCost]:
-    """Per-stage costs of a query render (``SemanticMap.render``)."""
-    pixels = c.width * c.height * c.views
-    return [_project(c, gpu, True), _order(c, gpu), _moments(c, gpu), _render(c, gpu, score=False),
-            KernelCost("transfers + sync", pixels * 32, 0.0,
-                       pixels * 32 / (gpu.pcie_gbs * 1e9) * 1e3 + SYNC_MS + 2 * LAUNCH_MS)]
-
-
 def score_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM) -> list[KernelCost]:
     """Per-stage costs of ``score_views`` over ``c.views`` candidate views (one batch)."""
     return [_project(c, gpu, False), _order(c, gpu), _moments(c, gpu), _render(c, gpu, score=True),
@@ -169,7 +163,7 @@ def _moments(c: FrameCounts, gpu: GpuSpec) -> KernelCost:
 
 def _render(c: FrameCounts, gpu: GpuSpec, score: bool) -> KernelCost:
     pixels = c.width * c.height * c.views
-    passes = -(-c.classes // 40)
+    passes = -(-c.classes // RENDER_CLASS_CHUNK)
     out = c.views * 16 if score else pixels * 32
     nbytes = passes * c.keys * (56 + 4 + 4 + 12 + 4) + c.keys * (2 * c.classes + 1) * 4 + out
     instr = passes * c.walked * INSTR_WALK + c.contributions * c.classes * INSTR_RENDER_PER_CLASS
@@ -177,7 +171,7 @@ def _render(c: FrameCounts, gpu: GpuSpec, score: bool) -> KernelCost:
 
 
 def frame_counts(geometry: "GaussianGeometry", cameras: "list[Camera]", classes: int,
-                 labels: "list[np.ndarray] | None" = None, tile: int = 8) -> FrameCounts:
+                 labels: "list[np.ndarray] | None" = None, tile: int = TILE_SIZE) -> FrameCounts:
     """Counts of a batch of views of one image size, measured with the CPU engine (same culls, same
     alpha boxes, same 8 x 8 tile lists as the GPU; contributions from the exact compositing walk).
 

@@ -33,7 +33,7 @@ from numba import cuda, float32, float64, int32
 
 from ..sh import sh_polynomial
 from .arrays import simulator_enabled
-from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, VAR_FLOOR
+from ..spec import ALPHA_MAX, ALPHA_MIN, RENDER_CLASS_CHUNK, T_MIN, VAR_FLOOR
 from ..splat_math import ewa_splat, fov_limits, store_splat, view_direction
 
 if simulator_enabled():  # the simulator has no warp intrinsics; add exact block-barrier versions
@@ -42,7 +42,6 @@ if simulator_enabled():  # the simulator has no warp intrinsics; add exact block
     install()
 
 PACK_COLS = 8   # per kept pair: u, v, conic a, b, c, opacity, qmax, depth
-SHARED_BUDGET = 40 * 1024  # bytes of static shared memory a block may stage per batch
 # The update's staged rows hold a float32 sum per class: up to C = 40 a batch of 64 Gaussians fits in
 # 12 KiB; beyond, the batch shrinks so that 12 blocks (37.5 % occupancy) stay resident on an sm_80 SM.
 UPDATE_SHARED_BUDGET = 12 * 1024
@@ -146,7 +145,7 @@ def moments_kernel(concentrations, rows, out):  # pragma: no cover
         out[r, 2 * num_classes] = total
 
 
-def batch_size(bytes_per_gaussian: int, threads: int, budget: int = SHARED_BUDGET) -> int:
+def batch_size(bytes_per_gaussian: int, threads: int, budget: int) -> int:
     """Gaussians staged per batch: one per thread, fewer if their shared rows exceed ``budget`` bytes."""
     return max(1, min(threads, budget // bytes_per_gaussian))
 
@@ -291,7 +290,6 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     return update_kernel
 
 
-RENDER_CLASS_CHUNK = 40  # classes per pass of the render walk: 2 x 40 x 64 x 4 B = 20 KiB of per-pixel sums
 
 
 def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK) -> tuple[int, int, int]:
@@ -413,7 +411,9 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                 for c in range(nc):
                     probs_out[view, v, u, c0 + c] = float64(acc[c, tid]) + tr_p * e_bg
             if n_pass > 1:
-                cuda.syncthreads()  # the next pass re-stages the shared rows
+                # Not needed for correctness (the next pass stages its rows only after its syncthreads_count);
+                # it bounds live ranges: without it ptxas gives the C = 150 kernels 64-80 registers, not 37-72.
+                cuda.syncthreads()
         tr = float64(trans)
         e_hat = float64(best_e) + tr * e_bg
         v_hat = float64(best_v) + tr * tr * v_bg

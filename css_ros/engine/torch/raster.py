@@ -17,6 +17,7 @@ from ..sh import eval_sh
 if TYPE_CHECKING:
     from ..camera import Camera
     from ..gaussians import GaussianModel
+    from ..sensor_model import SoftLabels
 
 
 @dataclass
@@ -29,6 +30,7 @@ class TorchFrame:
     conics: torch.Tensor       # [M, 3]
     opacities: torch.Tensor    # [M]
     colors: torch.Tensor       # [M, 3]
+    depths: torch.Tensor       # [M] camera z (splat units)
     offsets: np.ndarray        # (T + 1,) int64
     lists: torch.Tensor        # [P] int64 indices into the M arrays
     tiles_x: int
@@ -118,7 +120,7 @@ class TorchBackend(RasterBackend):
         counts = torch.bincount(tile_id, minlength=tiles_x * tiles_y).cpu().numpy()
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         return TorchFrame(camera, idx.cpu().numpy(), torch.stack([u, v], 1)[idx], conics,
-                          self.opacities[idx], colors, offsets, lists, tiles_x, ts)
+                          self.opacities[idx], colors, z[idx], offsets, lists, tiles_x, ts)
 
     # ------------------------------------------------------------------ per-tile compositing
     def _tiles(self, frame: TorchFrame):
@@ -150,22 +152,37 @@ class TorchBackend(RasterBackend):
             final_t = torch.prod(torch.where(keep, one_minus, torch.ones_like(one_minus)), dim=1)
             yield vv, uu, lst, kappa, final_t
 
-    def update(self, frame: TorchFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray) -> None:
+    def update(self, frame: TorchFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> int:
         num_classes = concentrations.shape[1]
         lab = torch.as_tensor(labels, device=self.device).long()
         wts = torch.as_tensor(weights, device=self.device, dtype=self.dtype)
         acc = torch.zeros((len(frame.ids), num_classes), dtype=self.dtype, device=self.device)
+        if soft is not None:
+            edges = torch.as_tensor(soft.edges, dtype=self.dtype, device=self.device)
+            table = torch.as_tensor(soft.table, dtype=self.dtype, device=self.device)
+        no_depth = 0
         for vv, uu, lst, kappa, _ in self._tiles(frame):
-            if lst is None:
-                continue
             pl = lab[vv, uu]
             valid = (pl >= 0) & (wts[vv, uu] > 0)
+            if lst is None:
+                no_depth += int(valid.sum())
+                continue
             if not bool(valid.any()):
                 continue
             y = torch.zeros((len(vv), num_classes), dtype=self.dtype, device=self.device)
-            y[valid, pl[valid]] = wts[vv, uu][valid]
+            if soft is None:
+                y[valid, pl[valid]] = wts[vv, uu][valid]
+            else:  # soft label of (label, depth bin of the expected depth sum kappa z / sum kappa)
+                ksum = kappa.sum(dim=1)
+                depth = (kappa @ frame.depths[lst]) / ksum.clamp(min=1e-300)
+                b = (torch.searchsorted(edges[1:-1].contiguous(), depth, right=True)).clamp(max=soft.num_bins - 1)
+                rows = pl.clamp(min=0) * soft.num_bins + b
+                y = table[rows] * torch.where(valid, wts[vv, uu], torch.zeros_like(ksum))[:, None]
+                no_depth += int((valid & (ksum <= 0)).sum())
             acc.index_add_(0, lst, kappa.T @ y)
         concentrations[frame.ids] += acc.cpu().numpy()
+        return no_depth if soft is not None else 0
 
     def render(self, frame: TorchFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
@@ -182,17 +199,23 @@ class TorchBackend(RasterBackend):
         out_bg = torch.empty((h, w), dtype=dt, device=dev)
         out_ev = torch.empty((h, w), dtype=dt, device=dev)
         out_rgb = torch.empty((h, w, 3), dtype=dt, device=dev)
+        out_depth = torch.empty((h, w), dtype=dt, device=dev)
         for vv, uu, lst, kappa, final_t in self._tiles(frame):
             if lst is None:
                 e_pix = torch.zeros((len(vv), c), dtype=dt, device=dev)
                 v_all = torch.zeros((len(vv), c), dtype=dt, device=dev)
                 ev = torch.zeros(len(vv), dtype=dt, device=dev)
                 rgb = torch.zeros((len(vv), 3), dtype=dt, device=dev)
+                depth = torch.full((len(vv),), float("nan"), dtype=dt, device=dev)
             else:
                 e_pix = kappa @ ex[lst]
                 v_all = (kappa * kappa) @ va[lst]
                 ev = kappa @ tot[lst]
                 rgb = kappa @ frame.colors[lst]
+                ksum = kappa.sum(dim=1)
+                depth = torch.where(ksum > 0, (kappa @ frame.depths[lst]) / ksum.clamp(min=1e-300),
+                                    torch.full_like(ksum, float("nan")))
+            out_depth[vv, uu] = depth
             best = torch.argmax(e_pix, dim=1)
             out_label[vv, uu] = best
             probs[vv, uu] = e_pix + final_t[:, None] * e_bg
@@ -204,7 +227,7 @@ class TorchBackend(RasterBackend):
         labels = out_label.cpu().numpy().astype(np.int32)
         exp_img = np.take_along_axis(probs_np, labels[:, :, None], axis=2)[:, :, 0]
         return RenderBuffers(labels, exp_img, out_v.cpu().numpy(), out_bg.cpu().numpy(), out_ev.cpu().numpy(),
-                             out_rgb.cpu().numpy(), probs_np if want_probs else None)
+                             out_rgb.cpu().numpy(), probs_np if want_probs else None, out_depth.cpu().numpy())
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
