@@ -84,6 +84,7 @@ setup(
             "css_map = css_ros.maps.cli:main",
             "css_view = css_ros.view.cli:main",
             "css_ctl = css_ros.clients.ctl:main",
+            "css_calibrate = css_ros.calibration.cli:main",
         ],
     },
 )

@@ -27,8 +27,9 @@ ALLOWED: dict[str, set[str]] = {
     "demo": {"engine", "io", "evaluation", "ros"},
     "clients": {"engine", "io", "ros"},
     "view": {"engine", "io", "export", "ros", "clients"},
+    "calibration": {"engine", "io", "evaluation", "export"},
 }
-ROS_FREE = ("engine", "io", "evaluation", "export", "importers", "maps")
+ROS_FREE = ("engine", "io", "evaluation", "export", "importers", "maps", "calibration")
 #: Root modules of layer 0, importable from every layer (they import nothing of the package but errors).
 BASE = ("errors", "console")
 ROS_MODULES = ("rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "std_srvs", "diagnostic_msgs",

@@ -23,12 +23,16 @@ def mono_to_rgb(image: np.ndarray) -> np.ndarray:
 def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label: int) -> dict[str, tuple[np.ndarray, str]]:
     """Output name -> (array, encoding) of one rendered frame, in publishing order (SPEC §8):
     ``semantic`` (label ids), ``semantic_color`` (class colours, rgb8), ``expectation`` and ``variance``
-    (32FC1, of the argmax class), ``rendered_image`` (rgb8)."""
+    (32FC1, of the argmax class), ``rendered_image`` (rgb8) and, when the map's sensor model holds a calibrated
+    confidence map, ``confidence`` (32FC1: probability that ``semantic`` is right; 0 where it is the ignore label)."""
     labels = view.labels
-    return {
+    out = {
         "semantic": (labels, label_encoding(classes.num_classes, ignore_label)),
         "semantic_color": (classes.colorize(labels, ignore_label=ignore_label), "rgb8"),
         "expectation": (view.expectation, "32FC1"),
         "variance": (view.variance, "32FC1"),
         "rendered_image": (view.rgb, "rgb8"),
     }
+    if view.confidence is not None:
+        out["confidence"] = (view.confidence, "32FC1")
+    return out

@@ -1,0 +1,175 @@
+"""What css_calibrate learns from labelled frames: label x depth statistics, the sensor model, the confidence map.
+
+Two passes over the labelled frames of one or more bags (each bag on its own splat model):
+
+1. **Label statistics.** Each frame is rendered at its pose (an empty map: only the expected depth image
+   ``RenderedView.depth`` is used), and every pixel with an input label y < C, a ground-truth label c < C and a
+   rendered depth d adds one to ``counts[y, bin(d), c]``. Pixels without a rendered depth are counted apart
+   (the update adds nothing for them either). Every ``heldout_every``-th frame goes into held-out counts instead.
+2. **Confidence map.** The frames are fused again in order with the new sensor model (as css_node / css_replay
+   would); each online render's pixels give (E of the argmax, evidence, label right?) samples, from which the
+   :class:`~css_ros.engine.sensor_model.ConfidenceMap` is fitted on the fitting frames and judged on the held-out ones.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Iterable
+
+import numpy as np
+
+from ..engine.sensor_model import ConfidenceMap, SensorModel
+from ..evaluation.calibration_metrics import calibration_summary
+from ..evaluation.metrics import PixelSampler
+from .fit import isotonic_fit, logistic_fit, reliability_weight, smoothed_rates
+
+if TYPE_CHECKING:
+    from ..engine.semantic_map import RenderedView, SemanticMap
+
+#: Every this-many-th labelled frame is held out (index % HELDOUT_EVERY == HELDOUT_EVERY - 1).
+DEFAULT_HELDOUT_EVERY = 5
+#: Depth bins: this width [m] from 0 to DEFAULT_MAX_DEPTH (deeper pixels fall in the last bin).
+DEFAULT_BIN_WIDTH = 0.5
+DEFAULT_MAX_DEPTH = 8.0
+#: Pseudo-count τ of the smoothing of sparse (label, depth bin) rows (fit.smoothed_rates) [pixels].
+DEFAULT_PSEUDO_COUNT = 200.0
+#: Weight of a vote no better than chance (2p - 1 <= floor): far-only surfaces still get a label, and one
+#: reliable near view (w ~ 0.9) outweighs ~ 0.9 / floor of them.
+DEFAULT_WEIGHT_FLOOR = 0.02
+#: Fewest labelled pixels (with depth) in the fitting frames css_calibrate accepts.
+MIN_LABELLED_PIXELS = 20_000
+#: Most per-pixel samples kept for the confidence fit (uniform subsample beyond).
+MAX_CONFIDENCE_SAMPLES = 2_000_000
+
+
+def is_heldout(index: int, every: int) -> bool:
+    """True when labelled frame ``index`` (0-based, per bag) is held out of the fits."""
+    return every > 0 and index % every == every - 1
+
+
+@dataclass
+class LabelDepthCounts:
+    """Pixel counts of (input label y, depth bin b, ground truth c) for fitting and held-out frames.
+
+    Attributes:
+        fit, heldout: (C, B, C) int64.
+        no_depth: labelled pixels without rendered depth (not counted above).
+        frames_fit, frames_heldout: frames that added to each.
+    """
+
+    num_classes: int
+    edges: np.ndarray
+    fit: np.ndarray = field(init=False)
+    heldout: np.ndarray = field(init=False)
+    no_depth: int = 0
+    frames_fit: int = 0
+    frames_heldout: int = 0
+
+    def __post_init__(self) -> None:
+        b = self.edges.size - 1
+        self.fit = np.zeros((self.num_classes, b, self.num_classes), dtype=np.int64)
+        self.heldout = np.zeros_like(self.fit)
+
+    def add(self, labels: np.ndarray, gt: np.ndarray, depth: np.ndarray, heldout: bool) -> None:
+        """Count one frame: labels, gt (H, W) ints; depth (H, W) metres (NaN = none)."""
+        c, b = self.num_classes, self.edges.size - 1
+        lab = labels.astype(np.int64).ravel()
+        tru = gt.astype(np.int64).ravel()
+        d = depth.astype(np.float64).ravel()
+        valid = (lab >= 0) & (lab < c) & (tru >= 0) & (tru < c)
+        has_depth = np.isfinite(d)
+        self.no_depth += int(np.count_nonzero(valid & ~has_depth))
+        keep = valid & has_depth
+        bins = np.clip(np.searchsorted(self.edges, d[keep], side="right") - 1, 0, b - 1)
+        flat = (lab[keep] * b + bins) * c + tru[keep]
+        target = self.heldout if heldout else self.fit
+        target += np.bincount(flat, minlength=c * b * c).reshape(c, b, c)
+        if heldout:
+            self.frames_heldout += 1
+        else:
+            self.frames_fit += 1
+
+
+def fit_sensor_model(counts: LabelDepthCounts, class_names: Iterable[str], confusion: bool = True,
+                     pseudo_count: float = DEFAULT_PSEUDO_COUNT,
+                     weight_floor: float = DEFAULT_WEIGHT_FLOOR) -> SensorModel:
+    """The sensor model of the fitting counts: p(c | y, b) smoothed (fit.smoothed_rates), w(y, b) = max(floor,
+    2 p(y | y, b) - 1) (fit.reliability_weight); the confusion rows are kept when ``confusion``."""
+    rates = smoothed_rates(counts.fit.astype(np.float64), pseudo_count)
+    c = counts.num_classes
+    p_right = rates[np.arange(c), :, np.arange(c)]  # (C, B)
+    weight = reliability_weight(p_right, weight_floor)
+    return SensorModel(tuple(class_names), counts.edges.copy(), weight, rates if confusion else None)
+
+
+def label_samples(counts: np.ndarray, model: SensorModel) -> tuple[np.ndarray, np.ndarray]:
+    """Per labelled pixel of (C, B, C) counts: (the model's p(label right | label, depth bin), 1.0 if right else 0.0)."""
+    c = model.num_classes
+    n = counts.sum(axis=2)                               # (C, B) pixels per cell
+    right = counts[np.arange(c), :, np.arange(c)]        # (C, B)
+    p = model.label_distribution()[np.arange(c), :, np.arange(c)]
+    cells = n > 0
+    conf = np.repeat(p[cells], n[cells])
+    parts = [np.r_[np.ones(int(r)), np.zeros(int(t - r))] for r, t in zip(right[cells], n[cells])]
+    return conf, np.concatenate(parts) if parts else np.zeros(0)
+
+
+def label_reliability(counts: np.ndarray, model: SensorModel) -> dict[str, Any]:
+    """Held-out calibration of "the input label is right": the paper's assumption (probability 1) against the
+    model's p(y | y, b), from (C, B, C) counts (ECE, Brier, reliability bins of calibration_summary)."""
+    conf, correct = label_samples(counts, model)
+    if conf.size == 0:
+        return {"before": None, "after": None}
+    return {"before": calibration_summary(np.ones_like(conf), correct),
+            "after": calibration_summary(conf, correct), "pixels": int(conf.size)}
+
+
+@dataclass
+class ConfidenceSamples:
+    """Per-pixel (E, evidence, right) samples of online renders, split into fitting and held-out frames."""
+
+    fit: PixelSampler = field(default_factory=lambda: PixelSampler(max_samples=MAX_CONFIDENCE_SAMPLES, seed=1))
+    heldout: PixelSampler = field(default_factory=lambda: PixelSampler(max_samples=MAX_CONFIDENCE_SAMPLES, seed=2))
+
+    def add(self, view: "RenderedView", gt: np.ndarray, num_classes: int, ignore_label: int, heldout: bool) -> None:
+        valid = (gt >= 0) & (gt < num_classes) & (gt != ignore_label)
+        if not np.any(valid):
+            return
+        right = (view.labels[valid] == gt[valid]).astype(np.uint8)
+        (self.heldout if heldout else self.fit).push(
+            expectation=view.expectation[valid].astype(np.float32), evidence=view.evidence[valid].astype(np.float32),
+            right=right)
+
+
+def _features(expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
+    e = np.clip(expectation.astype(np.float64), 1e-6, 1.0 - 1e-6)
+    return np.column_stack([np.log(e / (1.0 - e)), np.log1p(np.maximum(evidence.astype(np.float64), 0.0))])
+
+
+def fit_confidence(samples: ConfidenceSamples) -> tuple[ConfidenceMap, dict[str, Any]]:
+    """Fit the confidence map on the fitting samples; judge E and the calibrated confidence on the held-out ones
+    (and on the fitting ones when nothing was held out). Returns (map, {"before": ..., "after": ...})."""
+    cols = samples.fit.columns()
+    coef = logistic_fit(_features(cols["expectation"], cols["evidence"]), cols["right"].astype(np.float64))
+    cmap = ConfidenceMap(coef, np.array([0.0, 1.0]), np.array([0.0, 1.0]))
+    score = cmap.score(cols["expectation"], cols["evidence"])
+    kx, ky = isotonic_fit(score, cols["right"].astype(np.float64))
+    kx, ky = np.clip(kx, 0.0, 1.0), np.clip(ky, 0.0, 1.0)
+    keep = np.r_[True, np.diff(kx) > 0]
+    cmap = ConfidenceMap(coef, kx[keep], np.maximum.accumulate(ky[keep]))
+    test = samples.heldout.columns() if samples.heldout.total_seen else cols
+    right = test["right"].astype(np.float64)
+    report = {"before": calibration_summary(test["expectation"].astype(np.float64), right),
+              "after": calibration_summary(cmap(test["expectation"], test["evidence"]), right),
+              "judged_on": "held-out frames" if samples.heldout.total_seen else "the fitting frames (none held out)"}
+    return cmap, report
+
+
+def fused_frames(smap: "SemanticMap", frames: Iterable[Any], samples: ConfidenceSamples, heldout_every: int) -> int:
+    """Observe every frame in order (online renders feed ``samples``); returns the frames fused."""
+    n = 0
+    for frame in frames:
+        view = smap.observe(frame.camera, frame.labels, frame.confidence)
+        if frame.gt is not None:
+            samples.add(view, frame.gt, smap.num_classes, smap.ignore_label, is_heldout(frame.index, heldout_every))
+        n += 1
+    return n

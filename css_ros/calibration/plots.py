@@ -1,0 +1,120 @@
+"""css_calibrate's figures: reliability vs depth per class, confusion per depth band, reliability diagrams."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from ..engine.classes import ClassSet
+    from ..engine.sensor_model import SensorModel
+    from ..evaluation.calibration_metrics import ReliabilityBins
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
+    """Write ``fig`` as PNG atomically (temporary file, rename) and close it."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    finally:
+        _plt().close(fig)
+
+
+def reliability_by_depth_figure(model: "SensorModel", counts: np.ndarray, classes: "ClassSet") -> Any:
+    """p(label right | label, depth) per class (solid; marker size ~ pixels) and the vote weight w (dashed)."""
+    plt = _plt()
+    c = model.num_classes
+    centres = 0.5 * (model.depth_edges[:-1] + model.depth_edges[1:])
+    p = model.label_distribution()[np.arange(c), :, np.arange(c)] if model.confusion is not None else None
+    n = counts.sum(axis=2)
+    raw = np.where(n > 0, counts[np.arange(c), :, np.arange(c)] / np.maximum(n, 1), np.nan)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), sharex=True)
+    order = np.argsort(-n.sum(axis=1))
+    for y in order:
+        if n[y].sum() == 0:
+            continue
+        color = np.asarray(classes.palette[y]) / 255.0
+        axes[0].plot(centres, raw[y], "o", color=color, markersize=3, alpha=0.6)
+        axes[0].plot(centres, p[y] if p is not None else raw[y], "-", color=color, label=classes.names[y])
+        axes[1].plot(centres, model.weight[y], "-", color=color, label=classes.names[y])
+    axes[0].set_title("p(label right | label, depth): dots measured, lines smoothed")
+    axes[0].set_ylabel("fraction of pixels whose label is right")
+    axes[1].set_title("vote weight w(label, depth) used by the update")
+    axes[1].set_ylabel("w")
+    for ax in axes:
+        ax.set_xlabel("rendered depth [m]")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7, ncol=2, loc="lower left")
+    fig.tight_layout()
+    return fig
+
+
+def confusion_bands_figure(counts: np.ndarray, edges: np.ndarray, classes: "ClassSet", bands: int = 3) -> Any:
+    """Row-normalised confusion (label -> true class) in ``bands`` depth bands of about equal pixel count."""
+    plt = _plt()
+    per_bin = counts.sum(axis=(0, 2)).astype(np.float64)
+    cum = np.cumsum(per_bin) / max(per_bin.sum(), 1.0)
+    cuts = [0] + [int(np.searchsorted(cum, k / bands)) + 1 for k in range(1, bands)] + [len(per_bin)]
+    cuts = sorted(set(min(max(v, 0), len(per_bin)) for v in cuts))
+    fig, axes = plt.subplots(1, len(cuts) - 1, figsize=(5.2 * (len(cuts) - 1), 5), squeeze=False)
+    names = list(classes.names)
+    for ax, lo, hi in zip(axes[0], cuts[:-1], cuts[1:]):
+        m = counts[:, lo:hi, :].sum(axis=1).astype(np.float64)
+        rows = m.sum(axis=1, keepdims=True)
+        img = np.where(rows > 0, m / np.maximum(rows, 1.0), np.nan)
+        im = ax.imshow(img, vmin=0, vmax=1, cmap="viridis")
+        ax.set_title(f"depth {edges[lo]:g}-{edges[hi]:g} m ({int(m.sum())} px)", fontsize=9)
+        ax.set_xticks(range(len(names)), names, rotation=90, fontsize=6)
+        ax.set_yticks(range(len(names)), names, fontsize=6)
+        ax.set_xlabel("true class")
+        ax.set_ylabel("input label")
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="p(true class | label)")
+    return fig
+
+
+def reliability_panels_figure(panels: Sequence[tuple[str, dict[str, "ReliabilityBins"]]]) -> Any:
+    """One reliability diagram per (title, curves) panel, side by side."""
+    plt = _plt()
+    fig = plt.figure(figsize=(6.2 * len(panels), 6.2))
+    subfigs = fig.subfigures(1, len(panels), squeeze=False)[0]
+    for sub, (title, curves) in zip(subfigs, panels):
+        _reliability_axes(sub, curves, title)
+    return fig
+
+
+def _reliability_axes(sub: Any, curves: dict[str, "ReliabilityBins"], title: str) -> None:
+    ax, hist = sub.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    ax.plot([0, 1], [0, 1], "k--", lw=1, label="perfect calibration")
+    for name, rb in curves.items():
+        ece = rb.ece()
+        ax.plot(rb.mean_confidence, rb.accuracy, "o-", label=f"{name} (ECE {ece:.3f})" if np.isfinite(ece)
+                else f"{name} (ECE n/a)")
+        centres = 0.5 * (rb.edges[:-1] + rb.edges[1:])
+        hist.step(centres, np.maximum(rb.count, 1), where="mid", label=name)
+    ax.set_title(title, fontsize=10)
+    ax.set_ylabel("observed accuracy")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    hist.set_yscale("log")
+    hist.set_xlabel("predicted probability that the label is right")
+    hist.set_ylabel("pixels")
