@@ -26,7 +26,8 @@ from ..evaluation.config import ReplayConfig
 from ..evaluation.source import FrameSource
 from .learn import (DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
                     DEFAULT_WEIGHT_FLOOR, MIN_LABELLED_PIXELS, ConfidenceSamples, LabelDepthCounts, fit_confidence,
-                    fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples)
+                    fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
+                    right_rates)
 
 PROG = "css_calibrate"
 
@@ -49,8 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"depth-bin width in metres (default {DEFAULT_BIN_WIDTH:g})")
     p.add_argument("--max-depth", type=float, default=DEFAULT_MAX_DEPTH, metavar="M",
                    help=f"last bin edge in metres; deeper pixels fall in the last bin (default {DEFAULT_MAX_DEPTH:g})")
-    p.add_argument("--no-confusion", action="store_true",
-                   help="weights only: a label votes for its own class (no confusion model)")
+    p.add_argument("--confusion", action="store_true",
+                   help="votes are the confusion rows p(true class | label, depth) instead of the label's own class")
+    p.add_argument("--per-class", action="store_true",
+                   help="weights per label and depth (default: per depth, the same for every label)")
     p.add_argument("--pseudo-count", type=float, default=DEFAULT_PSEUDO_COUNT, metavar="N",
                    help="smoothing of sparse (label, depth) bins toward their neighbours and the class rate, in "
                         f"pixels (default {DEFAULT_PSEUDO_COUNT:g})")
@@ -159,23 +162,27 @@ def calibrate(args: argparse.Namespace) -> int:
     if fit_pixels < MIN_LABELLED_PIXELS:
         raise CssError(f"too few labelled pixels to calibrate: {fit_pixels} with a ground truth and a rendered depth "
                        f"in {counts.frames_fit} fitting frames (need {MIN_LABELLED_PIXELS})")
-    sensor = fit_sensor_model(counts, classes.names, confusion=not args.no_confusion,
+    sensor = fit_sensor_model(counts, classes.names, confusion=args.confusion, per_class=args.per_class,
                               pseudo_count=args.pseudo_count, weight_floor=args.weight_floor)
-    labels_report = label_reliability(counts.heldout if counts.frames_heldout else counts.fit, sensor)
+    p_right = right_rates(counts.fit, args.pseudo_count)
+    judged = counts.heldout if counts.frames_heldout else counts.fit
+    labels_report = label_reliability(judged, p_right)
     info: dict[str, Any] = {
         "bags": [str(c.bag) for c in configs], "frames_fit": counts.frames_fit,
         "frames_heldout": counts.frames_heldout, "heldout_every": args.heldout_every, "pixels_fit": fit_pixels,
         "pixels_heldout": int(counts.heldout.sum()), "pixels_without_depth": counts.no_depth,
         "pseudo_count": args.pseudo_count, "weight_floor": args.weight_floor,
-        "weight_rule": "w = max(weight_floor, 2 p(label right | label, depth) - 1)",
+        "weight_rule": "w = max(weight_floor, 2 p - 1), p = fraction of right labels "
+                       + ("per label and depth bin" if args.per_class else "per depth bin (all labels)"),
+        "votes": "confusion rows p(true class | label, depth)" if args.confusion else "one-hot of the label",
         "input_label_calibration": {"before": labels_report["before"], "after": labels_report["after"]},
     }
     panels = []
     if labels_report["after"] is not None:
-        conf, ok = label_samples(counts.heldout if counts.frames_heldout else counts.fit, sensor)
+        conf, ok = label_samples(judged, p_right)
         panels.append(("input labels, held-out frames", {
             "paper: every label right (p = 1)": reliability_bins(np.ones_like(conf), ok),
-            "sensor model p(label right | label, depth)": reliability_bins(conf, ok)}))
+            "fitted p(label right | label, depth)": reliability_bins(conf, ok)}))
     if not args.no_confidence:
         samples = confidence_pass(configs, sensor, args.heldout_every, args.quiet)
         cmap, conf_report = fit_confidence(samples)
@@ -191,7 +198,7 @@ def calibrate(args: argparse.Namespace) -> int:
     write_outputs(args.out, sensor, counts, classes, panels)
     print(f"{PROG}: {fit_pixels} labelled pixels in {counts.frames_fit} frames ({counts.frames_heldout} held out); "
           f"{counts.no_depth} labelled pixels had no rendered depth")
-    print(f"input labels, held out: paper (p = 1): {_fmt(labels_report['before'])}; sensor model: "
+    print(f"input labels, held out: paper (p = 1): {_fmt(labels_report['before'])}; fitted p(right | label, depth): "
           f"{_fmt(labels_report['after'])}")
     if "confidence_calibration" in info:
         cr = info["confidence_calibration"]

@@ -89,34 +89,57 @@ class LabelDepthCounts:
             self.frames_fit += 1
 
 
-def fit_sensor_model(counts: LabelDepthCounts, class_names: Iterable[str], confusion: bool = True,
-                     pseudo_count: float = DEFAULT_PSEUDO_COUNT,
+def depth_reliability(counts: np.ndarray, pseudo_count: float = DEFAULT_PSEUDO_COUNT) -> np.ndarray:
+    """(B,) fraction of right labels per depth bin over all classes, smoothed like the per-class rates."""
+    c = counts.shape[0]
+    right = counts[np.arange(c), :, np.arange(c)].sum(axis=0).astype(np.float64)   # (B,)
+    total = counts.sum(axis=(0, 2)).astype(np.float64)
+    two = np.stack([right, total - right], axis=-1)[None]                             # (1, B, 2)
+    return smoothed_rates(two, pseudo_count)[0, :, 0]
+
+
+def fit_sensor_model(counts: LabelDepthCounts, class_names: Iterable[str], confusion: bool = False,
+                     per_class: bool = False, pseudo_count: float = DEFAULT_PSEUDO_COUNT,
                      weight_floor: float = DEFAULT_WEIGHT_FLOOR) -> SensorModel:
-    """The sensor model of the fitting counts: p(c | y, b) smoothed (fit.smoothed_rates), w(y, b) = max(floor,
-    2 p(y | y, b) - 1) (fit.reliability_weight); the confusion rows are kept when ``confusion``."""
+    """The sensor model of the fitting counts.
+
+    w(y, b) = max(floor, 2 p - 1) (fit.reliability_weight) with p the fraction of right labels at depth bin b over
+    all classes (default; the same weight for every label) or, with ``per_class``, of label y alone. The confusion
+    rows p(c | y, b) (fit.smoothed_rates) are kept when ``confusion`` (default: one-hot votes).
+    """
     rates = smoothed_rates(counts.fit.astype(np.float64), pseudo_count)
     c = counts.num_classes
-    p_right = rates[np.arange(c), :, np.arange(c)]  # (C, B)
+    if per_class:
+        p_right = rates[np.arange(c), :, np.arange(c)]  # (C, B)
+    else:
+        p_right = np.broadcast_to(depth_reliability(counts.fit, pseudo_count), (c, counts.edges.size - 1))
     weight = reliability_weight(p_right, weight_floor)
-    return SensorModel(tuple(class_names), counts.edges.copy(), weight, rates if confusion else None)
+    return SensorModel(tuple(class_names), counts.edges.copy(), np.array(weight), rates if confusion else None)
 
 
-def label_samples(counts: np.ndarray, model: SensorModel) -> tuple[np.ndarray, np.ndarray]:
-    """Per labelled pixel of (C, B, C) counts: (the model's p(label right | label, depth bin), 1.0 if right else 0.0)."""
-    c = model.num_classes
+def label_samples(counts: np.ndarray, p_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per labelled pixel of (C, B, C) counts: (predicted p(label right | label, depth bin) from ``p_right`` (C, B),
+    1.0 if right else 0.0)."""
+    c = counts.shape[0]
     n = counts.sum(axis=2)                               # (C, B) pixels per cell
     right = counts[np.arange(c), :, np.arange(c)]        # (C, B)
-    p = model.label_distribution()[np.arange(c), :, np.arange(c)]
+    p = p_right
     cells = n > 0
     conf = np.repeat(p[cells], n[cells])
     parts = [np.r_[np.ones(int(r)), np.zeros(int(t - r))] for r, t in zip(right[cells], n[cells])]
     return conf, np.concatenate(parts) if parts else np.zeros(0)
 
 
-def label_reliability(counts: np.ndarray, model: SensorModel) -> dict[str, Any]:
+def right_rates(counts: np.ndarray, pseudo_count: float = DEFAULT_PSEUDO_COUNT) -> np.ndarray:
+    """(C, B) smoothed fraction of right labels per label and depth bin (fit.smoothed_rates of the counts)."""
+    c = counts.shape[0]
+    return smoothed_rates(counts.astype(np.float64), pseudo_count)[np.arange(c), :, np.arange(c)]
+
+
+def label_reliability(counts: np.ndarray, p_right: np.ndarray) -> dict[str, Any]:
     """Held-out calibration of "the input label is right": the paper's assumption (probability 1) against the
-    model's p(y | y, b), from (C, B, C) counts (ECE, Brier, reliability bins of calibration_summary)."""
-    conf, correct = label_samples(counts, model)
+    fitted p(label right | label, depth bin) ``p_right`` (C, B), from (C, B, C) counts (calibration_summary)."""
+    conf, correct = label_samples(counts, p_right)
     if conf.size == 0:
         return {"before": None, "after": None}
     return {"before": calibration_summary(np.ones_like(conf), correct),

@@ -250,6 +250,8 @@ class SemanticMap:
         self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.depth_scale = float(depth_scale)
+        #: pixel counts of the latest update (``observe`` returns the view, this keeps its counts); None before
+        self.last_update: UpdateStats | None = None
         self._sensor_model: SensorModel | None = None
         self._soft: SoftLabels | None = None
         self.frames_observed = 0
@@ -352,6 +354,7 @@ class SemanticMap:
             no_depth = self._backend.update(frame, lab, weights, self._concentrations, self._soft)
             stats = UpdateStats(stats.used, stats.ignored, stats.out_of_range, int(no_depth))
         self.frames_observed += 1
+        self.last_update = stats
         return stats
 
     def _render_frame(self, frame: Any, probabilities: bool) -> RenderedView:

@@ -236,7 +236,7 @@ class SensorModel:
             "fingerprint": self.fingerprint,
             "classes": list(self.class_names),
             "depth_edges": [float(v) for v in self.depth_edges],
-            "weight": np.round(self.weight, 6).tolist(),
+            "weight": self.weight.tolist(),
             "confusion": None if self.confusion is None else self.confusion.tolist(),
             "confidence": None if self.confidence is None else self.confidence.to_dict(),
         }

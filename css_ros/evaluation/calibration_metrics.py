@@ -72,6 +72,13 @@ class ReliabilityBins:
             "dropped": int(self.dropped),
         }
 
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "ReliabilityBins":
+        """The inverse of :meth:`to_json` (None -> NaN)."""
+        nan = lambda v: np.array([np.nan if x is None else x for x in v], dtype=np.float64)  # noqa: E731
+        return cls(np.asarray(d["edges"], dtype=np.float64), np.asarray(d["count"], dtype=np.int64),
+                   nan(d["mean_confidence"]), nan(d["accuracy"]), int(d["dropped"]))
+
 
 def reliability_bins(confidence: np.ndarray, correct: np.ndarray, bins: int = DEFAULT_ECE_BINS) -> ReliabilityBins:
     """Reliability statistics of ``confidence`` against ``correct`` (same size, any shape) in ``bins`` equal-width bins.

@@ -100,6 +100,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="7 numbers per camera (x y z qx qy qz qw): the optical frame in the frame the pose describes")
     g.add_argument("--splat-to-map", nargs=8, type=float, default=None, metavar="V",
                    help="s x y z qx qy qz qw: the similarity taking splat coordinates into the map frame")
+    p.add_argument("--sensor-model", type=Path, default=None, metavar="YAML",
+                   help="sensor model from css_calibrate: weights each pixel's vote by its label and depth and "
+                        "publishes the calibrated ~/confidence (default: none, the paper's update)")
+    p.add_argument("--no-paper-baseline", action="store_true",
+                   help="with --sensor-model, do not also fuse a map with the paper's update for comparison")
     p.add_argument("--no-output-bag", action="store_true", help="do not write the output bag")
     p.add_argument("--quiet", action="store_true", help="no progress bar, only errors and the final line")
     return p
@@ -185,6 +190,7 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         topics=topics, train_frames=args.train_frames, max_frames=args.max_frames, prior=args.prior,
         background=args.background, unknown_threshold=args.unknown_threshold, ignore_label=args.ignore_label,
         backend=args.backend, output_bag=not args.no_output_bag, quiet=args.quiet,
+        sensor_model=args.sensor_model, paper_baseline=not args.no_paper_baseline,
         sync_queue=max(1, args.sync_queue), namespace=args.namespace, max_pixels=max(1000, args.max_pixels),
         seed=args.seed, examples=max(0, args.examples), allow_out_of_range=args.allow_out_of_range,
         explicit_topics=frozenset(k for k, v in given.items() if v is not None),

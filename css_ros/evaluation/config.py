@@ -41,6 +41,10 @@ class ReplayConfig:
     unknown_threshold: float | None = None  # None = engine default
     ignore_label: int = DEFAULT_IGNORE_LABEL
     backend: str = "numba"
+    #: sensor-model YAML (css_calibrate) for the update and ~/confidence; None: the paper's update
+    sensor_model: Path | None = None
+    #: with a sensor model, also fuse a second map with the paper's update for the report's comparison
+    paper_baseline: bool = True
     output_bag: bool = True
     quiet: bool = False
     sync_slop: float = DEFAULT_SYNC_SLOP_S  # s

@@ -6,12 +6,39 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from ..engine.classes import ClassSet
+from .calibration_metrics import calibration_summary
 from .metrics import ConfusionMatrix, PixelSampler, finite_or_none, psnr, sparsification_report, spearman
 
 if TYPE_CHECKING:
     from ..engine.semantic_map import RenderedView
     from .config import ReplayConfig
     from .source import Frame
+
+
+def push_calibration(sampler: PixelSampler, gt: np.ndarray, view: RenderedView, num_classes: int,
+                     ignore_label: int) -> None:
+    """Add one rendered view's (right, E, confidence) pixel samples (GT-labelled pixels only) to ``sampler``."""
+    valid = (gt >= 0) & (gt < num_classes) & (gt != ignore_label)
+    if not np.any(valid):
+        return
+    cols = {"right": (view.labels[valid] == gt[valid]).astype(np.uint8),
+            "expectation": view.expectation[valid].astype(np.float32)}
+    if view.confidence is not None:
+        cols["confidence"] = view.confidence[valid].astype(np.float32)
+    sampler.push(**cols)
+
+
+def calibration_report(sampler: PixelSampler) -> dict[str, Any] | None:
+    """ECE / Brier / reliability bins of E and (when present) the calibrated confidence, from ``sampler``."""
+    cols = sampler.columns()
+    if not cols or cols["right"].size == 0:
+        return None
+    right = cols["right"].astype(np.float64)
+    out = {"expectation": calibration_summary(cols["expectation"].astype(np.float64), right),
+           "confidence": None, "pixels": int(right.size), "pixels_total": sampler.total_seen}
+    if "confidence" in cols:
+        out["confidence"] = calibration_summary(cols["confidence"].astype(np.float64), right)
+    return out
 
 
 class Evaluator:
@@ -25,6 +52,8 @@ class Evaluator:
         self.css_train = ConfusionMatrix(C, cfg.ignore_label)
         self.css_heldout = ConfusionMatrix(C, cfg.ignore_label)
         self.pixels = PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed)
+        #: (right, E, confidence) of the fused renders, for the calibration report (ECE, reliability diagram)
+        self.calibration_pixels = PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed + 2)
         self.images: list[dict[str, Any]] = []
         self.example_indices = set(example_indices)
         self.examples: list[dict[str, Any]] = []
@@ -45,12 +74,13 @@ class Evaluator:
             if valid.any():
                 wrong = (view.labels[valid] != gt[valid])
                 rec["error"] = float(wrong.mean())
-                self.pixels.push(
-                    wrong=wrong.astype(np.uint8),
-                    expectation=-view.expectation[valid].astype(np.float32),
-                    variance=view.variance[valid].astype(np.float32),
-                    evidence=-view.evidence[valid].astype(np.float32),
-                )
+                cols = {"wrong": wrong.astype(np.uint8), "expectation": -view.expectation[valid].astype(np.float32),
+                        "variance": view.variance[valid].astype(np.float32),
+                        "evidence": -view.evidence[valid].astype(np.float32)}
+                if view.confidence is not None:
+                    cols["confidence"] = -view.confidence[valid].astype(np.float32)
+                self.pixels.push(**cols)
+                push_calibration(self.calibration_pixels, gt, view, self.classes.num_classes, self.cfg.ignore_label)
         self.images.append(rec)
         if frame.index in self.example_indices:
             self.examples.append({
@@ -62,12 +92,11 @@ class Evaluator:
         cols = self.pixels.columns()
         if not cols or cols["wrong"].size == 0:
             return None
-        rep = sparsification_report(
-            {"expectation": cols["expectation"], "variance": cols["variance"], "evidence": cols["evidence"]},
-            cols["wrong"], random_seed=self.cfg.seed,
-        )
+        signals = {k: cols[k] for k in ("expectation", "variance", "evidence", "confidence") if k in cols}
+        rep = sparsification_report(signals, cols["wrong"], random_seed=self.cfg.seed)
         rep["uncertainty_definition"] = {"expectation": "-E (of the argmax class)", "variance": "Var (argmax class)",
                                          "evidence": "-evidence (observation-count baseline)",
+                                         "confidence": "-calibrated confidence (sensor model's confidence map)",
                                          "random": "uniform random ordering (seeded)",
                                          "oracle": "actual error (wrong pixels first)"}
         rep["pixels_total"] = self.pixels.total_seen

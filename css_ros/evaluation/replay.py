@@ -19,6 +19,7 @@ from tqdm import tqdm
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import RenderedView, SemanticMap
+from ..engine.sensor_model import SensorModel
 from ..engine.similarity import Similarity
 from ..errors import CssError, MapError
 from ..export.birdseye import render_birdseye
@@ -28,8 +29,8 @@ from ..io.outputs import frame_output_images
 from ..io.topics import output_topic
 from ..io.trajectory import write_replay_trajectory
 from .config import OUT_OF_RANGE_MAX_SHARE, ReplayConfig
-from .evaluator import Evaluator
-from .metrics import ConfusionMatrix
+from .evaluator import Evaluator, calibration_report, push_calibration
+from .metrics import ConfusionMatrix, PixelSampler
 from .source import Frame, FrameSource, check_label_range
 
 
@@ -66,10 +67,21 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     model = GaussianModel.from_ply(cfg.model)
     classes = ClassSet.from_yaml(cfg.classes) if cfg.classes else ClassSet.default(int(cfg.num_classes or 0))
     C = classes.num_classes
-    extra = {} if cfg.unknown_threshold is None else {"unknown_threshold": cfg.unknown_threshold}
+    extra: dict[str, Any] = {} if cfg.unknown_threshold is None else {"unknown_threshold": cfg.unknown_threshold}
+    sensor = None if cfg.sensor_model is None else SensorModel.load(cfg.sensor_model, classes.names)
+    depth_scale = float(cfg.splat_to_map[0])
     smap = SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
-                       ignore_label=cfg.ignore_label, backend=cfg.backend, **extra)
+                       ignore_label=cfg.ignore_label, backend=cfg.backend, sensor_model=sensor,
+                       depth_scale=depth_scale, **extra)
     cfg.unknown_threshold = smap.unknown_threshold
+    # the paper's update on the same frames, for the report's comparison (only with a sensor model)
+    paper = SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
+                        ignore_label=cfg.ignore_label, backend=cfg.backend, depth_scale=depth_scale,
+                        **extra) if sensor is not None and cfg.paper_baseline else None
+    paper_online_cm = ConfusionMatrix(C, cfg.ignore_label)
+    paper_fused_cm = ConfusionMatrix(C, cfg.ignore_label)
+    online_pixels = PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed + 1)
+    no_depth = 0
     source = FrameSource(cfg)
     source.check()
     if not source.present.get("gt") and not cfg.quiet:
@@ -92,21 +104,33 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     bag_ctx = BagWriter(cfg.out / "bag") if cfg.output_bag else nullcontext()
     with bag_ctx as obag, _progress(expected, "fuse", cfg.quiet) as bar:
         for frame in source.frames() if expected > 0 else ():
+            online = obag is not None or frame.gt is not None
             if frame.index < K:
                 trajectory.append((frame.camera, None))
-                if obag is not None:
+                if online:
                     view = smap.observe(frame.camera, frame.labels, frame.confidence)
                 else:  # no online outputs wanted: skip the render (the evaluation renders in pass 2)
                     smap.update(frame.camera, frame.labels, frame.confidence)
                     view = None
+                no_depth += smap.last_update.no_depth if smap.last_update is not None else 0
                 trained += 1
+                if paper is not None:
+                    pview = paper.observe(frame.camera, frame.labels, frame.confidence) if frame.gt is not None \
+                        else paper.update(frame.camera, frame.labels, frame.confidence)
+                    if frame.gt is not None:
+                        paper_online_cm.update(frame.gt, pview.labels)
             else:
                 view = smap.render(frame.camera)
                 evaluator.add(frame, view, trained=False)  # map is final: evaluate now
+                if paper is not None and frame.gt is not None:
+                    pview = paper.render(frame.camera)
+                    paper_online_cm.update(frame.gt, pview.labels)
+                    paper_fused_cm.update(frame.gt, pview.labels)
             if frame.gt is not None:
                 input_cm.update(frame.gt, frame.labels)
                 if view is not None:
                     online_cm.update(frame.gt, view.labels)
+                    push_calibration(online_pixels, frame.gt, view, C, cfg.ignore_label)
             if obag is not None and view is not None:
                 _write_outputs(obag, frame, view, classes, cfg)
             if view is not None and frame.index < K:
@@ -134,6 +158,8 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         with _progress(trained, "evaluate", cfg.quiet) as bar:
             for frame in source2.frames():
                 evaluator.add(frame, smap.render(frame.camera), trained=True)
+                if paper is not None and frame.gt is not None:
+                    paper_fused_cm.update(frame.gt, paper.render(frame.camera).labels)
                 evaluated_train += 1
                 bar.update(1)
                 if evaluated_train >= trained:
@@ -176,6 +202,18 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         "pixel_sparsification": evaluator.pixel_report(),
         "image_level": evaluator.image_report(),
     }
+    metrics["sensor_model"] = None if sensor is None else {
+        "file": str(cfg.sensor_model), "fingerprint": sensor.fingerprint, "description": sensor.describe(),
+        "labelled_pixels_without_depth": no_depth,
+        "without_depth_rule": "a labelled pixel that no Gaussian covers has no rendered depth and adds nothing"}
+    if paper is not None and has_gt:
+        metrics["segmentation"]["paper_online"] = paper_online_cm.summary(classes.names)
+        metrics["segmentation"]["paper_fused"] = paper_fused_cm.summary(classes.names)
+    if has_gt:
+        metrics["calibration"] = {"online": calibration_report(online_pixels),
+                                  "fused": calibration_report(evaluator.calibration_pixels),
+                                  "definition": "probability that the rendered label is right: E of the argmax "
+                                                "class, and the calibrated ~/confidence of the sensor model"}
     if has_gt and 0 < trained < processed:
         metrics["segmentation"]["css_trained_frames"] = evaluator.css_train.summary(classes.names)
         metrics["segmentation"]["css_heldout_frames"] = evaluator.css_heldout.summary(classes.names)
@@ -226,11 +264,23 @@ def headline(metrics: dict[str, Any]) -> str:
         i, c = seg["input"], seg["css"]
         lines.append(f"input segmentation: mIoU {100 * i['miou']:.1f}%  accuracy {100 * i['pixel_accuracy']:.1f}%")
         lines.append(f"CSS rendering:      mIoU {100 * c['miou']:.1f}%  accuracy {100 * c['pixel_accuracy']:.1f}%")
+    if seg.get("css_online"):
+        o = seg["css_online"]
+        lines.append(f"CSS online:         mIoU {100 * o['miou']:.1f}%  accuracy {100 * o['pixel_accuracy']:.1f}%")
+    if seg.get("paper_online") and seg.get("paper_fused"):
+        po, pf = seg["paper_online"], seg["paper_fused"]
+        lines.append(f"paper update:       online accuracy {100 * po['pixel_accuracy']:.1f}%, fused accuracy "
+                     f"{100 * pf['pixel_accuracy']:.1f}% (the same frames without the sensor model)")
     px = metrics.get("pixel_sparsification")
     if px:
         a = px["ause"]
         lines.append("pixel AUSE (lower is better): " + "  ".join(
-            f"{k} {a[k]:.4f}" for k in ("expectation", "variance", "evidence", "random") if a.get(k) is not None))
+            f"{k} {a[k]:.4f}" for k in ("expectation", "variance", "evidence", "confidence", "random")
+            if a.get(k) is not None))
+    cal = (metrics.get("calibration") or {}).get("online")
+    if cal:
+        lines.append("ECE of the online renders: E " + f"{cal['expectation']['ece']:.3f}"
+                     + (f", calibrated confidence {cal['confidence']['ece']:.3f}" if cal.get("confidence") else ""))
     im = metrics["image_level"].get("spearman")
     if im:
         lines.append("image-level Spearman rho vs error: " + "  ".join(

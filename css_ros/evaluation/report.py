@@ -358,7 +358,33 @@ def make_plots(out: Path, metrics: dict[str, Any], examples: Sequence[dict[str, 
         plots.append(("Per-class IoU", "per_class_iou.png"))
     if plot_examples(examples, classes, ignore_label, out / "examples.png"):
         plots.append(("Example frames", "examples.png"))
+    if plot_reliability(metrics.get("calibration"), out / "reliability.png"):
+        plots.append(("Reliability diagram (is the rendered label right?)", "reliability.png"))
     return plots
+
+
+def plot_reliability(cal: dict[str, Any] | None, path: Path) -> bool:
+    """Reliability diagrams of E and the calibrated confidence, online and fused renders; False if no data."""
+    from .calibration_metrics import ReliabilityBins
+
+    if not cal:
+        return False
+    panels = []
+    for key, title in (("online", "online renders (~/semantic per frame)"), ("fused", "final map (fused renders)")):
+        rec = cal.get(key)
+        if not rec:
+            continue
+        curves = {}
+        for sig, name in (("expectation", "expectation E of the label"), ("confidence", "calibrated confidence")):
+            if rec.get(sig):
+                curves[name] = ReliabilityBins.from_json(rec[sig]["bins"])
+        panels.append((title, curves))
+    if not panels:
+        return False
+    from .calibration_plots import reliability_panels_figure
+
+    _save(reliability_panels_figure(panels), path)
+    return True
 
 
 def _compile_note(timing: dict[str, Any]) -> str:
@@ -426,6 +452,7 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
         f"- frames: {f['processed']} processed, {f['trained']} fused into the map, {f['evaluated']} evaluated; "
         f"skipped: {sum(f['skipped'].values())}" + (f" ({', '.join(f'{k}: {v}' for k, v in f['skipped'].items())})"
                                                      if f["skipped"] else ""),
+        f"- update: {(metrics.get('sensor_model') or {}).get('description') or 'the paper update (no sensor model)'}",
         f"- time: {t['total_s']:.1f} s total (fusion {_f(t.get('fuse_fps'), '.1f')} frames/s, "
         f"evaluation {_f(t.get('evaluate_fps'), '.1f')} frames/s); " + _compile_note(t),
         *_out_of_range_lines(f.get("out_of_range_labels")),
@@ -445,6 +472,18 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
                            ("css_heldout_frames", "CSS, held-out frames only")):
             if seg.get(key):
                 lines.append(f"| {label} | {_pct(seg[key]['miou'])} | {_pct(seg[key]['pixel_accuracy'])} |")
+        if seg.get("paper_online") and seg.get("css_online"):
+            lines += ["", "### Paper update vs the sensor model (same frames)", "",
+                      "| | online accuracy (%) | online mIoU (%) | fused accuracy (%) | fused mIoU (%) |",
+                      "|---|---|---|---|---|",
+                      f"| input segmentation | {_pct(seg['input']['pixel_accuracy'])} | {_pct(seg['input']['miou'])} "
+                      "| | |",
+                      f"| paper update | {_pct(seg['paper_online']['pixel_accuracy'])} | "
+                      f"{_pct(seg['paper_online']['miou'])} | {_pct(seg['paper_fused']['pixel_accuracy'])} | "
+                      f"{_pct(seg['paper_fused']['miou'])} |",
+                      f"| sensor model | {_pct(seg['css_online']['pixel_accuracy'])} | "
+                      f"{_pct(seg['css_online']['miou'])} | {_pct(seg['css']['pixel_accuracy'])} | "
+                      f"{_pct(seg['css']['miou'])} |"]
         lines += ["", "## Per-class IoU table", "",
                   "IoU in %, difference = CSS - input in percentage points; — = the class is absent from the "
                   "ground truth and that prediction (classes absent from both are not counted as 0).", "",
@@ -467,6 +506,18 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
         for k in ("u_var", "u_exp"):
             unc.append(f"| {k} | {_f(il['spearman'].get(k), '+.3f')} | {_f(sp.get(k))} |")
         unc.append(f"| random | | {_f(sp.get('random'))} |")
+    cal = metrics.get("calibration")
+    if cal and (cal.get("online") or cal.get("fused")):
+        unc += ["", "Calibration of 'the rendered label is right' (ECE over 15 equal bins, lower is better; Brier "
+                "score):", "", "| renders | signal | ECE | Brier | mean predicted | accuracy |", "|---|---|---|---|---|---|"]
+        for key in ("online", "fused"):
+            rec = cal.get(key) or {}
+            for sig in ("expectation", "confidence"):
+                r = rec.get(sig)
+                if r:
+                    unc.append(f"| {key} | {'E' if sig == 'expectation' else 'calibrated confidence'} | "
+                               f"{_f(r['ece'])} | {_f(r['brier'])} | {_f(r['mean_confidence'], '.3f')} | "
+                               f"{_f(r['accuracy'], '.3f')} |")
     if unc:
         lines += ["", "## Uncertainty", "", *unc]
     for title, fname in plots:
