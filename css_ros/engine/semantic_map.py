@@ -274,8 +274,6 @@ class SemanticMap:
         if model is not None and model.num_classes != self.num_classes:
             raise SensorModelError(f"{model.source or 'sensor model'} is for {model.num_classes} classes, the map "
                                    f"has {self.num_classes}")
-        if model is not None and self.backend_name == "cuda":
-            raise SensorModelError("sensor models run on the numba and torch backends, not yet on cuda")
         self._sensor_model = model
         self._soft = None if model is None else model.soft_labels(self.depth_scale)
         if self.frames_observed == 0:
@@ -544,5 +542,7 @@ class SemanticMap:
         smap.concentrations[...] = conc
         smap.frames_observed = frames
         smap.sources = sources
-        smap.fused_sensor_model = fused_sm
+        # a map holding only the prior carries no evidence of any update: it takes the sensor model the caller names
+        empty = "sensor_model" in kwargs and not np.any(conc != prior)
+        smap.fused_sensor_model = smap.sensor_fingerprint if empty else fused_sm
         return smap

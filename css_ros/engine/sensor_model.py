@@ -184,10 +184,12 @@ class SensorModel:
     def describe(self) -> str:
         """One line for logs: bins, confusion, confidence map, fingerprint."""
         e = self.depth_edges
-        return (f"sensor model {self.source or ''} ({self.num_classes} classes, {self.num_bins} depth bins "
+        name = self.source or "sensor model"
+        name = name if name.startswith("sensor model") else f"sensor model {name}"
+        return (f"{name} ({self.num_classes} classes, {self.num_bins} depth bins "
                 f"{e[0]:g}-{e[-1]:g} m, {'confusion' if self.confusion is not None else 'weights only'}, "
                 f"{'calibrated confidence' if self.confidence is not None else 'no confidence map'}, "
-                f"fingerprint {self.fingerprint[:12]})").replace("model  (", "model (")
+                f"fingerprint {self.fingerprint[:12]})")
 
     # ------------------------------------------------------------------ checks
     def validate(self, where: str) -> None:

@@ -183,6 +183,7 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         if not topics[kind]:
             raise ConfigError(f"the {kind} topic is required")
     frames = resolve_frame_options(args, base)
+    params_sensor = frames.pop("sensor_model", None)
     return ReplayConfig(
         **frames,
         bag=bag, model=Path(model), classes=classes,
@@ -190,7 +191,8 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         topics=topics, train_frames=args.train_frames, max_frames=args.max_frames, prior=args.prior,
         background=args.background, unknown_threshold=args.unknown_threshold, ignore_label=args.ignore_label,
         backend=args.backend, output_bag=not args.no_output_bag, quiet=args.quiet,
-        sensor_model=args.sensor_model, paper_baseline=not args.no_paper_baseline,
+        sensor_model=args.sensor_model if args.sensor_model is not None else params_sensor,
+        paper_baseline=not args.no_paper_baseline,
         sync_queue=max(1, args.sync_queue), namespace=args.namespace, max_pixels=max(1000, args.max_pixels),
         seed=args.seed, examples=max(0, args.examples), allow_out_of_range=args.allow_out_of_range,
         explicit_topics=frozenset(k for k, v in given.items() if v is not None),
@@ -218,6 +220,10 @@ def resolve_frame_options(args: argparse.Namespace, base: Path) -> dict:
     if params_path is not None:
         given = read_params_file(params_path)
         values.update({k: v for k, v in given.items() if k in FRAME_PARAMS})
+        sensor = given.get("sensor_model")
+        if isinstance(sensor, str) and sensor:  # the node's sensor model, unless --sensor-model names another
+            path = Path(sensor)
+            values["sensor_model"] = path if path.is_absolute() or path.exists() else Path(params_path).parent / path
     for name in FRAME_PARAMS:
         v = getattr(args, name, None)
         if v is not None:

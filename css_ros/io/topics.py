@@ -67,6 +67,7 @@ OUTPUT_TOPICS: dict[str, str] = {
     "expectation": IMAGE_TYPE,
     "variance": IMAGE_TYPE,
     "rendered_image": IMAGE_TYPE,
+    "confidence": IMAGE_TYPE,
     "view_uncertainty": POINTCLOUD2_TYPE,
     "candidate_scores": POINTCLOUD2_TYPE,
     "semantic_cloud": POINTCLOUD2_TYPE,
@@ -74,7 +75,9 @@ OUTPUT_TOPICS: dict[str, str] = {
 }
 #: Outputs published for every observed frame (``candidate_scores`` and ``point_query_results`` answer
 #: requests; ``semantic_cloud`` is the 3D map, published periodically with transient-local durability).
-FRAME_OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rendered_image", "view_uncertainty")
+#: ``confidence`` only exists when the node's sensor model holds a calibrated confidence map.
+FRAME_OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rendered_image", "confidence",
+                 "view_uncertainty")
 
 
 def output_topic(name: str, node_name: str = NODE_NAME) -> str:

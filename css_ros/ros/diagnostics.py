@@ -42,13 +42,17 @@ class Stats:
 class StatusReporter:
     """Builds the status dict, logs it every log_period and publishes it on /diagnostics.
 
-    Keys: the counters of :class:`Stats`, ``dropped[<topic>]`` and ``warn[<topic>: <reason>]`` of the
-    WarnLimiter, rates, latencies and the last view's uncertainty / PSNR (docs/reliability.md).
+    Keys: the counters of :class:`Stats` (among them ``label_pixels_used``, ``label_pixels_ignored``,
+    ``label_pixels_out_of_range`` and, with a sensor model, ``label_pixels_no_depth``: labelled pixels without
+    rendered depth, which add nothing), ``dropped[<topic>]`` and ``warn[<topic>: <reason>]`` of the
+    WarnLimiter, rates, latencies, the last view's uncertainty / PSNR (docs/reliability.md) and the constant
+    entries of ``info`` (``sensor_model``: the update in use, ``sensor_model_fingerprint``).
     """
 
     def __init__(self, stats: Stats, warn: WarnLimiter, pending: Callable[[], tuple[int, int]],
                  last_view: Callable[[], tuple[float, float, float]], log: Callable[[str], None],
-                 diag_pub: Any | None, name: str, hardware_id: str, now_msg: Callable[[], Any]) -> None:
+                 diag_pub: Any | None, name: str, hardware_id: str, now_msg: Callable[[], Any],
+                 info: Callable[[], dict[str, str]] | None = None) -> None:
         self.stats = stats
         self.warn = warn
         self.pending = pending
@@ -58,6 +62,7 @@ class StatusReporter:
         self.name = name
         self.hardware_id = hardware_id
         self.now_msg = now_msg
+        self.info = info
         self._last = (time.monotonic(), 0)
         self._last_problems: dict[str, int] = {}
 
@@ -83,6 +88,8 @@ class StatusReporter:
         }
         out.update({f"dropped[{k}]": v for k, v in dropped.items()})
         out.update({f"warn[{k}]": v for k, v in problems.items()})
+        if self.info is not None:
+            out.update(self.info())
         return out
 
     def report(self) -> None:
@@ -104,6 +111,8 @@ class StatusReporter:
                      f"{dropped or 0}; candidate requests served {s.get('requests_served', 0)} (median "
                      f"{s['request_latency_ms_median']:.0f} ms); last U_var {s['last_u_var']:.4g} "
                      f"U_exp {s['last_u_exp']:.4g}; PSNR {format_psnr(s['last_psnr_db'])}"
+                     + (f"; labelled pixels without rendered depth {s['label_pixels_no_depth']}"
+                        if s.get("label_pixels_no_depth") else "")
                      + (f"; new input problems: {new}" if new else ""))
         if self.diag_pub is not None:
             level = DiagnosticStatus.WARN if new else DiagnosticStatus.OK

@@ -8,6 +8,7 @@ SPEC §10 (:func:`css_ros.engine.transfer.transfer_map`), the checkpoint path fo
 checkpoint is written. Frames that arrive meanwhile wait in the bounded work queue; beyond
 ``max_pending_frames`` the oldest are dropped and counted as ``frames_dropped_busy``. Evidence exchange is
 re-bound to the new model (peers still on the old one are refused as "another splat model" until they move).
+The moved map keeps the node's ``sensor_model`` (and ``splat_to_map``'s depth scale).
 """
 from __future__ import annotations
 
@@ -77,6 +78,7 @@ class ModelWatcher:
             node, worker = self.node, self.node.worker
             with worker.map_lock:   # frames wait (bounded queue) while the map moves
                 moved, report = transfer_map(worker.smap, model)
+                keep_sensor_model(worker.smap, moved)
                 worker.smap = node.smap = moved
                 node.model_path = path
                 ckpt = checkpoint_path(self.p, model.fingerprint)
@@ -91,6 +93,15 @@ class ModelWatcher:
                           f"{report.ratio:.4f}, {report.new_at_prior} new Gaussians at the prior, "
                           f"{report.old_dropped} old ones dropped; checkpoint {ckpt}")
             worker.save_checkpoint("model swap", force=True)
+
+
+def keep_sensor_model(old: Any, new: Any) -> None:
+    """The moved map keeps the node's sensor model and depth scale (transfer_map builds the new map with the
+    paper's update; the evidence it carries, and its fingerprint in map files, are the old map's)."""
+    new.depth_scale = old.depth_scale
+    if old.sensor_model is not None:
+        new.sensor_model = old.sensor_model
+    new.fused_sensor_model = old.fused_sensor_model
 
 
 def _mtime(path: Path) -> int:

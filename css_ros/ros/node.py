@@ -28,7 +28,7 @@ from .model_swap import ModelWatcher
 from .gate import InputGate, NanAnswer
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
-from .startup import load_engine, warm_up
+from .startup import describe_sensor_model, load_engine, warm_up
 from .work import WarnLimiter, WorkQueue
 from .worker import MapWorker
 from .view_publisher import ViewPublisher
@@ -89,7 +89,9 @@ class CssNode(Node):
             warm_up(self.smap, p, log.info)  # CssError: fatal (cannot start)
 
         self.queue = WorkQueue(p.max_pending_frames)
-        self.outputs = OutputPublisher(self, p, self.classes)
+        sensor_model = self.smap.sensor_model
+        self.outputs = OutputPublisher(self, p, self.classes, confidence_available=sensor_model is not None
+                                       and sensor_model.confidence is not None)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
@@ -145,13 +147,19 @@ class CssNode(Node):
         self.reporter = StatusReporter(self.stats, self.warn, self.queue.sizes,
                                        lambda: (*self.worker.last_u, self.worker.last_psnr), log.info, diag_pub,
                                        self.get_name(), str(self.model_path),
-                                       lambda: self.get_clock().now().to_msg())
+                                       lambda: self.get_clock().now().to_msg(), self._sensor_info)
         if p.log_period > 0:
             self.create_timer(p.log_period, self.reporter.report)
         self.worker.start()
         self._log_start()
 
     # ------------------------------------------------------------------ wiring
+    def _sensor_info(self) -> dict[str, str]:
+        """Diagnostics entries naming the update in use."""
+        text = describe_sensor_model(self.smap.sensor_model)
+        return {"sensor_model": text.removeprefix("sensor model: ").removeprefix("sensor model "),
+                "sensor_model_fingerprint": self.smap.sensor_fingerprint}
+
     def _confidence_published(self, cam: int) -> bool:
         return self.count_publishers(self._confidence_topics[cam]) > 0
 
@@ -206,8 +214,10 @@ class CssNode(Node):
         try:
             dt = self.worker.save(path)
             response.success = True
+            fused = self.smap.fused_sensor_model
             response.message = (f"saved {self.smap.model.num_gaussians}x{self.smap.num_classes} concentrations "
-                                f"to {path} in {dt:.2f} s")
+                                f"to {path} in {dt:.2f} s"
+                                + (f" (fused with sensor model {fused[:12]})" if fused else ""))
         except (MapError, OSError) as exc:
             response.success, response.message = False, f"saving {path} failed: {exc}"
             self.get_logger().error(response.message)
@@ -254,7 +264,13 @@ class CssNode(Node):
         log = self.get_logger()
         log.info(f"model {self.model_path}: {m.num_gaussians} Gaussians, SH degree {m.sh_degree}, fingerprint "
                  f"{m.fingerprint[:12]}; {self.smap.num_classes} classes [{names}]; backend {p.backend}; "
-                 f"{self.resume_status}")
+                 f"{describe_sensor_model(self.smap.sensor_model)}; {self.resume_status}")
+        sm = self.smap.sensor_model
+        if sm is not None and p.publish_confidence and sm.confidence is None:
+            log.info("~/confidence is not published: the sensor model holds no calibrated confidence map")
+        if sm is not None and self.evidence.enabled:
+            log.warning("evidence exchange with a sensor model: every node of the exchange must use the same "
+                        "sensor model (evidence packets do not carry its fingerprint)")
         log.info(f"inputs ({p.input_qos} QoS; candidates reliable): {ins}; pose_type {p.pose_type}, poses "
                  f"interpolated at the segmentation stamp (pose_buffer {p.pose_buffer:g} s, pose_wait "
                  f"{p.pose_wait:g} s); {len(p.cameras)} camera(s)"

@@ -37,9 +37,12 @@ class OutputPublisher:
     map frame. Camera i's frame outputs are ``~/<ns_i>/<name>`` (the un-namespaced camera keeps ``~/<name>``).
     ``~/candidate_scores`` and ``~/point_query_results`` are always published (they answer requests);
     ``~/semantic_cloud`` unless ``cloud_period`` is 0. Everything 3D is in the map frame (``splat_to_map``).
+    ``~/confidence`` exists only when ``confidence_available`` (the sensor model holds a calibrated confidence
+    map, so every rendered view carries a confidence image) and ``publish_confidence`` is set.
     """
 
-    def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10) -> None:
+    def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10,
+                 confidence_available: bool = False) -> None:
         self.p = params
         self.classes = classes
         self.clock = node.get_clock()
@@ -59,7 +62,7 @@ class OutputPublisher:
             ns = ns.strip("/")
             pubs = {}
             for name in FRAME_OUTPUTS:
-                if not getattr(params, f"publish_{name}"):
+                if not getattr(params, f"publish_{name}") or (name == "confidence" and not confidence_available):
                     continue
                 typ = PointCloud2 if OUTPUT_TOPICS[name] == POINTCLOUD2_TYPE else Image
                 pubs[name] = node.create_publisher(typ, f"~/{ns}/{name}" if ns else f"~/{name}", depth)
@@ -77,11 +80,13 @@ class OutputPublisher:
         frame = job.frame
         pubs = self.camera_pubs[frame.camera_index]
         header = rc.header_msg(frame.stamp_ns, frame.frame_id)
-        wanted = [n for n in ("semantic", "semantic_color", "expectation", "variance", "rendered_image")
-                  if n in pubs]
+        wanted = [n for n in ("semantic", "semantic_color", "expectation", "variance", "rendered_image",
+                              "confidence") if n in pubs]
         if wanted:
             images = frame_output_images(view, self.classes, self.p.ignore_label)
             for name in wanted:
+                if name not in images:  # confidence: only views of a map with a calibrated confidence map
+                    continue
                 array, encoding = images[name]
                 pubs[name].publish(rc.image_msg(array, encoding, header))
         if "view_uncertainty" in pubs:

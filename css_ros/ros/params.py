@@ -55,6 +55,10 @@ class NodeParams:
     unknown_threshold: float = _p(DEFAULT_UNKNOWN_THRESHOLD, "", "background weight kappa_b above which a pixel "
                                   "is published as ignore_label (1.0: never)")
     backend: str = _p("numba", "", "rasteriser backend: numba (CPU), cuda (GPU, the cuda extra) or torch")
+    sensor_model: str = _p("", "path", "sensor-model YAML of the segmenter (css_calibrate writes it): each "
+                           "labelled pixel adds evidence weighted by its label and rendered depth (depth bins in "
+                           "metres, splat_to_map's scale applies); must list the class file's classes; a "
+                           "checkpoint fused with another sensor model is refused; empty: the paper's update")
     # --- inputs
     input_qos: str = _p("sensor_data", "", "QoS of the sensor inputs: sensor_data (best effort) or reliable")
     queue_size: int = _p(30, "messages", "subscription depth, and buffered images / confidences / frames waiting "
@@ -104,6 +108,8 @@ class NodeParams:
     publish_expectation: bool = _p(True, "", "publish ~/expectation (32FC1, E of the argmax class)")
     publish_variance: bool = _p(True, "", "publish ~/variance (32FC1, Var of the argmax class)")
     publish_rendered_image: bool = _p(True, "", "publish ~/rendered_image (rgb8 splat render)")
+    publish_confidence: bool = _p(True, "", "publish ~/confidence (32FC1, probability that ~/semantic is right) "
+                                  "when the sensor_model holds a calibrated confidence map")
     publish_view_uncertainty: bool = _p(True, "", "publish ~/view_uncertainty (PointCloud2, one point per "
                                         "observed frame)")
     publish_diagnostics: bool = _p(True, "", "publish counters on /diagnostics (diagnostic_msgs/DiagnosticArray)")

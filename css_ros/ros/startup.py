@@ -1,7 +1,9 @@
-"""css_node start-up: load the model, classes and (resumed or fresh) map; stale temp files; kernel warm-up.
+"""css_node start-up: load the model, classes, sensor model and (resumed or fresh) map; stale temp files;
+kernel warm-up.
 
-Fatal problems raise CssError (ModelError, ConfigError, ...) for main() to report; a checkpoint that
-cannot be used is renamed aside (``<name>.rejected-<time>``) and the map starts fresh.
+Fatal problems raise CssError (ModelError, ConfigError, SensorModelError, ...) for main() to report; a checkpoint
+that cannot be used (also one fused with another sensor model than ``sensor_model``) is renamed aside
+(``<name>.rejected-<time>``) and the map starts fresh.
 """
 from __future__ import annotations
 
@@ -11,11 +13,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
+from ..engine.sensor_model import SensorModel
+from ..engine.similarity import Similarity
 from ..engine.warmup import warm_up_kernels
-from ..errors import ConfigError, MapError, ModelError
+from ..errors import ConfigError, MapError, ModelError, SensorModelError
 from ..io.paths import resolve_data_path
 from .params import DEFAULT_CLASSES, NodeParams, checkpoint_file
 
@@ -81,6 +87,36 @@ def load_classes(params: NodeParams, log_warning: Callable[[str], None]) -> Clas
     raise ConfigError("set class_file or num_classes > 0")
 
 
+def load_sensor_model(params: NodeParams, classes: ClassSet) -> SensorModel | None:
+    """The ``sensor_model`` file checked against the class set (None: parameter empty, the paper's update).
+
+    Raises:
+        SensorModelError: one line naming the file and the parameter (missing, not a sensor model, other classes,
+            invalid values, fingerprint mismatch); fatal for the node.
+    """
+    if not params.sensor_model:
+        return None
+    try:
+        return SensorModel.load(resolve_data_path(params.sensor_model), classes.names)
+    except SensorModelError as exc:
+        raise SensorModelError(f"{exc} (parameter sensor_model={params.sensor_model!r})") from None
+
+
+def describe_sensor_model(model: SensorModel | None) -> str:
+    """One line naming the update in use, for the start-up log and diagnostics."""
+    if model is None:
+        return "sensor model: none (paper update)"
+    # SensorModel.load's source already reads "sensor model <path>": name it once.
+    return model.describe().replace("sensor model sensor model ", "sensor model ", 1)
+
+
+def adopt_own_update(smap: SemanticMap) -> None:
+    """A map that holds no evidence yet counts as fused with its own sensor model (a prior-only checkpoint of
+    another update, which SemanticMap.load accepts, must not pass that update's fingerprint on to later saves)."""
+    if smap.fused_sensor_model != smap.sensor_fingerprint and bool(np.all(smap.concentrations == smap.prior)):
+        smap.fused_sensor_model = smap.sensor_fingerprint
+
+
 def load_engine(params: NodeParams, log_info: Callable[[str], None],
                 log_warning: Callable[[str], None]) -> Engine:
     """Model, classes and map (resumed from the checkpoint when it matches, else fresh)."""
@@ -91,8 +127,11 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
     model = GaussianModel.from_ply(model_path)
     classes = load_classes(p, log_warning)
     C = classes.num_classes
+    sensor_model = load_sensor_model(p, classes)   # before the checkpoint: a bad file never renames it aside
+    # sensor_model is always passed (None included): SemanticMap.load then refuses a checkpoint fused with another
     kwargs: dict[str, Any] = dict(ignore_label=p.ignore_label, unknown_threshold=p.unknown_threshold,
-                                  backend=p.backend)
+                                  backend=p.backend, sensor_model=sensor_model,
+                                  depth_scale=Similarity.from_params(p.splat_to_map).scale)
     ckpt = checkpoint_path(p, model.fingerprint)
     smap = None
     status = "fresh map"
@@ -105,6 +144,7 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
             smap = SemanticMap.load(ckpt, model, expected_classes=C, **kwargs)
             if smap.num_classes != C:
                 raise MapError(f"it has {smap.num_classes} classes, the class setup has {C}")
+            adopt_own_update(smap)
             status = f"resumed from {ckpt} ({smap.frames_observed} frames observed)"
             if (smap.prior, smap.background) != (p.prior, p.background):
                 log_warning(f"checkpoint prior/background ({smap.prior:g}, {smap.background:g}) override the "

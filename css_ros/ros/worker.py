@@ -177,13 +177,19 @@ class MapWorker:
                       f"{out_of_range} pixels with ids >= {self.C} (max {int(labels.max())}) treated as no label",
                       dropped=False)
         with self.map_lock:
+            smap = self.smap
             if p.output_scale == 1.0:
-                view = self.smap.observe(cam, labels, confidence=frame.confidence)
+                view = smap.observe(cam, labels, confidence=frame.confidence)
+                stats = smap.last_update   # observe returns the view; the update's pixel counts stay here
             else:
-                self.smap.update(cam, labels, confidence=frame.confidence)
-                view = self.smap.render(cam.scaled(p.output_scale))
+                stats = smap.update(cam, labels, confidence=frame.confidence)
+                view = smap.render(cam.scaled(p.output_scale))
             self.policy.changed()
             self.map_version += 1
+        self.stats.count("label_pixels_used", stats.used)
+        self.stats.count("label_pixels_ignored", stats.ignored)
+        if smap.sensor_model is not None:  # measured only with a sensor model (the paper's update needs no depth)
+            self.stats.count("label_pixels_no_depth", stats.no_depth)
         self.sink.publish_frame(job, view)
         image = frame.image
         if image is not None and image.shape[:2] != view.rgb.shape[:2]:
@@ -280,10 +286,13 @@ class MapWorker:
 
         Returns a status line; raises MapError (the current map is then kept unchanged).
         """
-        loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C)
+        # sensor_model passed (None included): a checkpoint fused with another sensor model is refused
+        loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C, sensor_model=self.smap.sensor_model)
         with self.map_lock:
             self.smap.concentrations[...] = loaded.concentrations
             self.smap.frames_observed = loaded.frames_observed
+            # load refused other updates' evidence: what it accepted is this map's own (or the prior only)
+            self.smap.fused_sensor_model = self.smap.sensor_fingerprint
             self.map_version += 1
             self.policy.saved(time.monotonic(), self.policy.dirty)  # the map now equals the file
         note = ""

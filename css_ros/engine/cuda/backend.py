@@ -6,7 +6,8 @@ State on the device: the model (means, 3D covariances, opacities, largest std, S
 concentrations (N, C) float64. SemanticMap's host array is kept coherent lazily: the backend
 uploads it when the host side may have changed (first use, after ``host_view`` handed it out, or a
 different array) and downloads the device copy when the host asks for it (``host_view``). Per
-observed frame the only transfers are the labels/weights in and one (H, W, 8) float32 array out.
+observed frame the only transfers are the labels/weights in and one (H, W, 9) float32 array out (with a
+sensor model, also its tables once and the update's no-depth count: one more synchronisation).
 """
 from __future__ import annotations
 
@@ -97,6 +98,7 @@ class CudaBackend(RasterBackend):
         self._host: np.ndarray | None = None
         self._host_dirty = True
         self._device_newer = False
+        self._soft: tuple[Any, Any, Any] | None = None  # (SoftLabels, edges, table on the device)
 
     def _probe(self) -> None:
         """Compile and run the smallest kernel once, so that a broken stack (numba-cuda vs numpy,
@@ -238,22 +240,43 @@ class CudaBackend(RasterBackend):
     def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> int:
         """concentrations[n, c] += sum_i kappa_in y_i^c on the device (labels (H, W) int32, -1 = none;
-        weights (H, W) float32). The host array is brought up to date lazily (``host_view``). Sensor models
-        (``soft``) are not implemented on this backend (SemanticMap refuses them before)."""
-        if soft is not None:
-            raise CssError("the cuda backend does not run sensor models yet")
+        weights (H, W) float32). The host array is brought up to date lazily (``host_view``).
+
+        With ``soft`` (a sensor model's tables), the kernel variant of
+        :func:`~css_ros.engine.cuda.kernels.make_update_kernel` with ``with_model`` runs instead (one more walk
+        per labelled pixel for its expected depth); returns the labelled pixels without any contribution (one
+        device -> host transfer), else 0."""
         self._bind()
         conc = self._device_concentrations(concentrations)
-        if frame.num_pairs == 0:
-            return 0
+        num_classes = int(conc.shape[1])
+        if soft is not None and tuple(soft.table.shape) != (num_classes * soft.num_bins, num_classes):
+            raise ValueError(f"sensor-model table of shape {tuple(soft.table.shape)} for {num_classes} classes and "
+                             f"{soft.num_bins} depth bins")
+        if frame.num_pairs == 0:  # nothing is seen: every labelled pixel is without depth
+            return 0 if soft is None else int(np.count_nonzero((labels >= 0) & (weights > 0)))
         ops = self.ops
         lab = ops.upload_frame("labels", labels, np.int32)
         wts = ops.upload_frame("weights", weights, np.float32)
-        kernel = self.k.make_update_kernel(int(conc.shape[1]), self.tile)
-        kernel[frame.tiles_per_view, self.tile * self.tile](frame.offsets, frame.order, frame.packed,
-                                                            frame.ids, lab, wts, frame.tiles_x, conc)
+        launch = (frame.tiles_per_view, self.tile * self.tile)
+        if soft is None:
+            kernel = self.k.make_update_kernel(num_classes, self.tile)
+            kernel[launch](frame.offsets, frame.order, frame.packed, frame.ids, lab, wts, frame.tiles_x, conc)
+            self._device_newer = True
+            return 0
+        edges, table = self._soft_tables(soft)
+        no_depth = ops.zeros(1, np.int64)
+        kernel = self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins)
+        kernel[launch](frame.offsets, frame.order, frame.packed, frame.ids, lab, wts, frame.tiles_x, conc,
+                       edges, table, no_depth)
         self._device_newer = True
-        return 0
+        return ops.scalars(no_depth[0])[0]
+
+    def _soft_tables(self, soft: "SoftLabels") -> tuple[Any, Any]:
+        """The sensor model's edges and table on the device, uploaded once per SoftLabels object (SemanticMap
+        keeps one until its sensor model changes; the table is C B x C float64)."""
+        if self._soft is None or self._soft[0] is not soft:
+            self._soft = (soft, self.ops.upload(soft.edges, np.float64), self.ops.upload(soft.table, np.float64))
+        return self._soft[1], self._soft[2]
 
     # ------------------------------------------------------------------ render
     def _moments(self, frame: CudaFrame, conc: Any) -> Any:
@@ -272,11 +295,12 @@ class CudaBackend(RasterBackend):
         num_classes = int(conc.shape[1])
         n_views = len(frame.cameras)
         mom = self._moments(frame, conc)
+        cols = self.k.RENDER_OUT_COLS
         if score:
-            out = ops.empty((1, 1, 1, 8), np.float32)
+            out = ops.empty((1, 1, 1, cols), np.float32)
             scores = ops.zeros((n_views, 2), np.float64)
         else:
-            out = ops.empty((n_views, frame.height, frame.width, 8), np.float32)
+            out = ops.empty((n_views, frame.height, frame.width, cols), np.float32)
             scores = ops.zeros((1, 2), np.float64)
         probs = ops.empty((n_views, frame.height, frame.width, num_classes) if want_probs else (1, 1, 1, 1),
                           np.float32)
@@ -290,7 +314,8 @@ class CudaBackend(RasterBackend):
 
     def render(self, frame: CudaFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
-        """Composite colour, E, Var (argmax class), kappa_b and evidence; one transfer of (H, W, 8) f32."""
+        """Composite colour, E, Var (argmax class), kappa_b, evidence and the expected depth (splat units, NaN
+        where nothing is rendered); one transfer of (H, W, 9) f32."""
         conc = self._device_concentrations_for_read(concentrations)
         out, probs, _ = self._render(frame, conc, e_bg, v_bg, s_bg, bg_rgb, False, want_probs)
         host = self.ops.download_frame("render", out)[0]
@@ -299,7 +324,7 @@ class CudaBackend(RasterBackend):
             labels=np.ascontiguousarray(host[..., 0], dtype=np.int32),
             expectation=f64(host[..., 1]), variance=f64(host[..., 2]), background=f64(host[..., 3]),
             evidence=f64(host[..., 4]), rgb=f64(host[..., 5:8]),
-            probabilities=f64(self.ops.download(probs)[0]) if want_probs else None)
+            probabilities=f64(self.ops.download(probs)[0]) if want_probs else None, depth=f64(host[..., 8]))
 
     def _device_concentrations_for_read(self, host: np.ndarray) -> Any:
         """Like _device_concentrations, but keeps a newer device state (a render after an update)."""

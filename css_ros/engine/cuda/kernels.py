@@ -157,6 +157,8 @@ WARP = 32
 # 2e-5 relative (above float32 rounding over a few dozen steps) keeps the float64 decision there.
 T_MIN_WALK = T_MIN * (1.0 - 2e-5)
 STAGE_COLS = 7  # staged geometry per Gaussian, float32: u, v, conic a, b, c, opacity, qmax
+RENDER_ATTR_COLS = 5  # the render's other staged columns per Gaussian, float32: r, g, b, S, camera depth z
+RENDER_OUT_COLS = 9  # per pixel: label, E, Var, kappa_b, evidence, r, g, b, depth
 
 
 @cuda.jit(device=True, inline=True)
@@ -212,8 +214,10 @@ def walk_step(s_g, k, fu, fv, trans):  # pragma: no cover
 
 
 @lru_cache(maxsize=None)
-def make_update_kernel(num_classes: int, tile: int) -> Any:
-    """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants).
+def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, num_bins: int = 1) -> Any:
+    """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants);
+    with ``with_model``, the sensor-model variant for ``num_bins`` depth bins (:func:`_make_model_update_kernel`).
+    Without it ``num_bins`` is not used, and the kernel is the paper's update, unchanged by the variant.
 
     Launch: grid = tiles of the view, block = tile * tile threads (a multiple of 32). Kernel arguments:
     offsets (T + 1,) i64 tile ranges in ``order``; order (P,) i32 pair of each sorted key; packed (M, 8) f64;
@@ -225,6 +229,8 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     the block's float32 shared accumulator (else each lane adds its own); each nonzero (Gaussian,
     class) sum of the tile then goes to the float64 map with one global atomic.
     """
+    if with_model:
+        return _make_model_update_kernel(num_classes, tile, num_bins)
     nt = tile * tile
     if nt % WARP:
         raise ValueError(f"tile {tile}: the update kernel needs tile * tile to be a multiple of {WARP}")
@@ -290,17 +296,177 @@ def make_update_kernel(num_classes: int, tile: int) -> Any:
     return update_kernel
 
 
+def model_update_layout(num_classes: int, tile: int, num_bins: int) -> tuple[int, int]:
+    """(staged Gaussians per batch, row slots per Gaussian) of the sensor-model update kernel.
+
+    A tile's labelled pixels vote into at most min(tile^2, C B) distinct (label, depth bin) rows; each staged
+    Gaussian gets one float32 sum per such row slot. The per-pixel slot arrays (2 tile^2 int32) and the slots'
+    rows (int32) come off the same 12 KiB budget as the paper's update, so its occupancy floor holds."""
+    nt = tile * tile
+    slots = min(nt, num_classes * num_bins)
+    fixed = 4 * (2 * nt + slots)
+    return batch_size(4 * STAGE_COLS + 4 + 4 + 4 * slots, nt, UPDATE_SHARED_BUDGET - fixed), slots
+
+
+def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any:
+    """Update kernel with a sensor model (docs/spec.md "Sensor model"; the CPU's ``_update_kernel`` with
+    ``use_model``): a labelled pixel (label y, weight w > 0) at expected depth d = sum kappa z / sum kappa
+    (bin b: the largest with edges[b] <= d, clipped to [0, B - 1]) adds kappa * w * table[y B + b, c] to
+    every class c of every Gaussian it composites.
+
+    Kernel arguments: those of the paper's update, then edges (B + 1,) f64 (splat units), table (C B, C) f64,
+    no_depth (1,) i64, to which the labelled pixels without any contribution are added (they add nothing).
+
+    Per tile, two walks over its list: the first only sums kappa z and kappa per pixel (float32; z is the
+    staged camera depth), which gives each pixel's row r = y B + b; the tile's distinct rows get slots
+    (at most min(tile^2, C B)); the second walk is the paper's voting walk with the slot in place of the label
+    (warp shuffles, then float32 shared sums per (staged Gaussian, slot)). The flush applies the table: per
+    (Gaussian, class) one float64 sum over the tile's slots of sum x table[r, c], added with one atomic.
+    """
+    nt = tile * tile
+    if nt % WARP:
+        raise ValueError(f"tile {tile}: the update kernel needs tile * tile to be a multiple of {WARP}")
+    if num_bins < 1:
+        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
+    C = num_classes
+    B = num_bins
+    batch, S = model_update_layout(C, tile, B)
+
+    @cuda.jit
+    def update_model_kernel(offsets, order, packed, ids, labels, weights, tiles_x, concentrations, edges, table,
+                            no_depth):  # pragma: no cover
+        t = cuda.blockIdx.x
+        tid = cuda.threadIdx.x
+        lane = tid % WARP
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        u = tx * tile + tid % tile
+        v = ty * tile + tid // tile
+        height, width = labels.shape
+        lab = -1
+        w = float32(0.0)
+        if u < width and v < height:
+            lab = labels[v, u]
+            w = weights[v, u]
+        labelled = lab >= 0 and w > float32(0.0)
+        s_g = cuda.shared.array((batch, STAGE_COLS), float32)
+        s_z = cuda.shared.array(batch, float32)
+        s_acc = cuda.shared.array((batch, S), float32)
+        s_id = cuda.shared.array(batch, int32)
+        s_key = cuda.shared.array(nt, int32)     # per pixel: its row, then whether it leads its row's slot
+        s_slot = cuda.shared.array(nt, int32)    # per leading pixel: its slot
+        s_row = cuda.shared.array(S, int32)      # per slot: its (label, depth bin) row of the table
+        fu = float32(u)
+        fv = float32(v)
+        start = offsets[t]
+        end = offsets[t + 1]
+        # walk 1: the expected depth of every labelled pixel
+        done = not labelled
+        trans = float32(1.0)
+        zsum = float32(0.0)
+        ksum = float32(0.0)
+        for b0 in range(start, end, batch):
+            if cuda.syncthreads_count(0 if done else 1) == 0:
+                break
+            n = min(batch, end - b0)
+            if tid < n:
+                j = order[b0 + tid]
+                stage_geometry(s_g, tid, packed, j)
+                s_z[tid] = float32(packed[j, 7])
+            cuda.syncthreads()
+            if not done:
+                for k in range(n):
+                    kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
+                    if done:
+                        break
+                    zsum += kappa * s_z[k]
+                    ksum += kappa
+        row = -1
+        if labelled and ksum > float32(0.0):
+            d = float64(zsum) / float64(ksum)
+            b = 0
+            while b < B - 1 and d >= edges[b + 1]:
+                b += 1
+            row = lab * B + b
+        missing = cuda.syncthreads_count(1 if labelled and row < 0 else 0)  # also: walk 1 is over
+        if tid == 0 and missing > 0:
+            cuda.atomic.add(no_depth, 0, missing)
+        # slots: the first pixel of each distinct row leads it; slots numbered in pixel order
+        s_key[tid] = row
+        cuda.syncthreads()
+        first = tid
+        if row >= 0:
+            for q in range(tid):
+                if s_key[q] == row:
+                    first = q
+                    break
+        lead = row >= 0 and first == tid
+        cuda.syncthreads()
+        s_key[tid] = 1 if lead else 0
+        cuda.syncthreads()
+        slot = -1
+        if lead:
+            slot = 0
+            for q in range(tid):
+                slot += s_key[q]
+            s_slot[tid] = slot
+            s_row[slot] = row
+        nr = cuda.syncthreads_count(1 if lead else 0)
+        if row >= 0 and not lead:
+            slot = s_slot[first]
+        # walk 2: the paper's voting walk, summed per (staged Gaussian, slot)
+        done = row < 0
+        trans = float32(1.0)
+        for b0 in range(start, end, batch):
+            if cuda.syncthreads_count(0 if done else 1) == 0:
+                break
+            n = min(batch, end - b0)
+            if tid < n:
+                j = order[b0 + tid]
+                stage_geometry(s_g, tid, packed, j)
+                s_id[tid] = ids[j]
+            for idx in range(tid, n * nr, nt):
+                s_acc[idx // nr, idx % nr] = float32(0.0)
+            cuda.syncthreads()
+            for k in range(n):
+                contrib = float32(0.0)
+                if not done:
+                    kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
+                    contrib = kappa * w
+                active = cuda.ballot_sync(FULL_MASK, contrib != float32(0.0))
+                if active != 0:
+                    lead_slot = cuda.shfl_sync(FULL_MASK, slot, cuda.ffs(active) - 1)
+                    if cuda.all_sync(FULL_MASK, contrib == float32(0.0) or slot == lead_slot):
+                        total = warp_sum(contrib)
+                        if lane == 0:
+                            cuda.atomic.add(s_acc, (k, lead_slot), total)
+                    elif contrib != float32(0.0):
+                        cuda.atomic.add(s_acc, (k, slot), contrib)
+            cuda.syncthreads()
+            for idx in range(tid, n * C, nt):
+                k = idx // C
+                c = idx - k * C
+                acc = float64(0.0)
+                for sl in range(nr):
+                    val = s_acc[k, sl]
+                    if val != float32(0.0):
+                        acc += float64(val) * table[s_row[sl], c]
+                if acc != float64(0.0):
+                    cuda.atomic.add(concentrations, (s_id[k], c), acc)
+    return update_model_kernel
+
+
 
 
 def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK) -> tuple[int, int, int]:
     """(staged Gaussians per batch, classes per pass, static shared bytes per block) of the render
     kernel: per-pixel E and Var sums of one pass's classes (2 x classes x tile^2 float32) plus the
-    staged rows (geometry, colour, S, row); the class moments are read from global memory (every lane
+    staged rows (geometry, colour, S, depth, row); the class moments are read from global memory (every lane
     of a warp reads the same row: one broadcast transaction, L1-resident for the block's batch)."""
     nt = tile * tile
     per_pass = min(num_classes, chunk)
     acc = 2 * per_pass * nt * 4
-    row = 4 * STAGE_COLS + 4 * 4 + 4
+    row = 4 * STAGE_COLS + 4 * RENDER_ATTR_COLS + 4
     return nt, per_pass, acc + nt * row
 
 
@@ -314,8 +480,9 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
     pair_row (M,) i32 row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; e_bg, v_bg, s_bg
     background moments; bg_rgb (3,) f64; width, height [px]; tiles_x, tiles_per_view; outputs:
 
-    - ``score`` False: out (V, H, W, 8) f32 per pixel (label, E, Var of the argmax class, kappa_b,
-      evidence, r, g, b); with ``probs`` also probs (V, H, W, C) f32 = E_i^c.
+    - ``score`` False: out (V, H, W, 9) f32 per pixel (label, E, Var of the argmax class, kappa_b,
+      evidence, r, g, b, depth), depth = sum kappa z / sum kappa (camera z, splat units; NaN without any
+      contribution); with ``probs`` also probs (V, H, W, C) f32 = E_i^c.
     - ``score`` True: scores (V, 2) f64 += (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i) per view,
       reduced per warp with shuffles, one float64 atomic per warp and view.
 
@@ -332,6 +499,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
     batch, per_pass, _ = render_layout(C, tile, chunk)
     n_acc = 2 * per_pass  # shared array shapes must be compile-time constants
     n_pass = -(-C // per_pass)
+    attr_cols = 4 if score else RENDER_ATTR_COLS  # the views' scores need no depth
 
     @cuda.jit
     def render_kernel(offsets, order, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
@@ -346,13 +514,15 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
         v = ty * tile + tid // tile
         inside = u < width and v < height
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
-        s_a = cuda.shared.array((batch, 4), float32)  # r, g, b, S
+        s_a = cuda.shared.array((batch, attr_cols), float32)  # r, g, b, S (, z)
         s_row = cuda.shared.array(batch, int32)
         acc = cuda.shared.array((n_acc, nt), float32)
         cr = float32(0.0)
         cg = float32(0.0)
         cb = float32(0.0)
         ev = float32(0.0)
+        dz = float32(0.0)   # sum kappa z
+        ks = float32(0.0)   # sum kappa (= 1 - T, summed: no cancellation where T is near 1)
         fu = float32(u)
         fv = float32(v)
         trans = float32(1.0)
@@ -382,6 +552,8 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                     s_a[tid, 1] = colors[j, 1]
                     s_a[tid, 2] = colors[j, 2]
                     s_a[tid, 3] = mom[row, 2 * C]
+                    if not score:
+                        s_a[tid, 4] = float32(packed[j, 7])
                 cuda.syncthreads()
                 if not done:
                     for k in range(n):
@@ -400,6 +572,8 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                             cg += w1 * s_a[k, 1]
                             cb += w1 * s_a[k, 2]
                             ev += w1 * s_a[k, 3]
+                            dz += w1 * s_a[k, 4]
+                            ks += w1
             for c in range(nc):
                 e = acc[c, tid]
                 if (first and c == 0) or e > best_e:
@@ -437,6 +611,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
             out[view, v, u, 5] = float64(cr) + tr * bg_rgb[0]
             out[view, v, u, 6] = float64(cg) + tr * bg_rgb[1]
             out[view, v, u, 7] = float64(cb) + tr * bg_rgb[2]
+            out[view, v, u, 8] = float64(dz) / float64(ks) if ks > float32(0.0) else math.nan
     return render_kernel
 
 

@@ -32,6 +32,9 @@ SM_LIMITS = {
 REG_ALLOC_UNIT = 256         # registers are allocated per warp in units of 256
 SMEM_ALLOC_UNIT = 128        # bytes
 SMEM_RESERVED_PER_BLOCK = 1024  # bytes the driver reserves per block (cc >= 8.0)
+#: Depth bins of the sensor-model update variant compiled here (the kernel's slot count is min(64, C B): 4 bins
+#: give the full 64 slots from C = 16 up, the largest shared layout of the variant)
+MODEL_BINS = 4
 
 
 @dataclass
@@ -103,6 +106,8 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
         ("moments", k.moments_kernel.py_func, (f64_2, i32_1, f32_2), 256),
         (f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func,
          (i64_1, i32_1, f64_2, i32_1, i32_2, f32_2, int64, f64_2), nt),
+        (f"update_model_C{num_classes}", k.make_update_kernel(num_classes, tile, True, MODEL_BINS).py_func,
+         (i64_1, i32_1, f64_2, i32_1, i32_2, f32_2, int64, f64_2, f64_1, f64_2, i64_1), nt),
     ]
     render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, float64, float64, float64, f64_1, int64, int64,
                   int64, int64, f32_4, f32_4, f64_2)
