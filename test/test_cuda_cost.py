@@ -73,3 +73,19 @@ def test_bench_stages_split_the_observe_cost():
     assert sum(stages.values()) == pytest.approx(sum(c.ms for c in costs))
     ms = {c.stage: c.ms for c in costs}
     assert stages["prepare"] == pytest.approx(ms["project"] + ms["order"])
+
+
+def test_sensor_model_update_costs_one_more_walk():
+    """The sensor-model update walks every labelled pixel twice (depth, then votes); a dense confusion adds an
+    atomic per class and list entry; the rest of the observe does not change."""
+    c = _counts()
+    plain, weights, confusion = (cm.observe_costs(c, sensor_model=k) for k in cm.SENSOR_MODELS)
+    upd = [next(s for s in costs if s.stage == "update") for costs in (plain, weights, confusion)]
+    assert upd[1].instructions >= upd[0].instructions + c.walked * cm.INSTR_WALK
+    assert upd[2].instructions == upd[1].instructions and upd[2].bytes > upd[1].bytes > upd[0].bytes
+    assert upd[0].ms < upd[1].ms <= upd[2].ms
+    for a, b in zip(plain, confusion):
+        if a.stage not in ("update", "transfers + sync"):
+            assert a == b, a.stage
+    with pytest.raises(ValueError):
+        cm.observe_costs(c, sensor_model="nope")

@@ -19,7 +19,8 @@ pytest.importorskip("numba.cuda", reason="numba-cuda is not installed (pip insta
 
 from css_ros import GaussianModel, SemanticMap  # noqa: E402
 from css_ros.engine.sh import eval_sh  # noqa: E402
-from css_reference import kappa_reference, render_reference, update_reference  # noqa: E402
+from css_ros.engine.sensor_model import SensorModel  # noqa: E402
+from css_reference import kappa_reference, project_reference, render_reference, update_reference  # noqa: E402
 from scenes import camera, edge_case_scene, random_scene  # noqa: E402
 
 C = 4
@@ -36,6 +37,25 @@ CAMS = [dict(width=W, height=H, f=12.0),
 def reference(model, cam):
     return kappa_reference(model.means, model.scales, model.quats_wxyz, model.opacities,
                            cam.K, cam.T_map_cam, cam.width, cam.height)
+
+
+def depth_reference(model, cam, kap):
+    """Brute-force expected depth sum kappa z / sum kappa per pixel (H * W,), NaN without any contribution."""
+    proj = project_reference(model.means, model.scales, model.quats_wxyz, model.opacities, cam.K, cam.T_map_cam,
+                             cam.width, cam.height)
+    z = np.array([0.0 if p is None else p[0] for p in proj])
+    ks = kap.sum(axis=1)
+    depth = np.full(ks.shape, np.nan)
+    seen = ks > 0
+    depth[seen] = (kap[seen] @ z) / ks[seen]
+    return depth
+
+
+def assert_depth(got, want, err_msg=""):
+    """Same NaN pixels (no contribution), else equal within 1e-5 relative."""
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want), err_msg=err_msg)
+    seen = ~np.isnan(want)
+    np.testing.assert_allclose(got[seen], want[seen], rtol=1e-5, atol=0, err_msg=err_msg)
 
 
 def labels_and_confidence(cam, seed):
@@ -97,6 +117,8 @@ def test_render_matches_brute_force_and_numba(case):
     assert abs(a.u_var - u_var) <= 1e-5 * u_var and abs(a.u_exp - u_exp) < 1e-6
     for f in ("expectation", "variance", "background", "evidence", "probabilities"):
         np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-5, atol=1e-6, err_msg=f)
+    assert_depth(a.depth, b.depth, "depth against numba")
+    assert_depth(a.depth, depth_reference(model, cam, kap).reshape(shape), "depth against the reference")
     np.testing.assert_array_equal(a.labels, b.labels)
     assert np.abs(a.rgb.astype(int) - b.rgb).max() <= 1
 
@@ -219,6 +241,7 @@ def test_render_in_class_passes_matches_brute_force(monkeypatch, chunk):
     shape = (cam.height, cam.width)
     np.testing.assert_allclose(a.probabilities, E.reshape(*shape, n_cls), atol=2e-6)
     np.testing.assert_allclose(a.expectation, e_hat.reshape(shape), atol=2e-6)
+    assert_depth(a.depth, depth_reference(model, cam, kap).reshape(shape))   # summed in the first pass only
     top2 = np.sort(E, axis=1)[:, -2:]
     decided = (top2[:, 1] - top2[:, 0] > 1e-5) | (top2[:, 1] == top2[:, 0])   # float32 sums: no near-ties
     assert decided.mean() > 0.9
@@ -254,3 +277,70 @@ def test_read_access_does_not_reupload_the_map():
     gpu.update(cam, lab, conf)
     assert uploads == [(model.num_gaussians, C)]
     assert gpu.concentrations_readonly[0, 0] >= 7.0
+
+
+def random_sensor_model(num_classes, num_bins, lo, hi, seed):
+    """Random weights in [0.2, 1], a random row-stochastic confusion, bin edges inside (lo, hi) metres (depths
+    below the first edge use bin 0, beyond the last bin B - 1)."""
+    rng = np.random.default_rng(seed)
+    edges = np.sort(rng.uniform(lo, hi, num_bins + 1))
+    return SensorModel(tuple(f"c{i}" for i in range(num_classes)), edges,
+                       rng.uniform(0.2, 1.0, (num_classes, num_bins)),
+                       rng.dirichlet(np.full(num_classes, 0.7), (num_classes, num_bins)))
+
+
+SENSOR_CASES = [
+    # sparse scene: pixels without any Gaussian (NaN depth, no-depth count), 3 bins
+    dict(scene=lambda: random_scene(0, n=60, log_scale=(-3.0, -1.5)), cam=0, classes=4, bins=3, edges=(1.5, 4.5),
+         clipped="beyond"),
+    # opaque sheets (early termination), borders, behind the camera; 4 bins
+    dict(scene=lambda: edge_case_scene(), cam=2, classes=4, bins=4, edges=(1.6, 4.0), clipped="below"),
+    # C B = 80 > 64 (at most 64 row slots per tile, fewer Gaussians staged per batch), an odd image size
+    dict(scene=lambda: random_scene(1, n=120), cam=1, classes=20, bins=4, edges=(1.0, 5.0), clipped="beyond"),
+]
+
+
+@pytest.mark.parametrize("case", range(len(SENSOR_CASES)))
+def test_sensor_model_update_matches_numba_and_reference(case):
+    """The sensor-model update variant (expected depth from a first walk, then the voting walk by (label, depth
+    bin) rows, the table applied per tile) against the numba path and the float64 brute force; the render's depth
+    of the same observe; the no-depth counts."""
+    spec = SENSOR_CASES[case]
+    model, cam, n_cls = spec["scene"](), camera(**CAMS[spec["cam"]]), spec["classes"]
+    sensor = random_sensor_model(n_cls, spec["bins"], *spec["edges"], seed=case)
+    rng = np.random.default_rng(30 + case)
+    lab = rng.integers(0, n_cls, (cam.height, cam.width))
+    lab[rng.random(lab.shape) < 0.15] = 255
+    conf = rng.uniform(0.2, 1.0, lab.shape).astype(np.float32)
+    conf[rng.random(lab.shape) < 0.05] = 0.0
+    gpu = SemanticMap(model, n_cls, backend="cuda", sensor_model=sensor)
+    cpu = SemanticMap(model, n_cls, sensor_model=sensor)
+    stats = gpu.update(cam, lab, conf)
+    assert stats == cpu.update(cam, lab, conf)           # used, ignored, out of range, no depth
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    assert_depth(gpu.render(cam).depth, cpu.render(cam).depth)
+    # float64 brute force: bin of each labelled pixel's expected depth, its row of the table
+    kap, _ = reference(model, cam)
+    depth = depth_reference(model, cam, kap)
+    soft = sensor.soft_labels()
+    used = (lab.ravel() < n_cls) & (conf.ravel() > 0)
+    seen = used & ~np.isnan(depth)
+    bins = np.clip(np.searchsorted(soft.edges, np.nan_to_num(depth), side="right") - 1, 0, spec["bins"] - 1)
+    y = np.zeros((lab.size, n_cls))
+    y[seen] = conf.ravel()[seen, None] * soft.table[lab.ravel()[seen] * spec["bins"] + bins[seen]]
+    ref = 1e-3 + kap.T @ y
+    np.testing.assert_allclose(gpu.concentrations, ref, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    assert stats.no_depth == np.count_nonzero(used & np.isnan(depth))
+    assert len(np.unique(bins[seen])) >= 2 and np.abs(ref - 1e-3).max() > 0.3   # bins and votes really differ
+    if spec["clipped"] == "below":   # depths before the first edge use bin 0, beyond the last bin B - 1
+        assert np.any(depth[seen] < soft.edges[0])
+    else:
+        assert np.any(depth[seen] >= soft.edges[-1])
+    if case == 0:
+        assert stats.no_depth > 0
+        # nothing in view: every used pixel is without depth, nothing is added
+        away = camera(**dict(CAMS[0], quat=(0.0, 1.0, 0.0, 0.0)))
+        before = gpu.concentrations.copy()
+        stats = gpu.update(away, lab, conf)
+        assert stats.no_depth == stats.used == cpu.update(away, lab, conf).no_depth > 0
+        np.testing.assert_array_equal(gpu.concentrations, before)

@@ -53,6 +53,8 @@ INSTR_SH_PER_COEFF = 3 * 2 * 2  # per kept pair and SH coefficient: 3 channels x
 INSTR_WALK = 16               # per (pixel, walked Gaussian): q, exp, tests, transmittance (float32)
 INSTR_UPDATE_REDUCE = 10      # per (pixel, walked Gaussian) in the update: ballot, shuffles, shared atomic
 INSTR_RENDER_PER_CLASS = 6    # per (pixel, contribution, class): 2 L1 loads, 2 FMAs, shared load/store
+INSTR_TABLE_PER_CLASS = 4     # sensor-model flush, per (list entry, label, class): shared + table load, test, FMA
+SENSOR_MODELS = ("none", "weights", "confusion")   # the update's kinds (bench_frame.py --sensor-model)
 
 
 @dataclass(frozen=True)
@@ -106,15 +108,17 @@ def _kernel(stage: str, nbytes: float, instr: float, gpu: GpuSpec, launches: int
     return KernelCost(stage, nbytes, instr, max(mem_ms, issue_ms) + launches * LAUNCH_MS)
 
 
-def observe_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM, color: bool = True) -> list[KernelCost]:
-    """Per-stage costs of ``SemanticMap.observe`` (update then render at one pose) for counts ``c``."""
+def observe_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM, color: bool = True,
+                  sensor_model: str = "none") -> list[KernelCost]:
+    """Per-stage costs of ``SemanticMap.observe`` (update then render at one pose) for counts ``c``; with a
+    ``sensor_model`` ("weights": per label and depth bin weights; "confusion": a dense confusion model too), the
+    update's variant with its depth walk."""
     pixels = c.width * c.height * c.views
-    costs = [_project(c, gpu, color), _order(c, gpu), _moments(c, gpu),
-             _kernel("update", c.keys * 64 + pixels * 8 + c.label_sums * 16,
-                     c.walked * (INSTR_WALK + INSTR_UPDATE_REDUCE), gpu),
+    costs = [_project(c, gpu, color), _order(c, gpu), _moments(c, gpu), _update(c, gpu, sensor_model),
              _render(c, gpu, score=False)]
-    costs.append(KernelCost("transfers + sync", pixels * (8 + 32), 0.0,   # labels + weights in, 8 f32 out
-                            pixels * (8 + 32) / (gpu.pcie_gbs * 1e9) * 1e3 + SYNC_MS + 4 * LAUNCH_MS))
+    sync = SYNC_MS if sensor_model == "none" else 2 * SYNC_MS   # the update's no-depth count comes back
+    costs.append(KernelCost("transfers + sync", pixels * (8 + 36), 0.0,   # labels + weights in, 9 f32 out
+                            pixels * (8 + 36) / (gpu.pcie_gbs * 1e9) * 1e3 + sync + 4 * LAUNCH_MS))
     return costs
 
 
@@ -161,11 +165,30 @@ def _moments(c: FrameCounts, gpu: GpuSpec) -> KernelCost:
     return _kernel("moments", rows * (c.classes * 8 + (2 * c.classes + 1) * 4), rows * c.classes * 8, gpu)
 
 
+def _update(c: FrameCounts, gpu: GpuSpec, sensor_model: str) -> KernelCost:
+    """The update kernel: list staged (order, 7 f64 geometry, id), every labelled pixel walked, per (Gaussian,
+    label) of each tile one float64 atomic. With a sensor model, the depth walk first (the list staged again with
+    the depth column, every labelled pixel walked again) and the flush through the table (per list entry and class,
+    a sum over the tile's rows); a dense confusion gives every class of every list entry a nonzero sum: C atomics
+    per list entry instead of one per label present."""
+    if sensor_model not in SENSOR_MODELS:
+        raise ValueError(f"sensor_model must be one of {SENSOR_MODELS}, got {sensor_model!r}")
+    pixels = c.width * c.height * c.views
+    nbytes = c.keys * 64 + pixels * 8 + c.label_sums * 16
+    instr = c.walked * (INSTR_WALK + INSTR_UPDATE_REDUCE)
+    if sensor_model != "none":
+        nbytes += c.keys * 68
+        instr += c.walked * INSTR_WALK + c.label_sums * c.classes * INSTR_TABLE_PER_CLASS
+    if sensor_model == "confusion":
+        nbytes += max(c.keys * c.classes - c.label_sums, 0) * 16
+    return _kernel("update", nbytes, instr, gpu)
+
+
 def _render(c: FrameCounts, gpu: GpuSpec, score: bool) -> KernelCost:
     pixels = c.width * c.height * c.views
     passes = -(-c.classes // RENDER_CLASS_CHUNK)
-    out = c.views * 16 if score else pixels * 32
-    nbytes = passes * c.keys * (56 + 4 + 4 + 12 + 4) + c.keys * (2 * c.classes + 1) * 4 + out
+    out = c.views * 16 if score else pixels * 36
+    nbytes = passes * c.keys * (56 + 4 + 4 + 12 + 4 + (0 if score else 8)) + c.keys * (2 * c.classes + 1) * 4 + out
     instr = passes * c.walked * INSTR_WALK + c.contributions * c.classes * INSTR_RENDER_PER_CLASS
     return _kernel("score" if score else "render", nbytes, instr, gpu)
 

@@ -19,7 +19,9 @@ Pipeline per batch of views (one view for ``observe`` / ``render``, all candidat
    tile, one thread per pixel; the tile's list is staged through shared memory in batches, pixels
    composite front to back with the INRIA rules (float32 walk), the block stops when all
    its pixels are done; the update sums kappa * weight per (Gaussian, class) in shared memory and
-   adds each sum once with a float64 atomic.
+   adds each sum once with a float64 atomic (with a sensor model, a kernel variant walks each tile twice:
+   expected depth first, then the votes per (label, depth bin) row, the table applied at the flush); the
+   render also gives the expected depth sum kappa z / sum kappa per pixel.
 
 Pixel (u, v) centres are integers (u right, v down); lengths in pixels, depths in metres.
 """
@@ -458,15 +460,17 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
 
 
 
-def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK) -> tuple[int, int, int]:
+def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK,
+                  score: bool = False) -> tuple[int, int, int]:
     """(staged Gaussians per batch, classes per pass, static shared bytes per block) of the render
     kernel: per-pixel E and Var sums of one pass's classes (2 x classes x tile^2 float32) plus the
-    staged rows (geometry, colour, S, depth, row); the class moments are read from global memory (every lane
-    of a warp reads the same row: one broadcast transaction, L1-resident for the block's batch)."""
+    staged rows (geometry, colour, S, camera depth (not for ``score``), row); the class moments are read
+    from global memory (every lane of a warp reads the same row: one broadcast transaction, L1-resident
+    for the block's batch)."""
     nt = tile * tile
     per_pass = min(num_classes, chunk)
     acc = 2 * per_pass * nt * 4
-    row = 4 * STAGE_COLS + 4 * RENDER_ATTR_COLS + 4
+    row = 4 * STAGE_COLS + 4 * (4 if score else RENDER_ATTR_COLS) + 4
     return nt, per_pass, acc + nt * row
 
 
@@ -572,8 +576,9 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                             cg += w1 * s_a[k, 1]
                             cb += w1 * s_a[k, 2]
                             ev += w1 * s_a[k, 3]
-                            dz += w1 * s_a[k, 4]
-                            ks += w1
+                            if not score:  # (a compile-time constant: the views' scores stage no depth)
+                                dz += w1 * s_a[k, 4]
+                                ks += w1
             for c in range(nc):
                 e = acc[c, tid]
                 if (first and c == 0) or e > best_e:
