@@ -1,9 +1,18 @@
 """Procedural furnished room built the way a pretrained 3DGS model looks: flat Gaussians lying on surfaces.
 
-The room (map frame: x east, y north, z up, metres) spans x in [-4, 4], y in [-3, 3], z in [0, 2.7]. It holds a
-wooden floor with a rug, painted walls and ceiling, a door, a window, a dining table with four chairs, a sofa
-with a coffee table, a bookshelf with boxes, a cabinet, two floor lamps (thin poles), two potted plants, three
-pictures and five wall outlets: 16 semantic classes (:data:`CLASS_NAMES`).
+Two layouts share the 16 semantic classes (:data:`CLASS_NAMES`); ``build_scene_arrays(..., layout=...)`` picks one
+(map frame: x east, y north, z up, metres):
+
+* ``"room"`` (:func:`indoor_layout`, the default and the shipped demo) spans x in [-4, 4], y in [-3, 3],
+  z in [0, 2.7]. It holds a wooden floor with a rug, painted walls and ceiling, a door, a window, a dining table
+  with four chairs, a sofa with a coffee table, a bookshelf with boxes, a cabinet, two floor lamps (thin poles),
+  two potted plants, three pictures and five wall outlets.
+* ``"studio"`` (:func:`studio_layout`) is a long studio flat, x in [-4.5, 4.5], y in [-2.25, 2.25], z in [0, 2.6]
+  (far walls up to ~9 m away): living corner at the east end (sofa against the east wall facing west, rug,
+  coffee table turned by 90 degrees), a dining table turned by 15 degrees with two chairs under two north
+  windows, a desk with a chair against the south wall, a kitchen row of cabinets (base and wall units) in the
+  north-west corner, a bookshelf on the west wall, the door in the south wall, two floor lamps, three plants,
+  three pictures, six outlets and moving boxes on the floor.
 
 Every object is a set of surface *primitives* (rectangles, cylinders, discs, ellipsoids). Gaussians are
 spread over them with a low-discrepancy (R2) sequence so the surfaces are covered without holes; each is
@@ -17,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,15 +38,21 @@ if TYPE_CHECKING:
 __all__ = [
     "CLASS_NAMES",
     "CLASS_PALETTE",
+    "LAYOUTS",
     "ROOM_MAX",
     "ROOM_MIN",
+    "STUDIO_MAX",
+    "STUDIO_MIN",
     "Primitive",
     "SceneArrays",
     "build_indoor_scene",
     "build_scene_arrays",
     "demo_class_set",
     "indoor_layout",
+    "layout_primitives",
     "obstacle_footprints",
+    "room_bounds",
+    "studio_layout",
 ]
 
 #: Semantic classes of the demo room, id = index.
@@ -67,6 +82,10 @@ CLASS_PALETTE: np.ndarray = np.array([
 
 ROOM_MIN = np.array([-4.0, -3.0, 0.0])  #: room interior lower corner (map, metres)
 ROOM_MAX = np.array([4.0, 3.0, 2.7])    #: room interior upper corner (map, metres)
+STUDIO_MIN = np.array([-4.5, -2.25, 0.0])  #: studio interior lower corner (map, metres)
+STUDIO_MAX = np.array([4.5, 2.25, 2.6])    #: studio interior upper corner (map, metres)
+#: Names of the scene layouts (``build_scene_arrays(layout=...)``); "room" is the shipped demo.
+LAYOUTS: tuple[str, ...] = ("room", "studio")
 _H = float(ROOM_MAX[2])
 _CID = {name: i for i, name in enumerate(CLASS_NAMES)}
 _THIN_FACE = 0.025  # box faces narrower than this (m) are not sampled: the neighbouring faces cover them
@@ -274,10 +293,12 @@ def _plant(x, y, pot_r, pot_h, foliage_r, name="plant") -> list[Primitive]:
 
 
 def _wall_item(wall: str, along: float, z: float, half_w: float, half_h: float, depth: float, cls: str,
-               material: str, color, name: str) -> list[Primitive]:
-    """Thin box mounted on a wall: ``along`` is the coordinate along the wall, ``z`` the centre height."""
-    x0, y0 = ROOM_MIN[:2]
-    x1, y1 = ROOM_MAX[:2]
+               material: str, color, name: str, lo: np.ndarray = ROOM_MIN, hi: np.ndarray = ROOM_MAX
+               ) -> list[Primitive]:
+    """Thin box mounted on a wall of the room ``lo``..``hi`` (interior corners, metres): ``along`` is the
+    coordinate along the wall, ``z`` the centre height."""
+    x0, y0 = lo[:2]
+    x1, y1 = hi[:2]
     d = depth / 2
     if wall == "south":
         return _box((along, y0 + d, z), (half_w, d, half_h), cls, material, color, skip=("-y",), name=name)
@@ -304,9 +325,10 @@ _FOOTPRINTS: dict[str, tuple[float, float, float, float]] = {
 }
 
 
-def obstacle_footprints() -> dict[str, tuple[float, float, float, float]]:
-    """Axis-aligned floor footprints (x0, y0, x1, y1) in metres of the furniture (a robot must stay out)."""
-    return dict(_FOOTPRINTS)
+def obstacle_footprints(layout: str = "room") -> dict[str, tuple[float, float, float, float]]:
+    """Axis-aligned floor footprints (x0, y0, x1, y1) in metres of a layout's furniture (a robot must stay out;
+    it may drive over the "rug")."""
+    return dict(_STUDIO_FOOTPRINTS if _check_layout(layout) == "studio" else _FOOTPRINTS)
 
 
 def indoor_layout() -> list[Primitive]:
@@ -419,6 +441,214 @@ def indoor_layout() -> list[Primitive]:
     return prims
 
 
+# ----------------------------------------------------------------------------------------------- studio layout
+_S_LO, _S_HI = STUDIO_MIN, STUDIO_MAX
+_SH = float(STUDIO_MAX[2])
+_CARDBOARD = (0.68, 0.52, 0.34)
+_COUNTER = (0.30, 0.28, 0.26)
+
+#: Studio footprints (x0, y0, x1, y1), map frame metres (rotated objects: their axis-aligned bounds).
+_STUDIO_FOOTPRINTS: dict[str, tuple[float, float, float, float]] = {
+    "sofa": (3.5, -1.05, 4.5, 1.05),
+    "coffee_table": (2.27, -0.5, 2.83, 0.5),
+    "rug": (1.7, -1.3, 3.45, 1.3),
+    "dining_table": (-0.68, 0.95, 0.68, 1.75),
+    "chairs": (-1.12, 0.86, 1.12, 1.84),
+    "desk": (-2.2, -2.25, -0.8, -1.6),
+    "desk_chair": (-1.75, -1.55, -1.25, -1.05),
+    "shelf": (-4.5, -1.3, -4.14, 0.1),
+    "cabinet": (-4.5, 1.65, -2.3, 2.25),
+    "lamp_ne": (3.89, 1.64, 4.31, 2.06),
+    "lamp_sw": (-4.31, -1.96, -3.89, -1.54),
+    "plant_se": (3.65, -2.2, 4.45, -1.4),
+    "plant_n": (1.35, 1.45, 2.15, 2.25),
+    "plant_w": (-4.45, 0.3, -3.75, 1.0),
+    "floor_boxes": (-2.9, -2.15, -2.3, -1.6),
+}
+
+
+def _table_yaw(cx: float, cy: float, hx: float, hy: float, top_z: float, thick: float, leg: float,
+               yaw_deg: float, name: str) -> list[Primitive]:
+    """A table (top and four legs) turned by ``yaw_deg`` about +z around its centre (cx, cy)."""
+    prims = _box((cx, cy, top_z - thick / 2), (hx, hy, thick / 2), "table", "wood", _TABLE, yaw_deg, skip=(),
+                 name=name)
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    lh = (top_z - thick) / 2
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            ax, ay = sx * (hx - leg), sy * (hy - leg)
+            prims += _box((cx + c * ax - s * ay, cy + s * ax + c * ay, lh), (leg / 2, leg / 2, lh), "table", "wood",
+                          _TABLE, yaw_deg, skip=("-z", "+z"), name=f"{name}_leg")
+    return prims
+
+
+def _sofa(cx: float, cy: float, facing_deg: float, name: str = "sofa") -> list[Primitive]:
+    """Three-seat sofa whose seat centre is (cx, cy), the sitter looking along ``facing_deg`` (back and base
+    faces against the wall behind it are not sampled)."""
+    yaw = facing_deg - 90.0  # the box frame's +y is the facing direction
+    c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+
+    def at(lx: float, ly: float, z: float) -> tuple[float, float, float]:
+        return (cx + c * lx - s * ly, cy + s * lx + c * ly, z)
+
+    prims = _box(at(0, 0, 0.21), (1.0, 0.45, 0.21), "sofa", "fabric", _SOFA, yaw, skip=("-z", "-y"),
+                 name=f"{name}_base")
+    prims += _box(at(0, -0.34, 0.62), (1.0, 0.11, 0.20), "sofa", "fabric", _SOFA, yaw, skip=("-z", "-y"),
+                  name=f"{name}_back")
+    for side in (-1, 1):
+        prims += _box(at(side * 0.9, 0.05, 0.53), (0.1, 0.42, 0.11), "sofa", "fabric", _SOFA, yaw, skip=("-z",),
+                      name=f"{name}_arm")
+        prims += _box(at(side * 0.45, 0.25, 0.47), (0.42, 0.2, 0.05), "sofa", "fabric", (0.30, 0.40, 0.62), yaw,
+                      skip=("-z",), name="cushion")
+    return prims
+
+
+def _studio_shelf() -> list[Primitive]:
+    """Open bookshelf on the studio's west wall (y in [-1.3, 0.1], 2 m high) with books / boxes on 4 boards."""
+    x0, x1, y0, y1, h = float(_S_LO[0]), float(_S_LO[0]) + 0.36, -1.3, 0.1, 2.0
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    prims: list[Primitive] = []
+    for y_side in (y0 + 0.01, y1 - 0.01):
+        prims += _box((cx, y_side, h / 2), (0.18, 0.01, h / 2), "shelf", "wood", _SHELF, skip=("-z",),
+                      name="shelf_side")
+    prims.append(_rect((x0 + 0.008, cy, h / 2), _Y, _Z, (y1 - y0) / 2 - 0.01, h / 2, "shelf", "wood", _SHELF, (),
+                       "shelf_back"))
+    boards = (0.06, 0.52, 0.98, 1.44, 1.98)
+    for bz in boards:
+        prims += _box((cx + 0.005, cy, bz), (0.175, (y1 - y0) / 2 - 0.02, 0.015), "shelf", "wood", _SHELF,
+                      skip=("-x",), name="shelf_board")
+    lay = np.random.default_rng(11)
+    book_colors = [(0.60, 0.20, 0.15), (0.12, 0.25, 0.50), (0.80, 0.70, 0.35), (0.25, 0.45, 0.35),
+                   (0.92, 0.90, 0.86), (0.50, 0.30, 0.40), _CARDBOARD]
+    for bz in boards[:-1]:
+        y = y0 + 0.05
+        while True:
+            w = float(lay.uniform(0.07, 0.26))
+            hb = float(lay.uniform(0.14, 0.34))
+            if y + w > y1 - 0.05:
+                break
+            if lay.random() < 0.75:
+                col = book_colors[int(lay.integers(len(book_colors)))]
+                prims += _box((x0 + 0.17, y + w / 2, bz + 0.015 + hb / 2), (0.11, w / 2 - 0.005, hb / 2), "box",
+                              "book", col, skip=("-z", "-x"), name="shelf_box")
+            y += w + float(lay.uniform(0.0, 0.1))
+    return prims
+
+
+def _studio_shell() -> list[Primitive]:
+    """Floor, ceiling, four walls (door hole in the south wall, two window holes in the north wall), door,
+    two windows with sills."""
+    x0, y0, _ = _S_LO
+    x1, y1, _ = _S_HI
+    hx, hy = float(x1 - x0) / 2, float(y1 - y0) / 2
+    fp = _STUDIO_FOOTPRINTS
+    floor_holes = tuple(_aabb((fp[k][0] + 0.03, fp[k][1] + 0.03, -0.1), (fp[k][2] - 0.03, fp[k][3] - 0.03, 0.1))
+                        for k in ("rug", "sofa", "shelf", "cabinet"))
+    prims = [
+        _rect((0, 0, 0), _X, _Y, hx, hy, "floor", "planks", _WOOD_FLOOR, floor_holes, "floor"),
+        _rect((0, 0, _SH), _Y, _X, hy, hx, "ceiling", "ceiling", _CEILING, (), "ceiling"),
+    ]
+    door_x = -3.6
+    door_hole = _aabb((door_x - 0.45, y0 - 0.1, -0.1), (door_x + 0.45, y0 + 0.1, 2.0))
+    window_xs = (0.2, 2.8)
+    window_holes = tuple(_aabb((wx - 0.52, y1 - 0.1, 0.93), (wx + 0.52, y1 + 0.1, 2.07)) for wx in window_xs)
+    prims.append(_rect((x0, 0, _SH / 2), _Y, _Z, hy, _SH / 2, "wall", "paint", _PAINT, (), "wall_west"))
+    prims.append(_rect((x1, 0, _SH / 2), _Z, _Y, _SH / 2, hy, "wall", "paint", _PAINT, (), "wall_east"))
+    prims.append(_rect((0, y0, _SH / 2), _Z, _X, _SH / 2, hx, "wall", "paint", _PAINT, (door_hole,), "wall_south"))
+    prims.append(_rect((0, y1, _SH / 2), _X, _Z, hx, _SH / 2, "wall", "paint", _PAINT, window_holes, "wall_north"))
+    prims += _wall_item("south", door_x, 1.025, 0.45, 1.025, 0.04, "door", "door", _DOOR, "door", _S_LO, _S_HI)
+    for wx in window_xs:
+        prims.append(_rect((wx, y1 - 0.01, 1.5), _X, _Z, 0.55, 0.6, "window", "glass", _GLASS, (), "window"))
+        prims += _wall_item("north", wx, 0.86, 0.62, 0.03, 0.16, "window", "sill", _CABINET, "window_sill",
+                            _S_LO, _S_HI)
+    return prims
+
+
+def _studio_kitchen() -> list[Primitive]:
+    """Base cabinets with a counter top and wall cabinets in the north-west corner, boxes on the counter."""
+    y1 = float(_S_HI[1])
+    prims = _box((-3.4, y1 - 0.3, 0.45), (1.1, 0.3, 0.45), "cabinet", "lacquer", _CABINET, skip=("-z", "+y", "-x"),
+                 name="cabinet")
+    prims += _box((-3.4, y1 - 0.31, 0.915), (1.1, 0.31, 0.015), "cabinet", "wood", _COUNTER, skip=("+y", "-x"),
+                  name="cabinet_top")
+    prims += _box((-3.5, y1 - 0.18, 1.85), (1.0, 0.18, 0.35), "cabinet", "lacquer", _CABINET, skip=("+y", "-x"),
+                  name="cabinet_upper")
+    prims += _box((-3.95, y1 - 0.3, 0.99), (0.12, 0.1, 0.06), "box", "book", (0.80, 0.55, 0.25), skip=("-z",),
+                  name="cab_box")
+    prims += _box((-2.75, y1 - 0.25, 0.97), (0.09, 0.07, 0.04), "box", "book", (0.25, 0.45, 0.70), skip=("-z",),
+                  name="cab_box2")
+    return prims
+
+
+def studio_layout() -> list[Primitive]:
+    """All surface primitives of the studio flat (fixed layout; see the module docstring)."""
+    lo, hi = _S_LO, _S_HI
+    prims = _studio_shell()
+    fp = _STUDIO_FOOTPRINTS
+    r = fp["rug"]
+    prims.append(_rect(((r[0] + r[2]) / 2, (r[1] + r[3]) / 2, 0.008), _X, _Y, (r[2] - r[0]) / 2, (r[3] - r[1]) / 2,
+                       "rug", "rug", _RUG, (), "rug"))
+    prims += _sofa(4.0, 0.0, 180.0)
+    prims += _table_yaw(2.55, 0.0, 0.28, 0.5, 0.42, 0.04, 0.05, 0.0, "coffee_table")
+    prims += _box((2.6, 0.25, 0.46), (0.1, 0.13, 0.04), "box", "book", (0.85, 0.80, 0.30), 30.0, skip=("-z",),
+                  name="coffee_box")
+    # dining table turned by 15 degrees with a chair at each end, facing it
+    prims += _table_yaw(0.0, 1.35, 0.55, 0.35, 0.75, 0.04, 0.06, 15.0, "dining_table")
+    prims += _chair(0.82, 1.57, 195.0, "chair_e")
+    prims += _chair(-0.82, 1.13, 15.0, "chair_w")
+    # desk against the south wall with a chair and a box
+    prims += _table_yaw(-1.5, -1.925, 0.7, 0.325, 0.74, 0.03, 0.04, 0.0, "desk")
+    prims += _chair(-1.5, -1.3, -90.0, "chair_desk")
+    prims += _box((-1.0, -2.0, 0.80), (0.12, 0.09, 0.06), "box", "book", (0.75, 0.20, 0.15), -10.0, skip=("-z",),
+                  name="desk_box")
+    prims += _studio_kitchen()
+    prims += _studio_shelf()
+    # moving boxes on the floor by the door
+    prims += _box((-2.6, -1.88, 0.2), (0.25, 0.22, 0.2), "box", "book", _CARDBOARD, 10.0, skip=("-z",),
+                  name="floor_box")
+    prims += _box((-2.62, -1.86, 0.52), (0.18, 0.15, 0.12), "box", "book", _CARDBOARD, -15.0, skip=("-z",),
+                  name="floor_box")
+    prims += _floor_lamp(4.1, 1.85, 1.7, "lamp_ne")
+    prims += _floor_lamp(-4.1, -1.75, 1.55, "lamp_sw")
+    prims += _plant(4.05, -1.8, 0.2, 0.4, 0.4, "plant_se")
+    prims += _plant(1.75, 1.85, 0.17, 0.32, 0.34, "plant_n")
+    prims += _plant(-4.1, 0.65, 0.15, 0.3, 0.3, "plant_w")
+    prims += _wall_item("east", 0.0, 1.55, 0.6, 0.3, 0.02, "picture", "painting", (0.5, 0.5, 0.5), "picture_e",
+                        lo, hi)
+    prims += _wall_item("south", -1.5, 1.6, 0.35, 0.25, 0.02, "picture", "painting", (0.5, 0.5, 0.5), "picture_s",
+                        lo, hi)
+    prims += _wall_item("north", -1.6, 1.6, 0.3, 0.22, 0.02, "picture", "painting", (0.5, 0.5, 0.5), "picture_n",
+                        lo, hi)
+    for wall, along, z in (("south", 0.8, 0.3), ("south", -0.9, 1.0), ("north", 1.3, 0.3), ("north", -2.15, 1.1),
+                           ("east", -1.4, 0.3), ("west", 1.3, 0.3)):
+        prims += _wall_item(wall, along, z, 0.04, 0.06, 0.012, "outlet", "outlet", _OUTLET, f"outlet_{wall}", lo, hi)
+    return prims
+
+
+# ----------------------------------------------------------------------------------------------- layouts
+def _check_layout(layout: str) -> str:
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown scene layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
+    return layout
+
+
+def room_bounds(layout: str = "room") -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) interior corners (3,) of a layout's room, map frame metres (copies)."""
+    if _check_layout(layout) == "studio":
+        return STUDIO_MIN.copy(), STUDIO_MAX.copy()
+    return ROOM_MIN.copy(), ROOM_MAX.copy()
+
+
+def layout_primitives(layout: str = "room") -> list[Primitive]:
+    """The surface primitives of a layout (``"room"``: :func:`indoor_layout`, ``"studio"``: :func:`studio_layout`)."""
+    return studio_layout() if _check_layout(layout) == "studio" else indoor_layout()
+
+
+def _window_wall(layout: str) -> tuple[int, float]:
+    """(axis, interior coordinate) of the wall with the windows (for the baked window light)."""
+    return (1, float(STUDIO_MAX[1])) if layout == "studio" else (0, float(ROOM_MAX[0]))
+
+
 # ----------------------------------------------------------------------------------------------- sampling
 def _r2(n: int, offset: np.ndarray) -> np.ndarray:
     """First n points (n, 2) in [0, 1)^2 of the R2 low-discrepancy sequence shifted by ``offset``."""
@@ -440,7 +670,7 @@ def _in_holes(p: Primitive, pts: np.ndarray) -> np.ndarray:
     return inside
 
 
-def _sample_primitive(p: Primitive, n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def _sample_primitive(p: Primitive, n: int, rng: np.random.Generator) -> dict[str, Any]:
     """Sample n surface points of primitive p.
 
     Returns dict: pos (n,3), normal (n,3), t1 (n,3) (unit tangent), uv (n,2) local texture coords in metres,
@@ -623,12 +853,17 @@ def _texture(p: Primitive, pos: np.ndarray, uv: np.ndarray, rng: np.random.Gener
     return base
 
 
-def _shade(colors: np.ndarray, pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Bake soft lighting: a ceiling/window key light, ambient term and darkening near the floor corners."""
+def _shade(colors: np.ndarray, pos: np.ndarray, normal: np.ndarray,
+           window_wall: tuple[int, float] = (0, float(ROOM_MAX[0]))) -> np.ndarray:
+    """Bake soft lighting: a ceiling/window key light, ambient term and darkening near the floor corners.
+
+    ``window_wall`` = (axis, coordinate) of the interior side of the wall with the windows (a max wall: the
+    light falls off with ``coordinate - pos[:, axis]``); the room's is the east wall x = 4."""
     light = np.array([0.45, 0.2, 0.87])
     light /= np.linalg.norm(light)
     lam = np.abs(normal @ light)  # two-sided (Gaussians have no facing)
-    window = 0.12 * np.exp(-(ROOM_MAX[0] - pos[:, 0]) / 2.5)
+    axis, coord = window_wall
+    window = 0.12 * np.exp(-(coord - pos[:, axis]) / 2.5)
     corner = 1.0 - 0.12 * np.exp(-pos[:, 2] / 0.25) * (np.abs(normal[:, 2]) < 0.5)
     f = (0.70 + 0.30 * lam + window) * corner
     return np.clip(colors * f[:, None], 0.0, 1.0)
@@ -664,12 +899,14 @@ class SceneArrays:
     primitives: list[Primitive] = field(default_factory=list)
 
 
-def build_scene_arrays(num_gaussians: int, seed: int = 0) -> SceneArrays:
-    """Sample the demo room with exactly ``num_gaussians`` Gaussians (deterministic for ``seed``)."""
+def build_scene_arrays(num_gaussians: int, seed: int = 0, layout: str = "room") -> SceneArrays:
+    """Sample a demo layout (:data:`LAYOUTS`; default the shipped room) with exactly ``num_gaussians`` Gaussians
+    (deterministic for ``seed``; the room's arrays do not depend on the studio's existence)."""
     num_gaussians = int(num_gaussians)
-    prims = indoor_layout()
+    prims = layout_primitives(layout)
+    window_wall = _window_wall(layout)
     if num_gaussians < 4 * len(prims):
-        raise ValueError(f"num_gaussians must be >= {4 * len(prims)} for the demo room, got {num_gaussians}")
+        raise ValueError(f"num_gaussians must be >= {4 * len(prims)} for the demo {layout}, got {num_gaussians}")
     counts = _allocate(prims, num_gaussians)
     root = np.random.default_rng(seed)
     child_seeds = root.integers(0, 2**63 - 1, size=len(prims))
@@ -703,7 +940,7 @@ def build_scene_arrays(num_gaussians: int, seed: int = 0) -> SceneArrays:
         sig2 = sig_in / np.sqrt(aniso)
         thin = rng.uniform(0.04, 0.12, n) if not p.foliage else rng.uniform(0.15, 0.3, n)
         sig_n = np.maximum(np.minimum(sig1, sig2) * thin, 5e-4)
-        col = _shade(_texture(p, pos, smp["uv"], rng), pos, normal)
+        col = _shade(_texture(p, pos, smp["uv"], rng), pos, normal, window_wall)
         parts["pos"].append(pos)
         parts["normal"].append(normal)
         parts["t1"].append(a1)
@@ -729,18 +966,20 @@ def build_scene_arrays(num_gaussians: int, seed: int = 0) -> SceneArrays:
     )
 
 
-def build_indoor_scene(num_gaussians: int, seed: int = 0) -> tuple["GaussianModel", np.ndarray]:
-    """The demo room as a splat model.
+def build_indoor_scene(num_gaussians: int, seed: int = 0, layout: str = "room"
+                       ) -> tuple["GaussianModel", np.ndarray]:
+    """The demo room (or another layout) as a splat model.
 
     Args:
         num_gaussians: exact number N of Gaussians (>= ~1000; the demo uses ~50k, benchmarks up to 1M+).
         seed: sampling/texture seed; the furniture layout is fixed.
+        layout: one of :data:`LAYOUTS`.
     Returns:
         (model, class_ids): an SH-degree-0 :class:`GaussianModel` in the map frame (metres) and the ground-truth
         class id (N,) int64 of every Gaussian (ids index :data:`CLASS_NAMES`).
     """
     from ..engine.gaussians import GaussianModel
 
-    s = build_scene_arrays(num_gaussians, seed)
+    s = build_scene_arrays(num_gaussians, seed, layout)
     model = GaussianModel.from_activated(s.means, s.scales, s.quats_wxyz, s.opacities, s.colors)
     return model, s.class_ids

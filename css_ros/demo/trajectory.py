@@ -10,6 +10,16 @@ pitch) in the free space of :mod:`css_ros.demo_scene`'s room, timed like a slow 
 3. (from waypoint ``LATE_PHASE_START``) west along the south corridor to the bookshelf and plant corner,
    *seen for the first time*, then a last look at the west wall and the dining table.
 
+The studio layout (``layout="studio"``, a 9 m x 4.5 m flat) has its own path, :data:`STUDIO_WAYPOINTS`, along
+the free corridor in the middle of the flat (~38 s), alternating close looks (< 1.5 m) with views along the long
+axis (far walls 5-8 m away):
+
+1. the living corner at the east end (sofa, rug, coffee table, window, lamp), then a long view west across the
+   whole flat;
+2. the dining table and the desk from close by;
+3. (from waypoint ``late_phase_start("studio")``) the west end seen close for the first time (moving boxes,
+   door, bookshelf, kitchen), a long view back east and the return to the middle.
+
 Poses are T_map_cam of the camera OPTICAL frame (z forward, x right, y down) in the map frame (z up).
 """
 from __future__ import annotations
@@ -20,7 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-__all__ = ["LATE_PHASE_START", "Trajectory", "WAYPOINTS", "look_at_rotation", "robot_trajectory", "waypoint_spline"]
+__all__ = ["LATE_PHASE_START", "STUDIO_WAYPOINTS", "Trajectory", "WAYPOINTS", "late_phase_start", "look_at_rotation",
+           "robot_trajectory", "waypoint_spline"]
 
 #: Waypoints (x [m], y [m], camera height [m], yaw [deg, 0 = +x, ccw], pitch [deg, negative = looking down]).
 WAYPOINTS: tuple[tuple[float, float, float, float, float], ...] = (
@@ -49,9 +60,47 @@ WAYPOINTS: tuple[tuple[float, float, float, float, float], ...] = (
 #: Index of the first waypoint of phase 3 (the part of the room seen only late).
 LATE_PHASE_START = 12
 
-_SPEED = 0.5   # m/s
-_TURN = 35.0   # deg/s
-_PITCH = 20.0  # deg/s
+#: Waypoints of the studio path (same columns as :data:`WAYPOINTS`; yaw is continuous, not wrapped).
+STUDIO_WAYPOINTS: tuple[tuple[float, float, float, float, float], ...] = (
+    # phase 1: living corner, then the long view west
+    (0.9, -0.3, 1.00, 0.0, -8.0),        # sofa, coffee table and picture ~3 m ahead
+    (1.8, -1.0, 1.00, 35.0, -18.0),      # rug, coffee table, sofa arm from close by
+    (2.0, 0.9, 1.05, 60.0, 0.0),         # window, lamp and plant in the north-east
+    (1.6, 0.3, 1.00, 180.0, 4.0),        # long view west: kitchen, bookshelf, door 5-6 m away
+    # phase 2: dining table and desk from close by
+    (0.2, -0.3, 1.00, 150.0, -12.0),     # dining table from the south-east
+    (-1.3, -0.5, 1.00, 250.0, -20.0),    # desk, desk chair, picture above the desk
+    # phase 3: the west end close for the first time, long view back east
+    (-2.8, -0.2, 1.00, 200.0, -8.0),     # moving boxes, door, lamp
+    (-3.4, 0.1, 1.00, 170.0, -10.0),     # bookshelf (~0.8 m)
+    (-3.3, 0.5, 1.05, 100.0, -10.0),     # kitchen
+    (-3.2, 0.0, 1.00, 0.0, -3.0),        # long view east: sofa and windows 6-8 m away
+    (-1.5, -0.4, 1.00, 20.0, -6.0),
+    (0.5, -0.6, 1.00, -20.0, -10.0),     # south wall, outlets, picture
+    (1.2, 0.2, 1.00, 60.0, -5.0),
+)
+_Waypoints = tuple[tuple[float, float, float, float, float], ...]
+
+
+@dataclass(frozen=True)
+class _Path:
+    """A layout's path: waypoints, first waypoints of phases 2 and 3, and the robot's speed limits
+    (m/s, deg/s of yaw, deg/s of pitch)."""
+
+    waypoints: _Waypoints
+    phase2: int
+    late: int
+    speed: float = 0.5
+    turn: float = 35.0
+    pitch: float = 20.0
+
+
+_PATHS: dict[str, _Path] = {
+    "room": _Path(WAYPOINTS, 9, LATE_PHASE_START),
+    # the studio path turns more per metre: a slower turn rate keeps the frame-to-frame rotation of an
+    # 80-frame sampling (~0.48 s per frame) near 20 degrees
+    "studio": _Path(STUDIO_WAYPOINTS, 4, 6, turn=28.0),
+}
 
 
 @dataclass(frozen=True)
@@ -90,14 +139,27 @@ def look_at_rotation(forward: np.ndarray, up: np.ndarray | None = None) -> np.nd
     return np.stack([x, y, f], axis=-1)
 
 
-def waypoint_spline(seed: int = 0) -> tuple[PchipInterpolator, np.ndarray]:
-    """The path through :data:`WAYPOINTS` as a function of time: (spline t [s] -> (x, y, height, yaw, pitch)
-    [m, deg], waypoint times [s]).
+def _path(layout: str) -> _Path:
+    if layout not in _PATHS:
+        raise ValueError(f"unknown scene layout {layout!r}; expected one of {', '.join(_PATHS)}")
+    return _PATHS[layout]
+
+
+def late_phase_start(layout: str = "room") -> int:
+    """Index of the first phase-3 waypoint of a layout's path (:data:`LATE_PHASE_START` for the room)."""
+    return _path(layout).late
+
+
+def waypoint_spline(seed: int = 0, layout: str = "room") -> tuple[PchipInterpolator, np.ndarray]:
+    """The path through :data:`WAYPOINTS` (or :data:`STUDIO_WAYPOINTS`) as a function of time: (spline t [s] ->
+    (x, y, height, yaw, pitch) [m, deg], waypoint times [s]).
 
     ``seed`` perturbs the waypoints slightly (+-4 cm, +-2 deg); seed 0 is the shipped demo. Translation, turning
-    and pitching take time (0.5 m/s, 35 deg/s, 20 deg/s), whichever is longest, at least 1 s per waypoint.
+    and pitching take time (room: 0.5 m/s, 35 deg/s, 20 deg/s; studio: 0.5 m/s, 28 deg/s, 20 deg/s), whichever
+    is longest, at least 1 s per waypoint.
     """
-    wp = np.array(WAYPOINTS, dtype=np.float64)
+    path = _path(layout)
+    wp = np.array(path.waypoints, dtype=np.float64)
     if seed:
         rng = np.random.default_rng(seed)
         wp[:, :2] += rng.uniform(-0.04, 0.04, (len(wp), 2))
@@ -105,24 +167,27 @@ def waypoint_spline(seed: int = 0) -> tuple[PchipInterpolator, np.ndarray]:
     d_xy = np.linalg.norm(np.diff(wp[:, :2], axis=0), axis=1)
     d_yaw = np.abs(np.diff(wp[:, 3]))
     d_pitch = np.abs(np.diff(wp[:, 4]))
-    dt = np.maximum.reduce([d_xy / _SPEED, d_yaw / _TURN, d_pitch / _PITCH, np.full_like(d_xy, 1.0)])
+    dt = np.maximum.reduce([d_xy / path.speed, d_yaw / path.turn, d_pitch / path.pitch, np.full_like(d_xy, 1.0)])
     t_wp = np.concatenate([[0.0], np.cumsum(dt)])
     return PchipInterpolator(t_wp, wp, axis=0), t_wp  # C1, no overshoot between waypoints
 
 
-def robot_trajectory(num_frames: int, seed: int = 0, sway: bool = True) -> Trajectory:
+def robot_trajectory(num_frames: int, seed: int = 0, sway: bool = True, layout: str = "room") -> Trajectory:
     """Sample the demo path at ``num_frames`` instants equally spaced in time.
 
     Args:
         num_frames: F >= 2.
         seed: perturbs the waypoints slightly (+-4 cm, +-2 deg); seed 0 is the shipped demo.
         sway: add the small periodic camera sway of a driving robot (+-1 cm height, +-1 deg roll).
+        layout: "room" (the shipped demo's path) or "studio" (:data:`STUDIO_WAYPOINTS`).
     Returns:
-        :class:`Trajectory`; the total duration is fixed by the robot speeds (~80 s), so F sets the frame rate.
+        :class:`Trajectory`; the total duration is fixed by the robot speeds (room ~49 s, studio ~38 s), so F
+        sets the frame rate.
     """
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
-    spline, t_wp = waypoint_spline(seed)
+    path = _path(layout)
+    spline, t_wp = waypoint_spline(seed, layout)
     times = np.linspace(0.0, t_wp[-1], num_frames)
     s = spline(times)
     x, y, z, yaw, pitch = (s[:, i] for i in range(5))
@@ -143,6 +208,6 @@ def robot_trajectory(num_frames: int, seed: int = 0, sway: bool = True) -> Traje
     T[:, :3, 3] = np.stack([x, y, z], 1)
     from ..engine.camera import matrix_to_quaternion_xyzw
 
-    phase = np.where(times < t_wp[9], 1, np.where(times < t_wp[LATE_PHASE_START], 2, 3))
+    phase = np.where(times < t_wp[path.phase2], 1, np.where(times < t_wp[path.late], 2, 3))
     return Trajectory(times=times, T_map_cam=T, positions=T[:, :3, 3].copy(),
                       quaternions_xyzw=matrix_to_quaternion_xyzw(R), phase=phase.astype(np.int64))
