@@ -24,7 +24,7 @@ from ..evaluation import cli as replay_cli
 from ..evaluation.calibration_metrics import reliability_bins
 from ..evaluation.config import ReplayConfig
 from ..evaluation.source import FrameSource
-from .learn import (DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
+from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
                     DEFAULT_WEIGHT_FLOOR, MIN_LABELLED_PIXELS, ConfidenceSamples, LabelDepthCounts, fit_confidence,
                     fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
                     right_rates)
@@ -50,8 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"depth-bin width in metres (default {DEFAULT_BIN_WIDTH:g})")
     p.add_argument("--max-depth", type=float, default=DEFAULT_MAX_DEPTH, metavar="M",
                    help=f"last bin edge in metres; deeper pixels fall in the last bin (default {DEFAULT_MAX_DEPTH:g})")
-    p.add_argument("--confusion", action="store_true",
-                   help="votes are the confusion rows p(true class | label, depth) instead of the label's own class")
+    p.add_argument("--votes", choices=VOTE_KINDS, default=DEFAULT_VOTES,
+                   help="how a vote is spread over the classes: symmetric (default: p on the label, the rest evenly "
+                        "on the others), onehot (the label only) or confusion (the rows p(true class | label, depth))")
     p.add_argument("--per-class", action="store_true",
                    help="weights per label and depth (default: per depth, the same for every label)")
     p.add_argument("--pseudo-count", type=float, default=DEFAULT_PSEUDO_COUNT, metavar="N",
@@ -162,7 +163,7 @@ def calibrate(args: argparse.Namespace) -> int:
     if fit_pixels < MIN_LABELLED_PIXELS:
         raise CssError(f"too few labelled pixels to calibrate: {fit_pixels} with a ground truth and a rendered depth "
                        f"in {counts.frames_fit} fitting frames (need {MIN_LABELLED_PIXELS})")
-    sensor = fit_sensor_model(counts, classes.names, confusion=args.confusion, per_class=args.per_class,
+    sensor = fit_sensor_model(counts, classes.names, votes=args.votes, per_class=args.per_class,
                               pseudo_count=args.pseudo_count, weight_floor=args.weight_floor)
     p_right = right_rates(counts.fit, args.pseudo_count)
     judged = counts.heldout if counts.frames_heldout else counts.fit
@@ -174,7 +175,7 @@ def calibrate(args: argparse.Namespace) -> int:
         "pseudo_count": args.pseudo_count, "weight_floor": args.weight_floor,
         "weight_rule": "w = max(weight_floor, 2 p - 1), p = fraction of right labels "
                        + ("per label and depth bin" if args.per_class else "per depth bin (all labels)"),
-        "votes": "confusion rows p(true class | label, depth)" if args.confusion else "one-hot of the label",
+        "votes": args.votes,
         "input_label_calibration": {"before": labels_report["before"], "after": labels_report["after"]},
     }
     panels = []

@@ -98,15 +98,35 @@ def depth_reliability(counts: np.ndarray, pseudo_count: float = DEFAULT_PSEUDO_C
     return smoothed_rates(two, pseudo_count)[0, :, 0]
 
 
-def fit_sensor_model(counts: LabelDepthCounts, class_names: Iterable[str], confusion: bool = False,
+#: How a vote is spread over the classes (css_calibrate --votes).
+VOTE_KINDS = ("symmetric", "onehot", "confusion")
+DEFAULT_VOTES = "symmetric"
+
+
+def symmetric_votes(p_right: np.ndarray) -> np.ndarray:
+    """(C, B, C) vote rows: p_right[y, b] on the label y, the rest spread evenly over the other C - 1 classes
+    (a label that is right with probability p is, when wrong, equally likely any other class)."""
+    c, b = p_right.shape
+    if c == 1:
+        return np.ones((1, b, 1))
+    rows = np.repeat(((1.0 - p_right) / (c - 1))[:, :, None], c, axis=2)
+    rows[np.arange(c), :, np.arange(c)] = p_right
+    return rows
+
+
+def fit_sensor_model(counts: LabelDepthCounts, class_names: Iterable[str], votes: str = DEFAULT_VOTES,
                      per_class: bool = False, pseudo_count: float = DEFAULT_PSEUDO_COUNT,
                      weight_floor: float = DEFAULT_WEIGHT_FLOOR) -> SensorModel:
     """The sensor model of the fitting counts.
 
-    w(y, b) = max(floor, 2 p - 1) (fit.reliability_weight) with p the fraction of right labels at depth bin b over
-    all classes (default; the same weight for every label) or, with ``per_class``, of label y alone. The confusion
-    rows p(c | y, b) (fit.smoothed_rates) are kept when ``confusion`` (default: one-hot votes).
+    p = the fraction of right labels at depth bin b over all classes (default; the same for every label) or, with
+    ``per_class``, of label y alone (fit.smoothed_rates). Weight w(y, b) = max(floor, 2 p - 1)
+    (fit.reliability_weight). Votes (``votes``): "symmetric" puts p on the label and (1 - p) / (C - 1) on every
+    other class, so that a map seen only through unreliable labels has a low E even when those labels agree;
+    "onehot" votes for the label only; "confusion" uses the smoothed confusion rows p(c | y, b).
     """
+    if votes not in VOTE_KINDS:
+        raise ValueError(f"votes must be one of {VOTE_KINDS}, got {votes!r}")
     rates = smoothed_rates(counts.fit.astype(np.float64), pseudo_count)
     c = counts.num_classes
     if per_class:
@@ -114,7 +134,8 @@ def fit_sensor_model(counts: LabelDepthCounts, class_names: Iterable[str], confu
     else:
         p_right = np.broadcast_to(depth_reliability(counts.fit, pseudo_count), (c, counts.edges.size - 1))
     weight = reliability_weight(p_right, weight_floor)
-    return SensorModel(tuple(class_names), counts.edges.copy(), np.array(weight), rates if confusion else None)
+    table = {"symmetric": symmetric_votes(np.array(p_right)), "onehot": None, "confusion": rates}[votes]
+    return SensorModel(tuple(class_names), counts.edges.copy(), np.array(weight), table)
 
 
 def label_samples(counts: np.ndarray, p_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
