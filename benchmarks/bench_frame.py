@@ -128,8 +128,9 @@ def with_view_dependent_colour(model, degree: int):
 
 
 def synthetic_sensor_model(num_classes: int, kind: str):
-    """A sensor model for timing (``kind``: none, weights, confusion): 0.5 m bins to 10 m, random weights in
-    [0.2, 1] and, for ``confusion``, dense random confusion rows (the worst case: every class non-zero)."""
+    """A sensor model for timing (``kind``: none, weights, symmetric, confusion): 0.5 m bins to 10 m, random
+    weights in [0.2, 1]; ``symmetric``: css_calibrate's default votes; ``confusion``: dense random confusion rows
+    (the worst case: every class a different non-zero share)."""
     if kind == "none":
         return None
     from css_ros.engine.sensor_model import SensorModel, uniform_edges
@@ -142,6 +143,10 @@ def synthetic_sensor_model(num_classes: int, kind: str):
     if kind == "confusion":
         confusion = rng.uniform(0.0, 1.0, (num_classes, bins, num_classes))
         confusion /= confusion.sum(axis=2, keepdims=True)
+    elif kind == "symmetric":
+        from css_ros.calibration.learn import symmetric_votes
+
+        confusion = symmetric_votes(rng.uniform(0.3, 1.0, (num_classes, bins)))
     return SensorModel(tuple(f"class{i}" for i in range(num_classes)), edges, weight, confusion)
 
 
@@ -188,8 +193,8 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         bins = bin_tiles(proj, cam.width, cam.height)
         t.append(time.perf_counter())
         lab32, w32, _ = smap._prepare_labels(cam, lab, None)
-        acc, _ = accumulate_update(proj, bins, lab32, w32, C, store, soft)
-        add_increments(conc, proj.ids, acc)
+        acc, acc_base, _ = accumulate_update(proj, bins, lab32, w32, C, store, soft)
+        add_increments(conc, proj.ids, acc, acc_base)
         t.append(time.perf_counter())
         attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         t.append(time.perf_counter())
@@ -437,9 +442,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-candidates", action="store_true", help="skip the 16-candidate batch on the 500k scene")
     p.add_argument("--no-torch", action="store_true", help="skip the PyTorch-path comparison on the 500k scene")
     p.add_argument("--json", type=Path, help="also write the results as JSON here")
-    p.add_argument("--sensor-model", choices=("none", "weights", "confusion"), default="none",
-                   help="update with a synthetic sensor model: 0.5 m depth bins, random weights, and for "
-                        "'confusion' dense random confusion rows (numba backend; default none: the paper's update)")
+    p.add_argument("--sensor-model", choices=("none", "weights", "symmetric", "confusion"), default="none",
+                   help="update with a synthetic sensor model: 0.5 m depth bins, random weights; 'symmetric' adds "
+                        "css_calibrate's default votes (p on the label, the rest evenly), 'confusion' dense random "
+                        "confusion rows (the worst case) (default none: the paper's update)")
     p.add_argument("--_child", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 

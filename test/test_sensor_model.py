@@ -31,7 +31,11 @@ def random_sensor(rng, bins_edges, confusion=True) -> SensorModel:
     b = len(bins_edges) - 1
     weight = rng.uniform(0.05, 1.0, (C, b))
     conf = None
-    if confusion:
+    if confusion == "symmetric":  # css_calibrate's default votes: the CPU kernel adds the shared part once
+        from css_ros.calibration.learn import symmetric_votes
+
+        conf = symmetric_votes(rng.uniform(0.3, 1.0, (C, b)))
+    elif confusion:
         conf = rng.uniform(0.0, 1.0, (C, b, C)) ** 3
         conf /= conf.sum(axis=2, keepdims=True)
     return SensorModel(NAMES, np.asarray(bins_edges, float), weight, conf)
@@ -53,7 +57,7 @@ def sensor_update_reference(kappa, z, alpha, labels, model: SensorModel, confide
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])
-@pytest.mark.parametrize("confusion", [True, False])
+@pytest.mark.parametrize("confusion", [True, False, "symmetric"])
 def test_update_matches_brute_force(backend, confusion):
     rng = np.random.default_rng(3)
     model = random_scene(4, n=40, depth=(0.5, 6.0))

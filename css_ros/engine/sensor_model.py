@@ -102,10 +102,21 @@ class SoftLabels:
     Attributes:
         edges: (B + 1,) float64 depth-bin edges in splat units (metres / depth_scale), increasing.
         table: (C * B, C) float64; row y * B + b = w(y, b) * p(. | y, b).
+        base, resid: the table split as table = base[:, None] + resid, base (C * B,) the most common entry of each
+            row (0 for a one-hot row; the share of every other class for a symmetric one), so that resid is
+            sparse and the CPU update adds the common part once per Gaussian instead of once per class.
     """
 
     edges: np.ndarray
     table: np.ndarray
+    base: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    resid: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def __post_init__(self) -> None:
+        if self.base.size == 0:
+            base = np.array([_row_mode(row) for row in self.table])
+            object.__setattr__(self, "base", base)
+            object.__setattr__(self, "resid", np.ascontiguousarray(self.table - base[:, None]))
 
     @property
     def num_bins(self) -> int:
@@ -317,6 +328,13 @@ class SensorModel:
         if class_names is not None:
             model.check_classes(class_names)
         return model
+
+
+def _row_mode(row: np.ndarray) -> float:
+    """The most frequent value of a row (ties: the smallest), 0.0 when no value repeats (nothing to share)."""
+    values, counts = np.unique(row, return_counts=True)
+    i = int(np.argmax(counts))
+    return float(values[i]) if counts[i] > 1 else 0.0
 
 
 def _array(value: Any, where: str, ndim: int) -> np.ndarray:

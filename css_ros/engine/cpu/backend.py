@@ -39,9 +39,10 @@ class NumbaBackend(RasterBackend):
                soft: "SoftLabels | None" = None) -> int:
         proj, bins, _ = frame
         self._store.owner = None
-        acc, no_depth = accumulate_update(proj, bins, labels, weights, concentrations.shape[1], self._store, soft)
+        acc, acc_base, no_depth = accumulate_update(proj, bins, labels, weights, concentrations.shape[1],
+                                                    self._store, soft)
         self._store.owner = frame
-        add_increments(concentrations, proj.ids, acc)
+        add_increments(concentrations, proj.ids, acc, acc_base)
         return no_depth
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,

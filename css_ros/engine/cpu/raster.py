@@ -233,12 +233,16 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
 
 @njit(parallel=True, cache=True, fastmath=_FAST)
 def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height, tile, tiles_x, acc,
-                   store, st_k, st_v, pix_off, pix_cnt, pix_t, use_model, edges, table, no_depth):  # pragma: no cover
+                   store, st_k, st_v, pix_off, pix_cnt, pix_t, use_model, edges, base, resid, acc_base,
+                   no_depth):  # pragma: no cover
     """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows).
 
     With ``use_model`` (a sensor model), a pixel labelled y at expected depth d = sum kappa z / sum kappa
-    (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[y * B + b, c] to every class c
-    instead; labelled pixels without any contribution are counted in ``no_depth[chunk]`` (they add nothing).
+    (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead,
+    r = y * B + b, with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class
+    goes to acc_base[chunk, j] (added to every class by :func:`add_increments`), the sparse rest to acc. So a
+    symmetric vote (p on the label, the same small share on every other class) costs what a one-hot vote
+    costs. Labelled pixels without any contribution are counted in ``no_depth[chunk]`` (they add nothing).
     Without it the arithmetic is exactly the paper's update.
 
     With ``store``, each labelled pixel's contributions (tile-list index, kappa) are appended to its
@@ -257,6 +261,8 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
         # cache; only the rows present in the tile are zeroed and flushed to the chunk's rows. A row is a
         # class (paper's update) or a (label, depth bin) pair whose soft label the flush applies.
         lacc = np.empty((num_rows, 256))
+        lbase = np.empty(256)
+        ldepth = np.empty(256)
         present = np.empty(num_rows, dtype=np.bool_)
         pos = 0
         for t in range(ch, num_tiles, nchunks):
@@ -269,6 +275,9 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                 local = _load_columns(packed, bbox, lists, start, end, local)
             if n > lacc.shape[1]:
                 lacc = np.empty((num_rows, n))
+                lbase = np.empty(n)
+                ldepth = np.empty(n)
+            depth_loaded = False
             kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
             present[:] = False
             for v in range(ty * tile, min(height, ty * tile + tile)):
@@ -294,11 +303,15 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                     c = cnt[p]
                     row = lab
                     if use_model:
+                        if not depth_loaded:  # the tile list's camera depths, contiguous
+                            for k in range(n):
+                                ldepth[k] = packed[lists[start + k], 7]
+                            depth_loaded = True
                         zsum = 0.0
                         ksum = 0.0
                         for i in range(c):
                             kv = kval[p, i]
-                            zsum += kv * packed[lists[start + kidx[p, i]], 7]
+                            zsum += kv * ldepth[kidx[p, i]]
                             ksum += kv
                         b = 0
                         if ksum > 0.0:
@@ -327,13 +340,25 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                         else:
                             pix_cnt[q] = -1
             if use_model:
+                any_base = False
                 for r in range(num_rows):
                     if present[r]:
+                        b0 = base[r]
+                        if b0 != 0.0:
+                            if not any_base:
+                                any_base = True
+                                for k in range(n):
+                                    lbase[k] = 0.0
+                            for k in range(n):
+                                lbase[k] += lacc[r, k] * b0
                         for c in range(num_classes):
-                            pc = table[r, c]
+                            pc = resid[r, c]
                             if pc != 0.0:
                                 for k in range(n):
                                     acc[ch, lists[start + k], c] += lacc[r, k] * pc
+                if any_base:
+                    for k in range(n):
+                        acc_base[ch, lists[start + k]] += lbase[k]
             else:
                 for c in range(num_classes):
                     if present[c]:
@@ -538,12 +563,13 @@ _NO_STORE = (np.empty((1, 0), np.int32), np.empty((1, 0)), np.empty(0, np.int64)
              np.empty(0))
 
 
-_NO_MODEL = (np.zeros(2), np.zeros((1, 1)))
+_NO_MODEL = (np.zeros(2), np.zeros(1), np.zeros((1, 1)))
+_NO_BASE = np.zeros((0, 0))
 
 
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarray, weights: np.ndarray,
                       num_classes: int, store: ContributionStore | None = None,
-                      soft: SoftLabels | None = None) -> tuple[np.ndarray, int]:
+                      soft: SoftLabels | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums.
 
     Args:
@@ -552,32 +578,41 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarr
         store: if given, records the contributions for a following :func:`render_semantic`.
         soft: the sensor model's tables (depth bins in splat units), or None for the paper's one-hot votes.
     Returns:
-        ((chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations (sum over
-        axis 0, or apply with :func:`add_increments`), labelled pixels without any contribution when ``soft``
-        is given (0 otherwise)).
+        ((chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
+        increments of every class of those rows ((0, 0) without ``soft``) (apply both with :func:`add_increments`),
+        labelled pixels without any contribution when ``soft`` is given (0 otherwise)).
     """
     height, width = labels.shape
     nchunks = _num_chunks(bins)
     acc = np.zeros((nchunks, proj.count, num_classes))
     arrays = _NO_STORE if store is None else (*_store_arrays(store.reserve(width * height, nchunks)),)
     no_depth = np.zeros(nchunks, dtype=np.int64)
-    edges, table = _NO_MODEL if soft is None else (soft.edges, soft.table)
+    edges, base, resid = _NO_MODEL if soft is None else (soft.edges, soft.base, soft.resid)
+    acc_base = _NO_BASE if soft is None else np.zeros((nchunks, proj.count))
     _update_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, labels, weights, width, height,
-                   bins.tile_size, bins.tiles_x, acc, store is not None, *arrays, soft is not None, edges, table,
-                   no_depth)
-    return acc, int(no_depth.sum())
+                   bins.tile_size, bins.tiles_x, acc, store is not None, *arrays, soft is not None, edges, base,
+                   resid, acc_base if soft is not None else np.zeros((1, 1)), no_depth)
+    return acc, acc_base, int(no_depth.sum())
 
 
 @njit(parallel=True, cache=True)
-def add_increments(concentrations, ids, acc):  # pragma: no cover
-    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (ids are unique)."""
+def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
+    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (+ acc_base[chunk, j] for every class
+    when acc_base is not empty) (ids are unique)."""
     m, num_classes = acc.shape[1], acc.shape[2]
+    with_base = acc_base.shape[0] > 0
     for j in prange(m):
         row = ids[j]
+        common = 0.0
+        if with_base:
+            for ch in range(acc_base.shape[0]):
+                common += acc_base[ch, j]
         for c in range(num_classes):
             total = 0.0
             for ch in range(acc.shape[0]):
                 total += acc[ch, j, c]
+            if with_base:
+                total += common
             concentrations[row, c] += total
 
 
