@@ -16,6 +16,8 @@ setup(
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
         (f"share/{PACKAGE}/bags/demo", glob("bags/demo/*.*")),
         (f"share/{PACKAGE}/bags/demo/bag", glob("bags/demo/bag/*")),
+        *[(f"share/{PACKAGE}/bags/{name}{sub}", glob(f"bags/{name}{sub}/*.*" if not sub else f"bags/{name}{sub}/*"))
+          for name in ("demo_range", "calib_range", "calib_frame") for sub in ("", "/bag")],
     ],
     python_requires=">=3.10",
     install_requires=[

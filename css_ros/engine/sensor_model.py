@@ -198,7 +198,7 @@ class SensorModel:
         name = self.source or "sensor model"
         name = name if name.startswith("sensor model") else f"sensor model {name}"
         return (f"{name} ({self.num_classes} classes, {self.num_bins} depth bins "
-                f"{e[0]:g}-{e[-1]:g} m, {'confusion' if self.confusion is not None else 'weights only'}, "
+                f"{e[0]:g}-{e[-1]:g} m, {'vote rows' if self.confusion is not None else 'one-hot votes'}, "
                 f"{'calibrated confidence' if self.confidence is not None else 'no confidence map'}, "
                 f"fingerprint {self.fingerprint[:12]})")
 
