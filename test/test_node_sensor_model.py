@@ -226,7 +226,7 @@ def test_resume_of_a_checkpoint_without_the_sensor_model_is_refused_and_kept_asi
         assert client.wait_connected(60.0), node.log()
         log = node.log()
         assert "starting fresh: checkpoint refused" in log and "fused with the paper's update" in log, log
-        assert "confusion, no confidence map" in log
+        assert "vote rows, no confidence map" in log
         assert "~/confidence is not published" in log
         (aside,) = tmp_path.glob("map.npz.rejected-*")
         assert aside.read_bytes() == original

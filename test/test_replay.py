@@ -252,11 +252,13 @@ def test_train_frames_heldout_mcap(tmp_path):
     assert [f["trained"] for f in m["image_level"]["frames"]] == [True, True, True, False, False]
     assert "css_heldout_frames" in m["segmentation"]
     assert not (tmp_path / "out" / "bag").exists()
-    # css_view's trajectory: the fused frames only; U_var unknown without the online render (--no-output-bag)
+    # css_view's trajectory: the fused frames only; the bag has ground truth, so the online renders are made (for
+    # the online metrics) even without an output bag, and their U_var is kept
     from css_ros.io.trajectory import load_trajectory
 
     traj = load_trajectory(tmp_path / "out" / "trajectory.npz")
-    assert len(traj) == 3 and all(np.isnan(u) for *_, u in traj)
+    assert len(traj) == 3 and all(np.isfinite(u) and u > 0 for *_, u in traj)
+    assert "css_online" in m["segmentation"]
 
 
 def test_replay_prints_the_css_view_command_and_writes_the_trajectory(clean_run, capsys, tmp_path):
