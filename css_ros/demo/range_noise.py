@@ -68,7 +68,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.special import expit, ndtri
 
-from .segmentation_noise import SegmentationNoise, confusion_matrix
+from .segmentation_noise import SegmentationNoise, _boundary_mask, confusion_matrix
 
 if TYPE_CHECKING:
     from ..engine.camera import Camera
@@ -464,15 +464,3 @@ def depth_band_counts(labels: np.ndarray, gt: np.ndarray, depth: np.ndarray,
 def band_label(lo: float, hi: float) -> str:
     """'2-3 m' or '> 6 m'."""
     return f"> {lo:g} m" if not math.isfinite(hi) else f"{lo:g}-{hi:g} m"
-
-
-def _boundary_mask(lab: np.ndarray) -> np.ndarray:
-    """Pixels (H, W) bool whose 4-neighbourhood contains another label."""
-    edge = np.zeros(lab.shape, dtype=bool)
-    dv = lab[1:, :] != lab[:-1, :]
-    dh = lab[:, 1:] != lab[:, :-1]
-    edge[1:, :] |= dv
-    edge[:-1, :] |= dv
-    edge[:, 1:] |= dh
-    edge[:, :-1] |= dh
-    return edge

@@ -3,7 +3,6 @@ probabilistic rendering (SPEC §5), image-level uncertainty (SPEC §6) and atomi
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -13,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 import numpy as np
 
 from ..errors import InputError, MapError, SensorModelError
+from .atomic import atomic_file
 from .backends import make_backend
 from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
@@ -452,37 +452,20 @@ class SemanticMap:
         renamed over ``path``: a crash at any moment leaves either the old or the new file intact.
         """
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(
-                    fh,
-                    format_version=np.int64(MAP_FORMAT_VERSION),
-                    concentrations=self.concentrations_readonly,
-                    prior=np.float64(self.prior),
-                    background=np.float64(self.background),
-                    num_classes=np.int64(self.num_classes),
-                    num_gaussians=np.int64(self.model.num_gaussians),
-                    model_fingerprint=np.array(self.model.fingerprint),
-                    frames_observed=np.int64(self.frames_observed),
-                    sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
-                    sensor_model=np.array(self.fused_sensor_model),
-                )
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        try:
-            dir_fd = os.open(path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
-        except OSError:
-            pass
+        with atomic_file(path) as fh:
+            np.savez(
+                fh,
+                format_version=np.int64(MAP_FORMAT_VERSION),
+                concentrations=self.concentrations_readonly,
+                prior=np.float64(self.prior),
+                background=np.float64(self.background),
+                num_classes=np.int64(self.num_classes),
+                num_gaussians=np.int64(self.model.num_gaussians),
+                model_fingerprint=np.array(self.model.fingerprint),
+                frames_observed=np.int64(self.frames_observed),
+                sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
+                sensor_model=np.array(self.fused_sensor_model),
+            )
         return path
 
     @classmethod

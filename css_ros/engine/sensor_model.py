@@ -21,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -29,6 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import SensorModelError
+from .atomic import atomic_file
 
 SENSOR_MODEL_FORMAT = "css_ros.sensor_model"
 SENSOR_MODEL_VERSION = 1
@@ -262,18 +262,9 @@ class SensorModel:
         import yaml
 
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         text = yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None, width=120)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_file(path, "w") as fh:
+            fh.write(text)
         return path
 
     @classmethod
