@@ -45,9 +45,16 @@ class RasterBackend(ABC):
     @abstractmethod
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
-                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(expectation, variance) images of several query views of one map state, in order: the
-        inputs of U_var and U_exp. Exactly what ``render`` gives for them, possibly computed faster."""
+                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None
+                     ) -> Iterator[tuple[np.ndarray, np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]]:
+        """(expectation, variance, mass) of several query views of one map state, in order: the inputs of U_var,
+        U_exp and the info gain. E and Var are exactly what ``render`` gives for them, possibly computed faster.
+        With ``mass_weights`` (depth-bin edges in splat units (B + 1,), net vote weight per (label, bin) (C * B,)),
+        mass = (model ids (M,), evidence (M,)): what observing the view would add to each visible Gaussian,
+        sum_i kappa_in * weight[label_i * B + bin_i] with label_i the rendered argmax; else None."""
+
+    #: whether :meth:`score_images` returns the evidence mass (the info gain); a backend without it gets NaN gains
+    scores_mass = True
 
     def score_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                     s_bg: float) -> np.ndarray:
@@ -55,7 +62,8 @@ class RasterBackend(ABC):
         from .semantic_map import image_uncertainty  # the one definition of U_var / U_exp
 
         scores = np.empty((len(cameras), 2))
-        for i, (expectation, variance) in enumerate(self.score_images(cameras, concentrations, e_bg, v_bg, s_bg)):
+        for i, (expectation, variance, _) in enumerate(self.score_images(cameras, concentrations, e_bg, v_bg,
+                                                                          s_bg)):
             scores[i] = image_uncertainty(expectation, variance)
         return scores
 

@@ -18,3 +18,4 @@ class RenderBuffers:
     rgb: np.ndarray           # (H, W, 3) float64 in [0, inf)
     probabilities: np.ndarray | None  # (H, W, C) float64
     depth: np.ndarray | None = None   # (H, W) float64 expected depth sum kappa z / sum kappa [splat units], NaN: none
+    mass: np.ndarray | None = None    # (M,) float64 evidence each visible Gaussian would get from this view (scoring)

@@ -22,6 +22,7 @@ from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENC
 if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
+    from .info_gain import SelectedViews
     from .sensor_model import SensorModel, SoftLabels
 
 MAP_FORMAT_VERSION = 1
@@ -407,16 +408,115 @@ class SemanticMap:
         """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view)."""
         return self._render_frame(self._backend.prepare(camera), probabilities)
 
-    def score_views(self, cameras: Sequence["Camera"]) -> np.ndarray:
-        """U_var and U_exp (SPEC §6) of many query views, e.g. the candidates of an active-perception
-        planner: the same numbers as ``render(cam).u_var`` / ``.u_exp``, without building the
-        images, with the Dirichlet moments computed once per batch of views.
+    def score_views(self, cameras: Sequence["Camera"], importance: np.ndarray | None = None) -> np.ndarray:
+        """U_var, U_exp (SPEC §6) and the information gain of many query views, e.g. the candidates of an
+        active-perception planner: U_var and U_exp are the same numbers as ``render(cam).u_var`` / ``.u_exp``, without
+        building the images, with the Dirichlet moments computed once per batch of views.
+
+        info_gain (docs/spec.md "Information gain of a view") is the expected drop of the map's summed class variance
+        if the view were observed: each Gaussian's evidence from the view (kappa mass, times the sensor model's net
+        vote weight at the pixel's label and depth when one is set) through the closed form of
+        :mod:`css_ros.engine.info_gain`, weighted by ``importance`` ((N,) >= 0 per Gaussian; None = 1, see
+        :meth:`task_importance`, :meth:`class_importance`). The cuda backend gives NaN gains (not computed there yet).
 
         Returns:
-            (len(cameras), 2) float64, columns (U_var, U_exp), in the order of ``cameras``.
+            (len(cameras), 3) float64, columns (U_var, U_exp, info_gain), in the order of ``cameras`` (columns 0 and
+            1 are what earlier versions returned).
         """
+        from .info_gain import MomentSums, view_gain
+
+        imp = self._check_importance(importance)
+        cams = list(cameras)
         e_b, v_b, s_b = self._background_moments()
-        return self._backend.score_views(list(cameras), self._concentrations, e_b, v_b, s_b)
+        out = np.full((len(cams), 3), np.nan)
+        if not self._backend.scores_mass:
+            out[:, :2] = self._backend.score_views(cams, self._concentrations, e_b, v_b, s_b)
+            return out
+        moments = MomentSums.of(self.concentrations_readonly)
+        for i, (expectation, variance, mass) in enumerate(self._backend.score_images(
+                cams, self._concentrations, e_b, v_b, s_b, self._mass_weights())):
+            out[i, :2] = image_uncertainty(expectation, variance)
+            if mass is not None:
+                out[i, 2] = view_gain(moments, mass[0], mass[1], imp)
+        return out
+
+    def select_views(self, cameras: Sequence["Camera"], k: int, importance: np.ndarray | None = None) -> "SelectedViews":
+        """A greedy batch of ``k`` views for a planner that will visit several: the first has the largest info gain;
+        each next one the largest gain given the views before it were observed (their evidence added to the map's
+        moments as the expected observation would add it: alpha_n += m_n E[theta_n]), so views that see the same
+        surfaces as an earlier pick lose their shared gain. The map is not changed.
+
+        Returns:
+            :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
+            one's gain when chosen). Fewer than ``k`` when there are fewer cameras.
+        Raises:
+            CssError: on a backend without the evidence mass (cuda).
+        """
+        from .info_gain import MomentSums, SelectedViews, view_gain
+
+        imp = self._check_importance(importance)
+        cams = list(cameras)
+        if not self._backend.scores_mass:
+            raise MapError(f"select_views needs the evidence mass, which the {self.backend_name} backend does not "
+                           "compute yet; use backend numba or torch")
+        e_b, v_b, s_b = self._background_moments()
+        masses = [m for _, _, m in self._backend.score_images(cams, self._concentrations, e_b, v_b, s_b,
+                                                              self._mass_weights())]
+        moments = MomentSums.of(self.concentrations_readonly)
+        chosen: list[int] = []
+        gains: list[float] = []
+        for _ in range(min(int(k), len(cams))):
+            scores = np.array([-np.inf if i in chosen or m is None else view_gain(moments, m[0], m[1], imp)
+                               for i, m in enumerate(masses)])
+            best = int(np.argmax(scores))
+            chosen.append(best)
+            gains.append(float(scores[best]))
+            m = masses[best]
+            if m is not None:
+                moments.observe_expected(m[0], m[1])
+        return SelectedViews(np.array(chosen, dtype=np.int64), np.array(gains))
+
+    def task_importance(self, task_cameras: Sequence["Camera"]) -> np.ndarray:
+        """(N,) float64 per-Gaussian importance = its kappa mass summed over ``task_cameras`` (the views a robot
+        will later take or act from), for ``score_views`` / ``select_views``: surfaces no task view sees count 0."""
+        e_b, v_b, s_b = self._background_moments()
+        imp = np.zeros(self.model.num_gaussians)
+        unit = (np.array([0.0, 1.0]), np.ones(self.num_classes))
+        for _, _, mass in self._backend.score_images(list(task_cameras), self._concentrations, e_b, v_b, s_b, unit):
+            if mass is None:
+                raise MapError(f"task_importance needs the kappa mass, which the {self.backend_name} backend does "
+                               "not compute yet; use backend numba or torch")
+            np.add.at(imp, mass[0], mass[1])
+        return imp
+
+    def class_importance(self, class_id: int) -> np.ndarray:
+        """(N,) float64 per-Gaussian importance = E[theta_n^c], the map's probability that Gaussian n is of class
+        ``class_id`` (views of surfaces likely to be that class score higher)."""
+        if not 0 <= int(class_id) < self.num_classes:
+            raise MapError(f"class_id {class_id} outside 0..{self.num_classes - 1}")
+        conc = self.concentrations_readonly
+        return conc[:, int(class_id)] / conc.sum(axis=1)
+
+    def _check_importance(self, importance: np.ndarray | None) -> np.ndarray | None:
+        if importance is None:
+            return None
+        imp = np.asarray(importance, dtype=np.float64)
+        if imp.shape != (self.model.num_gaussians,) or not np.all(np.isfinite(imp)) or np.any(imp < 0):
+            raise MapError(f"importance must be ({self.model.num_gaussians},) finite and >= 0, got shape {imp.shape}")
+        return imp
+
+    def _mass_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(depth-bin edges in splat units, net vote weight per (label, bin)) of one more observation: without a
+        sensor model one bin and weight 1 (a pixel's kappa); with one, the row's share on the label minus its mean
+        share on the other classes (w p - w (1 - p) / (C - 1) for a symmetric vote; w for a one-hot one)."""
+        if self._soft is None:
+            return np.array([0.0, 1.0]), np.ones(self.num_classes)
+        table = self._soft.table
+        c, nb = self.num_classes, self._soft.num_bins
+        labels = np.repeat(np.arange(c), nb)
+        own = table[np.arange(c * nb), labels]
+        others = (table.sum(axis=1) - own) / max(c - 1, 1)
+        return self._soft.edges, np.ascontiguousarray(np.maximum(own - others, 0.0))
 
     # ------------------------------------------------------------------ the map in 3D (SPEC §9)
     def gaussian_semantics(self, min_evidence: float = DEFAULT_MIN_EVIDENCE) -> GaussianSemantics:

@@ -54,7 +54,8 @@ class NumbaBackend(RasterBackend):
                                e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
-                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None
+                     ) -> Iterator[tuple[np.ndarray, np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]]:
         """Per view: project (no SH colour), bin, moments of the visible Gaussians, render.
 
         Small views split badly over the cores (short parallel regions, serial sorting), so views
@@ -70,12 +71,14 @@ class NumbaBackend(RasterBackend):
 
         no_colors = np.empty((0, 3))
 
-        def score(cam: "Camera", scratch: "ProjectionScratch") -> tuple[np.ndarray, np.ndarray]:
+        def score(cam: "Camera", scratch: "ProjectionScratch") -> tuple[np.ndarray, np.ndarray, Any]:
             proj = project(self.geometry, cam, scratch, view_colors=False)
             bins = bin_tiles(proj, cam.width, cam.height)
             attrs = dirichlet_attributes(concentrations, proj.ids, no_colors, proj.packed)
-            buf = render_semantic(proj, bins, cam.width, cam.height, attrs, e_bg, v_bg, s_bg, np.zeros(3), False)
-            return buf.expectation, buf.variance
+            buf = render_semantic(proj, bins, cam.width, cam.height, attrs, e_bg, v_bg, s_bg, np.zeros(3), False,
+                                  mass_weights=mass_weights)
+            mass = None if buf.mass is None else (np.array(proj.ids, dtype=np.int64), buf.mass)
+            return buf.expectation, buf.variance, mass
 
         if not cameras:
             return
@@ -88,7 +91,7 @@ class NumbaBackend(RasterBackend):
         while self._score_scratch.qsize() < workers:
             self._score_scratch.put(ProjectionScratch())
 
-        def work(cam: "Camera") -> tuple[np.ndarray, np.ndarray]:
+        def work(cam: "Camera") -> tuple[np.ndarray, np.ndarray, Any]:
             numba.set_num_threads(1)
             scratch = self._score_scratch.get()
             try:

@@ -422,13 +422,33 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, wa
             out_probs[v, u, c] = acc[c] + tr * e_bg
 
 
+@njit(inline="always")
+def _add_mass(ks, vs, cnt, lists, start, label, depth, edges, weights, mass):  # pragma: no cover
+    """mass[lists[start + ks[i]]] += vs[i] * weights[label * B + b] (b: the depth bin of ``depth`` in ``edges``)."""
+    if cnt == 0:
+        return
+    nb = edges.shape[0] - 1
+    b = 0
+    while b < nb - 1 and depth >= edges[b + 1]:
+        b += 1
+    w = weights[label * nb + b]
+    if w == 0.0:
+        return
+    for i in range(cnt):
+        mass[lists[start + ks[i]]] += vs[i] * w
+
+
 @njit(parallel=True, cache=True, nogil=True, fastmath=_FAST)
 def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs,
-                   out_depth):  # pragma: no cover
+                   out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
     """attrs rows: (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}). With ``use_store``,
-    pixels recorded by the update pass (pix_cnt >= 0) replay their contributions."""
+    pixels recorded by the update pass (pix_cnt >= 0) replay their contributions.
+
+    With ``want_mass``, mass[chunk, j] += kappa_ij * mass_w[label_i * B + b_i] over the pixels i of the view: the
+    evidence observing it would add to Gaussian j (label_i = the rendered argmax, b_i the bin of the rendered depth
+    in ``mass_edges``; without a sensor model B = 1 and mass_w = 1: the kappa mass)."""
     num_tiles = offsets.shape[0] - 1
     num_classes = (attrs.shape[1] - 5) // 2
     for ch in prange(nchunks):
@@ -464,10 +484,16 @@ def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb
                         _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, eacc,
                                      e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
                                      out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
+                        if want_mass:
+                            _add_mass(st_k[ch, off:off + c], st_v[ch, off:off + c], c, lists, start,
+                                      out_label[v, u], out_depth[v, u], mass_edges, mass_w, mass[ch])
                     else:
                         _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, eacc,
                                      e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
                                      out_evidence, out_rgb, out_probs, out_depth)
+                        if want_mass:
+                            _add_mass(kidx[p], kval[p], cnt[p], lists, start, out_label[v, u], out_depth[v, u],
+                                      mass_edges, mass_w, mass[ch])
 
 
 @njit(cache=True)
@@ -656,7 +682,8 @@ def _store_arrays(store: ContributionStore) -> tuple[np.ndarray, ...]:
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
                     attrs: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-                    want_probs: bool, store: ContributionStore | None = None) -> RenderBuffers:
+                    want_probs: bool, store: ContributionStore | None = None,
+                    mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
@@ -664,6 +691,8 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
         attrs: (M, 2C + 5) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, Var[theta_n^0..C-1]) of the
             projected Gaussians (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
+        mass_weights: (edges (B + 1,) splat units, net vote weight per (label, depth bin) (C * B,)): also return
+            each projected Gaussian's evidence mass in the view (``RenderBuffers.mass``, (M,) float64).
     """
     num_classes = (attrs.shape[1] - 5) // 2
     out_label = np.empty((height, width), dtype=np.int32)
@@ -674,10 +703,16 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
     out_depth = np.empty((height, width))
+    nchunks = _num_chunks(bins)
+    want_mass = mass_weights is not None
+    mass = np.zeros((nchunks, proj.count) if want_mass else (nchunks, 0))
+    edges, wts = mass_weights if mass_weights is not None else (np.zeros(2), np.ones(1))
     _render_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, attrs, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
-                   want_probs, _num_chunks(bins), store is not None,
+                   want_probs, nchunks, store is not None,
                    *(_NO_STORE if store is None else _store_arrays(store)),
-                   out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth)
+                   out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth,
+                   want_mass, edges, wts, mass)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
-                         out_probs if want_probs else None, out_depth)
+                         out_probs if want_probs else None, out_depth,
+                         mass.sum(axis=0) if want_mass else None)

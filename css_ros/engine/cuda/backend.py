@@ -339,9 +339,13 @@ class CudaBackend(RasterBackend):
             groups.setdefault((int(cam.width), int(cam.height)), []).append(i)
         return groups
 
+    #: the info gain's evidence mass is not computed on the GPU yet (score_views gives NaN gains)
+    scores_mass = False
+
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
-                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(expectation, variance) images of the views, rendered in one batch per image size."""
+                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None
+                     ) -> Iterator[tuple[np.ndarray, np.ndarray, None]]:
+        """(expectation, variance, None) of the views, rendered in one batch per image size (no evidence mass)."""
         cams = list(cameras)
         if not cams:
             return
@@ -352,7 +356,7 @@ class CudaBackend(RasterBackend):
             out, _, _ = self._render(frame, conc, e_bg, v_bg, s_bg, np.zeros(3), False, False)
             host = self.ops.download(out)
             for row, i in enumerate(idx):
-                images[i] = (host[row, ..., 1].astype(np.float64), host[row, ..., 2].astype(np.float64))
+                images[i] = (host[row, ..., 1].astype(np.float64), host[row, ..., 2].astype(np.float64), None)
         yield from images
 
     def score_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,

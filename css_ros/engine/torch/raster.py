@@ -230,8 +230,27 @@ class TorchBackend(RasterBackend):
                              out_rgb.cpu().numpy(), probs_np if want_probs else None, out_depth.cpu().numpy())
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
-                     s_bg: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """One ``render`` per view (the reference path has no batch shortcut)."""
+                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None
+                     ) -> Iterator[tuple[np.ndarray, np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]]:
+        """One ``render`` per view (the reference path has no batch shortcut); the evidence mass from the same
+        per-tile kappa (see RasterBackend.score_images)."""
         for cam in cameras:
-            buf = self.render(self.prepare(cam), concentrations, e_bg, v_bg, s_bg, np.zeros(3), False)
-            yield buf.expectation, buf.variance
+            frame = self.prepare(cam)
+            buf = self.render(frame, concentrations, e_bg, v_bg, s_bg, np.zeros(3), False)
+            mass = None
+            if mass_weights is not None:
+                mass = (np.asarray(frame.ids, dtype=np.int64), self._mass(frame, buf, mass_weights))
+            yield buf.expectation, buf.variance, mass
+
+    def _mass(self, frame: TorchFrame, buf: RenderBuffers, mass_weights: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """(M,) sum_i kappa_in * weight[label_i * B + bin_i] over the view's pixels."""
+        edges, weights = mass_weights
+        nb = edges.size - 1
+        depth = np.nan_to_num(np.asarray(buf.depth), nan=0.0)
+        b = np.clip(np.searchsorted(edges, depth, side="right") - 1, 0, nb - 1)
+        w_pix = torch.as_tensor(weights[buf.labels * nb + b], dtype=self.dtype, device=self.device)
+        mass = torch.zeros(len(frame.ids), dtype=self.dtype, device=self.device)
+        for vv, uu, lst, kappa, _ in self._tiles(frame):
+            if lst is not None:
+                mass.index_add_(0, lst, kappa.T @ w_pix[vv, uu])
+        return mass.cpu().numpy()
