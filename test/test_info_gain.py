@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from css_ros import MapError, SemanticMap
-from css_ros.engine.info_gain import expected_variance_after, summed_variance
+from css_ros.engine.info_gain import MomentSums, expected_variance_after, summed_variance
 from css_ros.engine.sensor_model import SensorModel
 from css_reference import kappa_reference
 from scenes import camera, random_scene
@@ -21,8 +21,9 @@ def total_variance(alpha: np.ndarray) -> np.ndarray:
     return (e * (1 - e) / (1 + s)).sum(axis=1)
 
 
-def enumerated_drop(alpha: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """V(alpha) - sum_c p_c V(alpha + m e_c), by enumerating the label c (p = alpha / S)."""
+def enumerated_drop(alpha: np.ndarray, mass: np.ndarray, scoring_prior: float = 1.0) -> np.ndarray:
+    """V(a) - sum_c p_c V(a + m e_c) with a = alpha + scoring_prior / C, by enumerating the label c (p = a / S)."""
+    alpha = alpha + scoring_prior / alpha.shape[1]
     p = alpha / alpha.sum(axis=1, keepdims=True)
     after = np.zeros(len(alpha))
     for c in range(alpha.shape[1]):
@@ -39,11 +40,15 @@ def test_closed_form_equals_enumeration():
     s, q = alpha.sum(axis=1), (alpha ** 2).sum(axis=1)
     np.testing.assert_allclose(summed_variance(s, q), total_variance(alpha), rtol=1e-12)
     drop = summed_variance(s, q) - expected_variance_after(s, q, mass)
-    np.testing.assert_allclose(drop, enumerated_drop(alpha, mass), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(drop, enumerated_drop(alpha, mass, 0.0), rtol=1e-9, atol=1e-15)
     assert np.all(drop >= -1e-15)
     # diminishing returns: the same evidence teaches less about a Gaussian observed more
     more = alpha * 10
-    assert np.all(enumerated_drop(more, mass) <= drop + 1e-15)
+    assert np.all(enumerated_drop(more, mass, 0.0) <= drop + 1e-15)
+    # the scoring prior: the moments of alpha + 1/C per class, from alpha's own sums
+    ms = MomentSums.of(alpha, 1.0)
+    np.testing.assert_allclose(ms.total, (alpha + 1 / 6).sum(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(ms.sq_sum, ((alpha + 1 / 6) ** 2).sum(axis=1), rtol=1e-12)
 
 
 def brute_gain(smap: SemanticMap, cam, weights=None) -> float:
@@ -85,23 +90,26 @@ def test_sensor_model_weights_the_evidence_by_depth():
 
 
 def test_gain_is_the_expected_actual_drop_of_the_map():
-    """Every Gaussian has the same class probabilities p (totals differ): observing the view with label c everywhere
-    happens with probability p_c, so the p-weighted mean of the map's actual drops of summed variance, over the C
-    possible observations made with SemanticMap.update, is the predicted gain."""
+    """Every Gaussian has the same class probabilities p, also with the scoring prior (its concentrations are
+    multiples of p with the prior's share removed): observing the view with label c everywhere happens with
+    probability p_c, so the p-weighted mean of the map's actual drops of summed variance (with the scoring prior),
+    over the C possible observations made with SemanticMap.update, is the predicted gain."""
     rng = np.random.default_rng(3)
     model = random_scene(4, n=60)
     p = np.array([0.5, 0.3, 0.15, 0.05])
     base = SemanticMap(model, C)
-    base.concentrations[...] = rng.uniform(0.5, 20.0, (60, 1)) * p
+    base.concentrations[...] = rng.uniform(8.0, 20.0, (60, 1)) * p - 1.0 / C
+    assert np.all(base.concentrations > 0)
     cam = camera()
     gain = base.score_views([cam])[0, 2]
-    before = total_variance(base.concentrations).sum()
+    scored = 1.0 / C  # the scoring prior, per class
+    before = total_variance(base.concentrations + scored).sum()
     expected_drop = 0.0
     for c in range(C):
         smap = SemanticMap(model, C)
         smap.concentrations[...] = base.concentrations
         smap.update(cam, np.full((cam.height, cam.width), c, dtype=np.int64))
-        expected_drop += p[c] * (before - total_variance(smap.concentrations).sum())
+        expected_drop += p[c] * (before - total_variance(smap.concentrations + scored).sum())
     assert gain > 0 and gain == pytest.approx(expected_drop, rel=1e-9)
     # observing it taught the map: the same view is then worth less
     smap = SemanticMap(model, C)
@@ -143,8 +151,8 @@ def test_importance_and_the_greedy_batch():
     first = sel.indices[0]
     mass = kappa(cams[first]).sum(axis=0)
     after = SemanticMap(model, C)
-    after.concentrations[...] = smap.concentrations + mass[:, None] * smap.concentrations / smap.concentrations.sum(
-        1, keepdims=True)
+    scored = smap.concentrations + 1.0 / C
+    after.concentrations[...] = smap.concentrations + mass[:, None] * scored / scored.sum(1, keepdims=True)
     expected_second = after.score_views(cams)[:, 2]
     expected_second[first] = -np.inf
     assert sel.indices[1] == int(np.argmax(expected_second))

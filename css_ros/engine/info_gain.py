@@ -1,7 +1,8 @@
 """Information gain of a candidate view for the Dirichlet map (docs/spec.md "Information gain of a view").
 
-Per Gaussian n with concentrations alpha_n (total S = sum_c alpha^c, Q = sum_c (alpha^c)^2), the uncertainty is
-the summed variance of its class probabilities, V(S, Q) = (1 - Q / S^2) / (S + 1). Observing a view adds m_n units of
+Per Gaussian n with concentrations alpha_n plus the scoring prior (``spec.INFO_GAIN_PRIOR`` / C per class; total
+S = sum_c alpha^c, Q = sum_c (alpha^c)^2), the uncertainty is the summed variance of its class probabilities,
+V(S, Q) = (1 - Q / S^2) / (S + 1). Observing a view adds m_n units of
 evidence to it (m_n = sum_i kappa_in w_i over the view's pixels, w_i the sensor model's net vote weight, 1 without
 one), all of one label drawn from the map's own predictive E[theta_n] = alpha_n / S. The expected summed variance after
 is a closed form in (S, Q, m) (see :func:`expected_variance_after`), and the gain of the view is
@@ -15,6 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from .spec import INFO_GAIN_PRIOR
 
 __all__ = ["MomentSums", "SelectedViews", "expected_variance_after", "summed_variance", "variance_drop",
            "view_gain"]
@@ -47,9 +50,13 @@ class MomentSums:
     sq_sum: np.ndarray  # (N,) float64 Q_n
 
     @classmethod
-    def of(cls, concentrations: np.ndarray) -> "MomentSums":
+    def of(cls, concentrations: np.ndarray, prior_total: float = INFO_GAIN_PRIOR) -> "MomentSums":
+        """(S, Q) of alpha + prior_total / C per class (the scoring prior, spec.INFO_GAIN_PRIOR)."""
         c = np.asarray(concentrations, dtype=np.float64)
-        return cls(c.sum(axis=1), np.einsum("nc,nc->n", c, c))
+        extra = float(prior_total) / c.shape[1]
+        total = c.sum(axis=1)
+        sq = np.einsum("nc,nc->n", c, c)
+        return cls(total + prior_total, sq + 2.0 * extra * total + c.shape[1] * extra * extra)
 
     def observe_expected(self, ids: np.ndarray, mass: np.ndarray) -> None:
         """alpha_n += m_n E[theta_n] (the mean stays, the total grows): S += m, Q += 2 m Q / S + m^2 Q / S^2."""

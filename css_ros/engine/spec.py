@@ -21,6 +21,12 @@ DEFAULT_IGNORE_LABEL = 255        # "no label" in inputs, "unknown" in rendered 
 DEFAULT_UNKNOWN_THRESHOLD = 0.5   # rendered label is ignore_label where kappa_b exceeds this
 VAR_FLOOR = 1e-30                 # variances are floored here before the log of U_var
 
+# The information gain of a view values evidence on the Dirichlet with this total pseudo-count added, spread evenly
+# over the classes (docs/spec.md "Information gain of a view"): with the map's own tiny prior a Gaussian looks
+# certain as soon as its first few hundredths of a vote agree, and a view that grazes many Gaussians would look as
+# valuable as one that sees them well.
+INFO_GAIN_PRIOR = 1.0
+
 # --- The map in 3D (SPEC §9) --------------------------------------------------------------------
 DEFAULT_MIN_EVIDENCE = 0.5              # a Gaussian is observed when S_n - C alpha_0 >= this
 DEFAULT_QUERY_BACKGROUND_WEIGHT = 0.01  # w_b of the continuous field at a point
