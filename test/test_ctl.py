@@ -51,9 +51,14 @@ def test_ctl_save_query_candidates_reset(tmp_path):
         r = css_ctl(domain, "candidates", "0", "0", "0", "0", "0", "0", "1", "0", "0", "-50", "0", "0", "0", "1")
         assert r.returncode == 0, r.stderr
         rows = r.stdout.strip().splitlines()
-        assert rows[0].split() == ["view", "x", "y", "z", "U_var", "U_exp"] and len(rows) == 4
+        assert rows[0].split() == ["view", "x", "y", "z", "U_var", "U_exp", "info_gain"] and len(rows) == 4
         u_facing, u_away = float(rows[2].split()[4]), float(rows[3].split()[4])
         assert u_facing < u_away   # the view of the observed wall is the less uncertain one
+        gains = [float(row.split()[6]) for row in rows[2:]]
+        assert all(np.isfinite(g) and g >= 0 for g in gains)
+        best = 2 + int(np.argmax(gains))
+        assert rows[best].endswith("<- best next view (info gain)")
+        assert "<- most uncertain" in rows[3] and sum("<- best next view" in row for row in rows) == 1
 
         r = css_ctl(domain, "reset")
         assert r.returncode == 0 and "True" in r.stdout
@@ -62,3 +67,20 @@ def test_ctl_save_query_candidates_reset(tmp_path):
     finally:
         client.close()
         assert node.stop() == 0
+
+
+def test_candidates_table_marks_finite_maxima_only():
+    from css_ros.clients.ctl import candidates_table
+    from css_ros.io.clouds import SCORED_VIEW_DTYPE
+
+    rows = np.zeros(4, SCORED_VIEW_DTYPE)
+    rows["u_var"] = [np.nan, 0.2, 0.1, 0.05]
+    rows["info_gain"] = [np.nan, 1.0, 3.0, np.nan]
+    lines = candidates_table(rows).splitlines()
+    assert lines[0].split()[-1] == "info_gain" and lines[2].split()[-1] == "nan"
+    assert lines[3].endswith("<- most uncertain") and lines[4].endswith("<- best next view (info gain)")
+    rows["info_gain"] = np.nan   # a node without the field: no best view by info gain
+    lines = candidates_table(rows).splitlines()
+    assert lines[3].endswith("<- most uncertain") and not any("info gain)" in ln for ln in lines)
+    rows["info_gain"][1] = 2.0
+    assert candidates_table(rows).splitlines()[3].endswith("<- most uncertain  <- best next view (info gain)")

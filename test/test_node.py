@@ -146,6 +146,36 @@ def test_candidate_scores_in_request_order_with_request_header(live: Live) -> No
     assert len(pts) == 0
 
 
+def test_candidate_info_gain_matches_the_engine_on_the_same_map(live: Live, tmp_path_factory: Any) -> None:
+    """~/candidate_scores carries info_gain (after the 9 view fields) per candidate in request order: finite and
+    >= 0 where the pose is valid, NaN where not, and equal to SemanticMap.score_views(...)[:, 2] of the map the
+    node held (saved through ~/save_map right before the request; the node scores at candidate_scale 0.25)."""
+    from css_ros.engine.camera import Camera
+    from css_ros.engine.gaussians import GaussianModel
+    from css_ros.engine.semantic_map import SemanticMap
+    from css_ros.io.clouds import CANDIDATE_FIELDS, unpack_scored_views
+
+    live.frame()
+    assert live.client.call(live.client.save_client).success
+    smap = SemanticMap.load(live.node.log_path.parent / "map.npz", GaussianModel.from_ply(live.model))
+    positions = np.array([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [-0.5, 0.3, 1.0], [0.0, 0.0, 0.0], [0.2, -0.4, -1.0],
+                          [0.0, 0.0, 0.0]])
+    quats = np.array([rh.IDENTITY, rh.IDENTITY, rh.yaw_quat(0.3), rh.yaw_quat(np.pi), rh.yaw_quat(-0.2),
+                      [np.nan, 0.0, 0.0, 1.0]])
+    msg, _ = live.query(positions, quats)
+    assert [f.name for f in msg.fields] == list(CANDIDATE_FIELDS)
+    pts = unpack_scored_views(msg)
+    np.testing.assert_allclose(np.stack([pts[k] for k in ("x", "y", "z")], 1), positions.astype(np.float32))
+    cams = [Camera.from_pose(rh.K, rh.WIDTH, rh.HEIGHT, p, q).scaled(0.25) for p, q in zip(positions[:5], quats[:5])]
+    ref = smap.score_views(cams)
+    assert ref.shape == (5, 3), "SemanticMap.score_views returns no info_gain column"
+    gain = pts["info_gain"].astype(np.float64)
+    assert np.all(np.isfinite(gain[:5])) and np.all(gain[:5] >= 0) and np.isnan(gain[5])
+    np.testing.assert_allclose(gain[:5], ref[:, 2], rtol=1e-6, atol=1e-30)
+    np.testing.assert_allclose(np.c_[pts["u_var"], pts["u_exp"]][:5], ref[:, :2], rtol=1e-6)
+    assert gain[0] > 0 and gain[3] < gain[0]   # the mapped wall can still teach something; empty space less
+
+
 def test_reset_map_returns_to_prior(live: Live) -> None:
     live.frame()
     _, before = live.query(np.zeros((1, 3)), rh.IDENTITY[None])
@@ -275,16 +305,20 @@ def test_confidence_is_synchronised_and_weights_the_update(live: Live) -> None:
     live.frame()
 
 
-def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
+def run_nbv_client(live: Live, *args: str) -> tuple[Any, Any, np.ndarray]:
+    """css_nbv_client --once (7 candidates, yaws within +-150 deg) around a pose published every 0.1 s.
+
+    Returns (the finished process, the PoseStamped it published on next_best_view, the scores of its request)."""
     import subprocess
     import sys
+    import threading
 
     from geometry_msgs.msg import PoseStamped
 
-    from css_ros.io.messages import pose_to_arrays
+    from css_ros.io.clouds import unpack_scored_views
 
     nbv: list[Any] = []
-    live.client.node.create_subscription(PoseStamped, "next_best_view", nbv.append, 10)
+    sub = live.client.node.create_subscription(PoseStamped, "next_best_view", nbv.append, 10)
     live.frame()
     stop = False
 
@@ -293,12 +327,11 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
             live.client.send_pose(live.stamp())
             time.sleep(0.1)
 
-    import threading
     th = threading.Thread(target=keep_publishing_pose, daemon=True)
     th.start()
     try:
         proc = subprocess.run([sys.executable, "-m", "css_ros.clients.nbv_client", "--once", "--num-candidates", "7",
-                               "--yaw-range", "150", "--timeout", "20"], env=rh.node_env(live.domain),
+                               "--yaw-range", "150", "--timeout", "20", *args], env=rh.node_env(live.domain),
                               capture_output=True, text=True, timeout=60)
     finally:
         stop = True
@@ -306,16 +339,43 @@ def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "next best view" in proc.stdout + proc.stderr
     assert rh.RosClient.wait_until(lambda: nbv, 5.0)
+    live.client.node.destroy_subscription(sub)
     best = nbv[-1]
     reply = live.client.wait_stamp("candidate_scores", stamp_to_ns(best.header.stamp))
-    pts = unpack_view_points(reply)
+    pts = unpack_scored_views(reply)
     assert len(pts) == 7
-    i = int(np.nanargmax(pts["u_var"]))
-    position, quat = pose_to_arrays(best.pose)
+    return proc, best, pts
+
+
+def assert_pose_of_row(pose_msg: Any, pts: np.ndarray, i: int) -> None:
+    from css_ros.io.messages import pose_to_arrays
+
+    position, quat = pose_to_arrays(pose_msg.pose)
     np.testing.assert_allclose(position, [pts["x"][i], pts["y"][i], pts["z"][i]], atol=1e-6)
     np.testing.assert_allclose(quat, [pts["qx"][i], pts["qy"][i], pts["qz"][i], pts["qw"][i]], atol=1e-6)
+
+
+def test_nbv_client_publishes_most_uncertain_candidate(live: Live) -> None:
+    _, best, pts = run_nbv_client(live, "--metric", "u_var")
+    i = int(np.nanargmax(pts["u_var"]))
+    assert_pose_of_row(best, pts, i)
     # Turning away from the mapped wall is more uncertain than the current view (candidate 0).
     assert i != 0 and pts["u_var"][i] > pts["u_var"][0]
+
+
+def test_nbv_client_picks_the_largest_info_gain_by_default(live: Live) -> None:
+    import json
+
+    proc, best, pts = run_nbv_client(live, "--json")
+    gain = pts["info_gain"].astype(np.float64)
+    assert np.all(np.isfinite(gain)) and np.all(gain >= 0)
+    i = int(np.argmax(gain))
+    assert_pose_of_row(best, pts, i)
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["metric"] == "info_gain" and out["index"] == i and out["stamp_ns"] == stamp_to_ns(best.header.stamp)
+    assert out["info_gain"] == pytest.approx(gain[i], rel=1e-6)
+    assert out["current_info_gain"] == pytest.approx(gain[0], rel=1e-6)
+    assert f"info gain {gain[i]:.4g}" in proc.stderr + proc.stdout
 
 
 def test_nbv_client_takes_the_pose_type_of_the_node(live: Live) -> None:

@@ -24,6 +24,7 @@ class Sink:
     def __init__(self) -> None:
         self.frames: list[int] = []
         self.scores: list[tuple] = []
+        self.gains: list[np.ndarray] = []   # info_gain of each answer (same order as scores)
         self.order: list[str] = []
         self.points: list = []
         self.clouds: list[int] = []
@@ -32,8 +33,9 @@ class Sink:
         self.frames.append(job.stamp_ns)
         self.order.append("f")
 
-    def publish_scores(self, header, positions, quats, u_var, u_exp) -> None:
+    def publish_scores(self, header, positions, quats, u_var, u_exp, info_gain) -> None:
         self.scores.append((header, u_var.copy(), u_exp.copy()))
+        self.gains.append(info_gain.copy())
         self.order.append("r")
 
     def publish_points(self, job) -> None:
@@ -145,6 +147,37 @@ def test_big_request_split_into_slices_interleaved_with_frames(model):
     _, u_var, u_exp = sink.scores[0]
     assert np.all(np.isfinite(u_var)) and np.all(np.isfinite(u_exp))
     assert stats.snapshot()[0]["candidate_views_scored"] == 10
+
+
+def test_info_gain_stored_per_view_in_request_order_across_slices(model):
+    """The third column of score_views reaches the answer row by row; slicing does not change it."""
+    w, sink, _, _ = make_worker(model, candidate_slice=3, max_pending_frames=10)
+    w.process_frame(frame(1))
+    job = request(7)
+    job.positions_splat[:, 0] = np.linspace(-1.5, 1.5, 7)        # seven views along the wall
+    job.quats_splat[5] = np.nan                                   # an invalid pose: NaN in every column
+    while not job.done:
+        w.process_slice(job)
+    (_, u_var, u_exp), = sink.scores
+    gain, = sink.gains
+    ok = np.arange(7) != 5
+    cams = [Camera.from_pose(rh.K, rh.WIDTH, rh.HEIGHT, job.positions_splat[i], job.quats_splat[i])
+            .scaled(w.p.candidate_scale) for i in np.flatnonzero(ok)]
+    ref = w.smap.score_views(cams)
+    assert ref.shape == (6, 3), "SemanticMap.score_views returns no info_gain column"
+    np.testing.assert_allclose(np.c_[u_var, u_exp, gain][ok], ref, rtol=1e-12)
+    assert np.all(np.isnan([u_var[5], u_exp[5], gain[5]])) and np.all(gain[ok] >= 0)
+
+
+def test_engine_without_info_gain_column_answers_nan_gains(model):
+    w, sink, _, _ = make_worker(model)
+    w.smap.score_views = lambda cams: np.full((len(cams), 2), 0.25)   # type: ignore[method-assign]
+    w.process_slice(request(3))
+    (_, u_var, _), = sink.scores
+    assert np.all(u_var == 0.25) and np.all(np.isnan(sink.gains[0]))
+    w.smap.score_views = lambda cams: np.tile([0.25, 0.5, 3.0], (len(cams), 1))  # type: ignore[method-assign]
+    w.process_slice(request(2))
+    np.testing.assert_array_equal(sink.gains[1], [3.0, 3.0])
 
 
 def test_frames_never_wait_for_more_than_one_slice(model):

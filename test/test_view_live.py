@@ -1,5 +1,6 @@
-"""css_view --live follows a real css_node over DDS: the model arrives once, changed semantics within ~2 s,
-a node that goes away is shown as gone."""
+"""css_view --live follows a real css_node over DDS: the model arrives once, changed semantics within ~2 s, the
+answered candidate request's best view (largest info gain) is drawn highlighted, a node that goes away is shown
+as gone."""
 from __future__ import annotations
 
 import argparse
@@ -85,6 +86,37 @@ def test_live_view_follows_the_node(tmp_path, monkeypatch):
         np.testing.assert_allclose(sem.expectation, ref.expectation, atol=0.5 / 255 + 1e-6)
         np.testing.assert_allclose(sem.evidence, ref.evidence, rtol=1e-6)
         print(f"update reached the page {latency:.2f} s after the frame's output")
+
+        # someone asks the node to score candidates: the page draws the one with the largest info gain highlighted
+        # (/candidates/best at its pose), the others faint, and names it in the status line
+        from css_ros.io.clouds import unpack_scored_views
+        from css_ros.view.live import BEST_VIEW_COLOR, BEST_VIEW_SCALE, FAINT_VIEW_COLOR, FAINT_VIEW_SCALE
+
+        positions = np.array([[0.0, 0.0, 0.0], [0.8, 0.0, 0.5], [0.0, 0.0, 0.0], [-0.6, 0.2, 1.0]])
+        quats = np.array([rh.IDENTITY, rh.yaw_quat(0.3), rh.yaw_quat(np.pi), rh.yaw_quat(-0.2)])
+        client.send_candidates(2 * 10**9, positions, quats)
+        pts = unpack_scored_views(client.wait_stamp("candidate_scores", 2 * 10**9))
+        gain = pts["info_gain"].astype(np.float64)
+        assert len(pts) == 4 and np.all(np.isfinite(gain)), gain
+        best = int(np.argmax(gain))
+        xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1).astype(np.float64)
+        wxyz = np.stack([pts["qw"], pts["qx"], pts["qy"], pts["qz"]], 1).astype(np.float64)
+        scene = view.server.scene
+
+        def best_drawn() -> bool:
+            h = scene.get_handle_by_name("/candidates/best")
+            return h is not None and np.allclose(h.position, xyz[best], atol=1e-6)
+        assert client.wait_until(best_drawn, UPDATE_BOUND_S), "the chosen candidate was not drawn"
+        h = scene.get_handle_by_name("/candidates/best")
+        np.testing.assert_allclose(h.wxyz, wxyz[best], atol=1e-6)
+        assert h.scale == BEST_VIEW_SCALE and tuple(h.color) == BEST_VIEW_COLOR
+        assert scene.get_handle_by_name(f"/candidates/v{best:04d}") is None     # drawn once, as the best
+        for j in set(range(4)) - {best}:
+            f = scene.get_handle_by_name(f"/candidates/v{j:04d}")
+            assert f is not None and np.allclose(f.position, xyz[j], atol=1e-6)
+            assert f.scale == FAINT_VIEW_SCALE and tuple(f.color) == FAINT_VIEW_COLOR
+        assert client.wait_until(lambda: f"candidate {best} of 4" in view.status.content, UPDATE_BOUND_S), \
+            view.status.content
 
         # the node goes away: the page says so; nothing crashes
         assert node.stop() == 0

@@ -12,8 +12,7 @@ import numpy as np
 
 from ..console import run_console
 from ..errors import CssError
-from ..io.clouds import pack_cloud, unpack_cloud
-from ..io.messages import unpack_view_points
+from ..io.clouds import pack_cloud, unpack_cloud, unpack_scored_views
 from ..io.point_queries import ANSWER_FIELDS
 from ..io.topics import INPUT_TOPICS
 from .node_link import NodeLink
@@ -28,7 +27,9 @@ examples:
   css_ctl load                                # replace the map by the checkpoint at checkpoint_path
   css_ctl query 0.5 0.2 1.0  -1 0 0.3         # SPEC §9 point queries (x y z triples, map frame, metres)
   css_ctl query --file points.txt             # one "x y z" per line
-  css_ctl candidates 0 0 1.5 0 0 0 1          # score views (x y z qx qy qz qw of the optical frame, map frame)
+  css_ctl candidates 0 0 1.5 0 0 0 1          # score views (x y z qx qy qz qw of the optical frame, map frame):
+                                              # U_var, U_exp, info_gain; marks the most uncertain view and the
+                                              # best next view (largest expected information gain)
   css_ctl candidates --file poses.txt         # one "x y z qx qy qz qw" per line
 Use ROS_DOMAIN_ID as for the node; --node for another node name.
 """
@@ -46,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("query", help="SPEC §9 point queries")
     q.add_argument("xyz", type=float, nargs="*", help="x y z triples [m, map frame]")
     q.add_argument("--file", type=Path, help="text file, one 'x y z' per line")
-    c = sub.add_parser("candidates", help="score candidate views (U_var, U_exp)")
+    c = sub.add_parser("candidates", help="score candidate views (U_var, U_exp, info_gain)")
     c.add_argument("pose", type=float, nargs="*", help="x y z qx qy qz qw per view (optical frame in the map)")
     c.add_argument("--file", type=Path, help="text file, one 'x y z qx qy qz qw' per line")
     return p
@@ -131,14 +132,35 @@ def query(link: NodeLink, node: str, xyz: np.ndarray, timeout: float) -> np.ndar
 
 
 def candidates(link: NodeLink, node: str, poses: np.ndarray, timeout: float) -> np.ndarray:
-    """Scored views (structured rows with U_var, U_exp) for poses (M, 7) x y z qx qy qz qw."""
+    """Scored views (css_ros.io.clouds.SCORED_VIEW_DTYPE rows: x y z qx qy qz qw u_var u_exp info_gain; info_gain
+    NaN from a node that does not publish it) for poses (M, 7) x y z qx qy qz qw, in request order."""
     from geometry_msgs.msg import PoseArray
 
     from ..ros.conversions import header_msg, pose_array_msg
 
     msg = pose_array_msg(poses[:, :3], poses[:, 3:], header_msg(time.time_ns(), "map"))
-    return unpack_view_points(_request(link, node, INPUT_TOPICS["candidates"], PoseArray, "candidate_scores",
-                                       msg, timeout))
+    return unpack_scored_views(_request(link, node, INPUT_TOPICS["candidates"], PoseArray, "candidate_scores",
+                                        msg, timeout))
+
+
+def _argmax_finite(values: np.ndarray) -> int:
+    """Index of the largest finite value (first of ties), -1 when none is finite."""
+    v = np.asarray(values, np.float64)
+    ok = np.isfinite(v)
+    return int(np.argmax(np.where(ok, v, -np.inf))) if ok.any() else -1
+
+
+def candidates_table(rows: np.ndarray) -> str:
+    """One line per view: position, U_var, U_exp, info_gain, and marks on the most uncertain view (largest
+    U_var) and on the best next view (largest info_gain); NaN rows are never marked."""
+    uncertain, best = _argmax_finite(rows["u_var"]), _argmax_finite(rows["info_gain"])
+    out = []
+    for i, r in enumerate(rows):
+        marks = (["<- most uncertain"] if i == uncertain else []) + \
+            (["<- best next view (info gain)"] if i == best else [])
+        out.append([i, f"{r['x']:.3f}", f"{r['y']:.3f}", f"{r['z']:.3f}", f"{r['u_var']:.3e}", f"{r['u_exp']:.3f}",
+                    f"{r['info_gain']:.4g}", "  ".join(marks)])
+    return format_table(["view", "x", "y", "z", "U_var", "U_exp", "info_gain", ""], out)
 
 
 def query_table(rows: np.ndarray, ignore_label: int = 255) -> str:
@@ -174,12 +196,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.command == "query":
                 print(query_table(query(link, args.node, xyz, args.timeout)))
                 return 0
-            rows = candidates(link, args.node, poses, args.timeout)
-            best = int(np.argmax(rows["u_var"])) if len(rows) else -1
-            print(format_table(["view", "x", "y", "z", "U_var", "U_exp", ""],
-                               [[i, f"{r['x']:.3f}", f"{r['y']:.3f}", f"{r['z']:.3f}", f"{r['u_var']:.3e}",
-                                 f"{r['u_exp']:.3f}", "<- most uncertain" if i == best else ""]
-                                for i, r in enumerate(rows)]))
+            print(candidates_table(candidates(link, args.node, poses, args.timeout)))
             return 0
         finally:
             link.close()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import threading
@@ -11,9 +12,13 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..engine.camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
-from ..io.messages import pose_to_arrays, stamp_to_ns, unpack_view_points
+from ..io.clouds import has_field, unpack_scored_views
+from ..io.messages import pose_to_arrays, stamp_to_ns
 from ..io.frame_gate import pose_message_pose
 from ..io.topics import POSE_TYPES
+
+#: --metric choices: the candidate with the largest value is the next best view.
+METRICS = ("info_gain", "u_var", "u_exp")
 
 
 def yaw_about_map_z(angle: float) -> np.ndarray:
@@ -53,20 +58,25 @@ def build_parser() -> argparse.ArgumentParser:
         prog="css_nbv_client",
         description="Next-best-view loop over css_node's topics: take the latest pose (topic 'pose'), sample "
                     "candidate views around it, publish them as a PoseArray on 'candidates', receive "
-                    "NODE/candidate_scores (matched by the request stamp) and publish the most uncertain "
-                    "candidate as a PoseStamped on 'next_best_view'. Topic names are relative (remappable "
-                    "with --ros-args -r).")
+                    "NODE/candidate_scores (matched by the request stamp) and publish the candidate with the "
+                    "largest --metric (default: expected information gain) as a PoseStamped on "
+                    "'next_best_view'. Topic names are relative (remappable with --ros-args -r).")
     p.add_argument("--node", default="/css_node", help="css_node's name with namespace (default /css_node)")
     p.add_argument("--num-candidates", type=int, default=16, help="candidates per request, incl. the current "
                    "pose (default 16)")
     p.add_argument("--yaw-range", type=float, default=90.0, help="max yaw offset [deg] (default 90)")
     p.add_argument("--position-std", type=float, default=0.3, help="horizontal position noise [m] (default 0.3)")
     p.add_argument("--vertical-std", type=float, default=0.0, help="vertical position noise [m] (default 0)")
-    p.add_argument("--metric", choices=("u_var", "u_exp"), default="u_var",
-                   help="uncertainty to maximise (default u_var)")
+    p.add_argument("--metric", choices=METRICS, default="info_gain",
+                   help="score to maximise: info_gain (expected reduction of the map's uncertainty if the view "
+                        "were observed), u_var or u_exp (the most uncertain view); NaN rows are never chosen "
+                        "(default info_gain)")
     p.add_argument("--period", type=float, default=2.0, help="seconds between requests (default 2)")
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for an answer (default 10)")
     p.add_argument("--once", action="store_true", help="one request, print the result, exit (0 on success)")
+    p.add_argument("--json", action="store_true", help="also print each chosen view as one JSON line on stdout "
+                   "(index, yaw_deg, position, quat_xyzw, metric, u_var, u_exp, info_gain, current_*, stamp_ns, "
+                   "latency_ms; NaN as null)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the position noise")
     p.add_argument("--pose-type", choices=tuple(POSE_TYPES), default="pose_stamped",
                    help="message type on 'pose', as css_node's pose_type (default pose_stamped); candidates are "
@@ -144,28 +154,53 @@ class NbvClient:
         if reply is None:
             self.log.warning(f"no answer on {self.args.node}/candidate_scores within {self.args.timeout:g} s")
             return None
-        pts = unpack_view_points(reply)
+        pts = unpack_scored_views(reply)
         if len(pts) != len(positions):
             self.log.warning(f"answer has {len(pts)} points for {len(positions)} candidates")
             return None
-        score = np.asarray(pts[self.args.metric], dtype=np.float64)
-        if not np.any(np.isfinite(score)):
-            self.log.warning("every candidate scored NaN (no camera_info at the node yet?)")
+        metric = self.args.metric
+        if not has_field(reply, metric):
+            self.log.warning(f"{self.args.node}/candidate_scores has no field {metric} (a css_node older than "
+                             "it?): use --metric u_var")
             return None
-        best = int(np.nanargmax(score))
+        best = best_candidate(pts[metric])
+        if best is None:
+            self.log.warning(f"every candidate scored NaN on {metric} (no camera_info at the node yet?)")
+            return None
         out = PoseStamped(header=header_msg(stamp, frame), pose=pose_msg(positions[best], quats[best]))
         self.pub_nbv.publish(out)
-        result = {"index": best, "yaw_deg": math.degrees(yaws[best]), "position": positions[best],
-                  "quat_xyzw": quats[best], "u_var": float(pts["u_var"][best]), "u_exp": float(pts["u_exp"][best]),
-                  "current_u_var": float(pts["u_var"][0]), "current_u_exp": float(pts["u_exp"][0]),
-                  "stamp_ns": stamp, "latency_ms": (time.monotonic() - (end - self.args.timeout)) * 1e3}
+        result: dict[str, Any] = {
+            "index": best, "yaw_deg": math.degrees(yaws[best]), "position": positions[best].tolist(),
+            "quat_xyzw": quats[best].tolist(), "metric": metric}
+        for name in ("u_var", "u_exp", "info_gain"):
+            result[name] = float(pts[name][best])
+            result[f"current_{name}"] = float(pts[name][0])
+        result.update(stamp_ns=stamp, latency_ms=(time.monotonic() - (end - self.args.timeout)) * 1e3)
         self.log.info(
-            f"next best view: candidate {best}/{len(positions)} yaw {result['yaw_deg']:+.0f} deg at "
-            f"({positions[best][0]:.2f}, {positions[best][1]:.2f}, {positions[best][2]:.2f}) m: "
-            f"U_var {result['u_var']:.3e} U_exp {result['u_exp']:.3f} (current view U_var "
-            f"{result['current_u_var']:.3e} U_exp {result['current_u_exp']:.3f}); answer after "
-            f"{result['latency_ms']:.0f} ms")
+            f"next best view (largest {metric}): candidate {best}/{len(positions)} yaw {result['yaw_deg']:+.0f} deg "
+            f"at ({positions[best][0]:.2f}, {positions[best][1]:.2f}, {positions[best][2]:.2f}) m: "
+            f"info gain {result['info_gain']:.4g} U_var {result['u_var']:.3e} U_exp {result['u_exp']:.3f} "
+            f"(current view info gain {result['current_info_gain']:.4g} U_var {result['current_u_var']:.3e} "
+            f"U_exp {result['current_u_exp']:.3f}); answer after {result['latency_ms']:.0f} ms")
+        if self.args.json:
+            print(json.dumps({k: _json_value(v) for k, v in result.items()}), flush=True)
         return result
+
+
+def best_candidate(score: np.ndarray) -> int | None:
+    """Index of the largest finite ``score`` (first of ties); None when no row is finite (NaN is never chosen)."""
+    s = np.asarray(score, dtype=np.float64)
+    ok = np.isfinite(s)
+    return int(np.argmax(np.where(ok, s, -np.inf))) if ok.any() else None
+
+
+def _json_value(v: Any) -> Any:
+    """NaN / inf -> None (JSON has no NaN); lists element-wise."""
+    if isinstance(v, list):
+        return [_json_value(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 def main(argv: Sequence[str] | None = None) -> int:

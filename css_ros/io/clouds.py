@@ -5,6 +5,9 @@ little-endian, point after point, and returns the PointCloud2 fields as a plain 
 builds the message class of its own library: rclpy or rosbags). :func:`unpack_cloud` reads any
 PointCloud2 back into a numpy structured array. Colours use the ``rgb`` convention RViz and
 Foxglove read: one FLOAT32 field whose 4 bytes hold the integer 0x00RRGGBB (:func:`pack_rgb`).
+
+Scored views (``~/view_uncertainty``, ``~/candidate_scores``) are clouds of one float32 point per view:
+:func:`pack_scored_views` writes them, :func:`unpack_scored_views` reads either layout by field name.
 """
 from __future__ import annotations
 
@@ -20,6 +23,16 @@ POINTFIELD_DATATYPES: dict[int, np.dtype] = {
     5: np.dtype("<i4"), 6: np.dtype("<u4"), 7: np.dtype("<f4"), 8: np.dtype("<f8"),
 }
 _DATATYPE_OF: dict[np.dtype, int] = {dt: code for code, dt in POINTFIELD_DATATYPES.items()}
+
+#: ``~/view_uncertainty`` (one point per observed frame), float32 in this order: the optical frame's position
+#: [m, map frame], its (x, y, z, w) orientation, U_var, U_exp (the same tuple as css_ros.io.messages.VIEW_FIELDS).
+VIEW_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw", "u_var", "u_exp")
+#: ``~/candidate_scores`` (one point per requested view, in request order): :data:`VIEW_FIELDS`, then
+#: ``info_gain``, the expected reduction of the map's uncertainty if the view were observed (>= 0, bigger =
+#: better next view). Appended last, so readers that look fields up by name read both layouts.
+CANDIDATE_FIELDS = (*VIEW_FIELDS, "info_gain")
+#: What :func:`unpack_scored_views` returns (every field float32).
+SCORED_VIEW_DTYPE = np.dtype([(name, "<f4") for name in CANDIDATE_FIELDS])
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -115,3 +128,48 @@ def unpack_cloud(msg: Any, names: tuple[str, ...] | None = None) -> np.ndarray:
         offset = fields[name][0]
         out[name] = np.ascontiguousarray(rows[:, offset:offset + dt.itemsize]).view(dt).reshape(m)
     return out
+
+
+def pack_scored_views(positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray, u_exp: np.ndarray,
+                      info_gain: np.ndarray | None = None) -> dict[str, Any]:
+    """PointCloud2 fields (:func:`pack_cloud`) with one float32 point per scored view.
+
+    Args:
+        positions: (M, 3) view positions [m, map frame]; quats_xyzw: (M, 4) orientations of the optical frame;
+        u_var, u_exp: (M,) image-level uncertainties (SPEC §6); info_gain: (M,) expected information gain, or
+        None for the ``~/view_uncertainty`` layout.
+    Returns:
+        fields :data:`VIEW_FIELDS` (``info_gain`` None) or :data:`CANDIDATE_FIELDS`, in that order.
+        NaN stays NaN (a view that could not be scored).
+    """
+    m = len(positions)
+    pos = np.asarray(positions, dtype=np.float64).reshape(m, 3)
+    quats = np.asarray(quats_xyzw, dtype=np.float64).reshape(m, 4)
+    columns = {name: pos[:, i] for i, name in enumerate(("x", "y", "z"))}
+    columns.update({name: quats[:, i] for i, name in enumerate(("qx", "qy", "qz", "qw"))})
+    columns["u_var"] = np.asarray(u_var, dtype=np.float64).reshape(m)
+    columns["u_exp"] = np.asarray(u_exp, dtype=np.float64).reshape(m)
+    if info_gain is not None:
+        columns["info_gain"] = np.asarray(info_gain, dtype=np.float64).reshape(m)
+    return pack_cloud({k: v.astype(np.float32) for k, v in columns.items()})
+
+
+def unpack_scored_views(msg: Any) -> np.ndarray:
+    """A ``~/view_uncertainty`` or ``~/candidate_scores`` PointCloud2 -> structured (M,) array of
+    :data:`SCORED_VIEW_DTYPE` (float32), fields looked up by name wherever they lie in the point.
+
+    ``info_gain`` is NaN when the cloud lacks it (``~/view_uncertainty``, or the answer of a css_node older
+    than the field). Raises InputError when a field of :data:`VIEW_FIELDS` is missing.
+    """
+    present = {f.name for f in msg.fields}
+    names = tuple(n for n in CANDIDATE_FIELDS if n in VIEW_FIELDS or n in present)
+    rows = unpack_cloud(msg, names)
+    out = np.full(len(rows), np.nan, dtype=SCORED_VIEW_DTYPE)
+    for name in names:
+        out[name] = rows[name]
+    return out
+
+
+def has_field(msg: Any, name: str) -> bool:
+    """The PointCloud2 ``msg`` has a field called ``name``."""
+    return any(f.name == name for f in msg.fields)

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from .clouds import message_bytes, pack_cloud, unpack_cloud
+from .clouds import VIEW_FIELDS, message_bytes, pack_scored_views, unpack_cloud
 
 #: encoding -> (numpy dtype, channels)
 IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
@@ -30,7 +30,6 @@ LABEL_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1")
 CONFIDENCE_ENCODINGS = ("32FC1",)
 
 #: PointCloud2 layout of ~/view_uncertainty and ~/candidate_scores (all float32).
-VIEW_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw", "u_var", "u_exp")
 VIEW_DTYPE = np.dtype([(name, "<f4") for name in VIEW_FIELDS])
 
 
@@ -133,14 +132,7 @@ def pack_view_points(positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.nd
         positions: (M, 3) view positions [m, map frame]; quats_xyzw: (M, 4) orientations of the optical
         frame; u_var, u_exp: (M,) image-level uncertainties. Every field is float32 (:data:`VIEW_FIELDS`).
     """
-    m = len(positions)
-    pos = np.asarray(positions, dtype=np.float64).reshape(m, 3)
-    quats = np.asarray(quats_xyzw, dtype=np.float64).reshape(m, 4)
-    columns = {name: pos[:, i] for i, name in enumerate(("x", "y", "z"))}
-    columns.update({name: quats[:, i] for i, name in enumerate(("qx", "qy", "qz", "qw"))})
-    columns["u_var"] = np.asarray(u_var, dtype=np.float64).reshape(m)
-    columns["u_exp"] = np.asarray(u_exp, dtype=np.float64).reshape(m)
-    return pack_cloud({k: v.astype(np.float32) for k, v in columns.items()})
+    return pack_scored_views(positions, quats_xyzw, u_var, u_exp)
 
 
 def unpack_view_points(msg: Any) -> np.ndarray:

@@ -10,7 +10,8 @@ from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from ..io.messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points
+from ..io.clouds import pack_scored_views
+from ..io.messages import array_to_image_fields, ns_to_sec_nanosec
 
 __all__ = [
     "time_msg", "header_msg", "image_msg", "view_points_msg", "camera_info_msg", "pose_msg",
@@ -46,14 +47,15 @@ def image_msg(array: np.ndarray, encoding: str, header: Header) -> Image:
 
 
 def view_points_msg(header: Header, positions: np.ndarray, quats_xyzw: np.ndarray,
-                    u_var: np.ndarray, u_exp: np.ndarray) -> PointCloud2:
-    """PointCloud2 with one point per scored view (fields x y z qx qy qz qw u_var u_exp, float32).
+                    u_var: np.ndarray, u_exp: np.ndarray, info_gain: np.ndarray | None = None) -> PointCloud2:
+    """PointCloud2 with one float32 point per scored view: fields x y z qx qy qz qw u_var u_exp
+    (``~/view_uncertainty``), then info_gain when ``info_gain`` is given (``~/candidate_scores``).
 
     Args:
         header: header of the cloud (stamp of the view / the request header).
-        positions: (M, 3) view positions [m]; quats_xyzw: (M, 4) orientations; u_var, u_exp: (M,).
+        positions: (M, 3) view positions [m]; quats_xyzw: (M, 4) orientations; u_var, u_exp, info_gain: (M,).
     """
-    return cloud_msg(header, pack_view_points(positions, quats_xyzw, u_var, u_exp))
+    return cloud_msg(header, pack_scored_views(positions, quats_xyzw, u_var, u_exp, info_gain))
 
 
 def cloud_msg(header: Header, f: dict[str, Any]) -> PointCloud2:

@@ -180,7 +180,7 @@ class CssNode(Node):
             self.stats.count(f"requests_nan[{job.reason}]")
             self.stats.count("requests_served")
             nan = np.full(len(job.positions), np.nan)
-            self.outputs.publish_scores(job.header, job.positions, job.quats, nan, nan)
+            self.outputs.publish_scores(job.header, job.positions, job.quats, nan, nan, nan)
             return
         dropped = self.queue.put_request(job)
         if dropped is not None:

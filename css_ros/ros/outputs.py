@@ -95,10 +95,11 @@ class OutputPublisher:
             pubs["view_uncertainty"].publish(cloud)
 
     def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
-                       u_exp: np.ndarray) -> None:
-        """One point per candidate in request order; the header echoes the request header."""
+                       u_exp: np.ndarray, info_gain: np.ndarray) -> None:
+        """One point per candidate in request order (fields x y z qx qy qz qw u_var u_exp info_gain,
+        css_ros.io.clouds.CANDIDATE_FIELDS); the header echoes the request header."""
         self.pubs["candidate_scores"].publish(
-            rc.view_points_msg(rc.copy_header(header), positions, quats, u_var, u_exp))
+            rc.view_points_msg(rc.copy_header(header), positions, quats, u_var, u_exp, info_gain))
 
     def publish_points(self, job: PointQueryJob) -> None:
         """Answer a point query: one point per query point in request order, the request header echoed."""

@@ -70,8 +70,8 @@ class FrameJob:
 class CandidateJob:
     """A PoseArray of candidate views waiting for (or being scored by) the worker.
 
-    The worker scores ``next_index`` onwards, one slice at a time; ``u_var`` / ``u_exp`` start as NaN and
-    rows that cannot be scored stay NaN.
+    The worker scores ``next_index`` onwards, one slice at a time; ``u_var`` / ``u_exp`` / ``info_gain``
+    (the columns of ``SemanticMap.score_views``) start as NaN and rows that cannot be scored stay NaN.
     """
 
     header: Any
@@ -86,6 +86,7 @@ class CandidateJob:
     next_index: int = 0
     u_var: np.ndarray = field(default=None)  # type: ignore[assignment]
     u_exp: np.ndarray = field(default=None)  # type: ignore[assignment]
+    info_gain: np.ndarray = field(default=None)  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         m = len(self.positions)
@@ -93,6 +94,8 @@ class CandidateJob:
             self.u_var = np.full(m, np.nan)
         if self.u_exp is None:
             self.u_exp = np.full(m, np.nan)
+        if self.info_gain is None:
+            self.info_gain = np.full(m, np.nan)
 
     @property
     def done(self) -> bool:

@@ -36,7 +36,7 @@ class OutputSink(Protocol):
     def publish_frame(self, job: FrameJob, view: Any) -> None: ...
 
     def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
-                       u_exp: np.ndarray) -> None: ...
+                       u_exp: np.ndarray, info_gain: np.ndarray) -> None: ...
 
     def publish_points(self, job: PointQueryJob) -> None: ...
 
@@ -224,6 +224,8 @@ class MapWorker:
             with self.map_lock:
                 scores = self.smap.score_views(cams)
             job.u_var[scored], job.u_exp[scored] = scores[:, 0], scores[:, 1]
+            if scores.shape[1] > 2:  # (U_var, U_exp, info_gain); an engine without the column leaves NaN
+                job.info_gain[scored] = scores[:, 2]
         job.next_index = stop
         self.stats.count("candidate_views_scored", len(cams))
         if job.done:
@@ -261,7 +263,7 @@ class MapWorker:
             self.stats.count("point_queries_served")
             self.stats.count("query_points", len(job.xyz))
         else:
-            self.sink.publish_scores(job.header, job.positions, job.quats_in, job.u_var, job.u_exp)
+            self.sink.publish_scores(job.header, job.positions, job.quats_in, job.u_var, job.u_exp, job.info_gain)
             self.stats.count("requests_served")
             self.stats.count("candidate_views", len(job.positions))
         self.stats.request_latency((time.monotonic() - job.t_received) * 1e3)

@@ -2,8 +2,12 @@
 
 The model arrives once (transient local), then only the Gaussians whose semantics changed; the page is
 redrawn at most every REDRAW_PERIOD_S while updates come in. Observed frames (``~/view_uncertainty``) are drawn
-as frustums coloured by U_var, the last answered candidate request (``~/candidate_scores``) as frustums
-coloured by their U_var score; a click queries the node (``point_queries``).
+as frustums coloured by U_var. Of the last answered candidate request (``~/candidate_scores``, whoever sent it:
+css_nbv_client, css_ctl, a planner) the chosen view, the candidate with the largest expected information gain,
+is drawn as a large highlighted frustum (``/candidates/best``) and the others as small faint ones; from a node
+that publishes no info gain the most uncertain candidate (largest U_var) is chosen instead. The answer echoes
+the request's poses in request order, so the request (``candidates``) itself need not be followed. A click
+queries the node (``point_queries``).
 """
 from __future__ import annotations
 
@@ -18,8 +22,8 @@ from ..clients.node_link import NodeLink
 from ..engine.classes import ClassSet
 from ..engine.field3d import GaussianSemantics
 from ..errors import CssError
-from ..io.clouds import unpack_cloud, unpack_rgb
-from ..io.messages import unpack_view_points
+from ..io.clouds import unpack_cloud, unpack_rgb, unpack_scored_views
+from ..io.messages import stamp_to_ns
 from ..io.view_stream import parse_info
 from .data import ViewData
 
@@ -27,6 +31,10 @@ REDRAW_PERIOD_S = 0.5      # at most two redraws a second while updates arrive
 NODE_GONE_S = 3.0          # no publisher of ~/view/semantics for this long: the page says the node is gone
 FRUSTUM_FOV_Y = 0.8        # rad; drawn frustums (the stream carries poses, not intrinsics)
 MAX_FRUSTUMS = 300         # observed frames drawn (the latest)
+BEST_VIEW_COLOR = (20, 220, 90)     # the chosen candidate (largest info gain)
+BEST_VIEW_SCALE = 0.35
+FAINT_VIEW_COLOR = (185, 185, 185)  # the other candidates
+FAINT_VIEW_SCALE = 0.1
 
 
 def semantics_from(label: np.ndarray, e_q: np.ndarray, evidence: np.ndarray, num_classes: int, prior: float,
@@ -56,7 +64,7 @@ class LiveFollower:
         self.chunks: dict[int, Any] = {}
         self.pending: list[Any] = []
         self.frames: list[np.ndarray] = []
-        self.candidates: Any = None
+        self.candidates: Any = None    # (request stamp [ns], SCORED_VIEW_DTYPE rows) of the last answer
         self.last_update = 0.0
         self.updates = 0
         latched = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
@@ -93,12 +101,17 @@ class LiveFollower:
 
     def _on_frame(self, msg: Any) -> None:
         with self.lock:
-            self.frames.append(unpack_view_points(msg))
+            self.frames.append(unpack_scored_views(msg))
             del self.frames[:-MAX_FRUSTUMS]
 
     def _on_candidates(self, msg: Any) -> None:
+        try:
+            rows = unpack_scored_views(msg)
+        except CssError as exc:
+            self.on_status(f"unreadable {self.node_name}/candidate_scores: {exc}")
+            return
         with self.lock:
-            self.candidates = unpack_view_points(msg)
+            self.candidates = (stamp_to_ns(msg.header.stamp), rows)
 
     def model_complete(self) -> bool:
         with self.lock:
@@ -192,6 +205,7 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
         if ready is not None:
             ready.set()
         drawn_frames = drawn_candidates = None
+        chosen_note = ""
         while (deadline is None or time.monotonic() < deadline) and not (stop is not None and stop.is_set()):
             time.sleep(REDRAW_PERIOD_S)
             with view.lock:
@@ -202,8 +216,6 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
             alive = follower.node_alive()
             state = ("**node gone**: no publisher of view/semantics; waiting for it to come back" if not alive
                      else f"live: {follower.updates} updates" + (f", last {age:.1f} s ago" if age is not None else ""))
-            view.status_note = state + ("; " + notes[-1] if notes else "")
-            view.show_status()
             with follower.lock:
                 frames = list(follower.frames)
                 cands = follower.candidates
@@ -211,8 +223,10 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
                 _draw_views(view, "/trajectory", np.concatenate(frames), "magma")
                 drawn_frames = len(frames)
             if cands is not None and cands is not drawn_candidates:
-                _draw_views(view, "/candidates", cands, "viridis", mark_best=True)
+                chosen_note = _draw_candidates(view, cands[1])
                 drawn_candidates = cands
+            view.status_note = state + ("; " + notes[-1] if notes else "") + (f"\n\n{chosen_note}" if chosen_note else "")
+            view.show_status()
     except KeyboardInterrupt:
         pass
     finally:
@@ -222,8 +236,8 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
     return 0
 
 
-def _draw_views(view, prefix: str, rows: np.ndarray, cmap: str, mark_best: bool = False) -> None:
-    """Frustums of scored views (VIEW_FIELDS rows) coloured by U_var on a log scale."""
+def _draw_views(view, prefix: str, rows: np.ndarray, cmap: str) -> None:
+    """Frustums of scored views (SCORED_VIEW_DTYPE rows) coloured by U_var on a log scale."""
     import matplotlib
 
     u = rows["u_var"].astype(np.float64)
@@ -231,14 +245,44 @@ def _draw_views(view, prefix: str, rows: np.ndarray, cmap: str, mark_best: bool 
     lo, hi = (np.log(u[ok].min()), np.log(u[ok].max())) if ok.any() else (0.0, 1.0)
     cm = matplotlib.colormaps[cmap]
     view.server.scene.remove_by_name(prefix)
-    best = int(np.argmax(np.where(ok, u, -np.inf))) if ok.any() else -1
     for i, r in enumerate(rows):
         t = (np.log(u[i]) - lo) / max(hi - lo, 1e-12) if ok[i] else 0.0
         color = tuple(int(255 * v) for v in cm(t)[:3]) if ok[i] else (128, 128, 128)
-        view.server.scene.add_camera_frustum(f"{prefix}/v{i:04d}", fov=FRUSTUM_FOV_Y, aspect=4 / 3,
-                                             scale=0.3 if (mark_best and i == best) else 0.15, color=color,
-                                             wxyz=(float(r["qw"]), float(r["qx"]), float(r["qy"]), float(r["qz"])),
-                                             position=(float(r["x"]), float(r["y"]), float(r["z"])))
+        _frustum(view, f"{prefix}/v{i:04d}", r, 0.15, color)
+
+
+def _frustum(view, name: str, r: Any, scale: float, color: tuple[int, ...]) -> None:
+    """A camera frustum at the pose of the scored-view row ``r`` (optical frame in the map)."""
+    view.server.scene.add_camera_frustum(name, fov=FRUSTUM_FOV_Y, aspect=4 / 3, scale=scale, color=color,
+                                         wxyz=(float(r["qw"]), float(r["qx"]), float(r["qy"]), float(r["qz"])),
+                                         position=(float(r["x"]), float(r["y"]), float(r["z"])))
+
+
+def chosen_candidate(rows: np.ndarray) -> tuple[int, str]:
+    """(index, metric) of the view to take next among answered candidates: the largest finite ``info_gain``, or,
+    when no row has one (a node that does not publish it), the largest finite ``u_var``; (-1, "") if none."""
+    for metric in ("info_gain", "u_var"):
+        v = rows[metric].astype(np.float64)
+        ok = np.isfinite(v)
+        if ok.any():
+            return int(np.argmax(np.where(ok, v, -np.inf))), metric
+    return -1, ""
+
+
+def _draw_candidates(view, rows: np.ndarray) -> str:
+    """Redraw ``/candidates``: the chosen view (:func:`chosen_candidate`) as ``/candidates/best``, large and
+    highlighted, the others as faint ``/candidates/vNNNN``. Returns a status line naming the chosen view."""
+    view.server.scene.remove_by_name("/candidates")
+    best, metric = chosen_candidate(rows)
+    for i, r in enumerate(rows):
+        if i != best:
+            _frustum(view, f"/candidates/v{i:04d}", r, FAINT_VIEW_SCALE, FAINT_VIEW_COLOR)
+    if best < 0:
+        return f"candidates: none of {len(rows)} could be scored"
+    _frustum(view, "/candidates/best", rows[best], BEST_VIEW_SCALE, BEST_VIEW_COLOR)
+    what = (f"info gain {rows['info_gain'][best]:.4g}" if metric == "info_gain"
+            else f"U_var {rows['u_var'][best]:.3e} (the node publishes no info gain)")
+    return f"next best view (green): candidate {best} of {len(rows)}, {what}"
 
 
 def _node_query(follower: LiveFollower):
