@@ -196,3 +196,34 @@ def test_css_map_transfer_cli(tmp_path, capsys):
     assert css_map(["transfer", str(tmp_path / "a.npz"), "--from", str(tmp_path / "b.ply"), "--to",
                     str(tmp_path / "b.ply"), "--out", str(tmp_path / "x.npz")]) == 1
     assert "was made on another splat than" in capsys.readouterr().err
+
+
+def test_css_map_refuses_a_map_merged_with_itself_and_says_what_is_wrong(tmp_path, capsys):
+    """The same file twice, a symlink to it, a byte copy, and a re-saved copy without sources would each count
+    one map's evidence twice; a folder is not a map file; a tolerance beyond 100 m is refused by name."""
+    import shutil
+
+    model = random_scene(5, n=80)
+    model.to_ply(tmp_path / "m.ply")
+    loaded = GaussianModel.from_ply(tmp_path / "m.ply")
+    a = _fused(loaded, 3, 0)
+    a.save(tmp_path / "a.npz")
+    (tmp_path / "link.npz").symlink_to(tmp_path / "a.npz")
+    shutil.copy(tmp_path / "a.npz", tmp_path / "copy.npz")
+    again = SemanticMap(loaded, 3)
+    again.concentrations[...] = a.concentrations
+    again.frames_observed = a.frames_observed + 1  # another file, the same evidence, no sources
+    again.save(tmp_path / "resaved.npz")
+    m = str(tmp_path / "m.ply")
+    for other, message in (("a.npz", "are the same map"), ("link.npz", "are the same map"),
+                           ("copy.npz", "are the same map"), ("resaved.npz", "hold identical evidence")):
+        assert css_map(["merge", str(tmp_path / "a.npz"), str(tmp_path / other), "--model", m,
+                        "--out", str(tmp_path / "out.npz")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (other, err)
+        assert not (tmp_path / "out.npz").exists()
+    assert css_map(["info", str(tmp_path)]) == 1
+    assert "is a folder, not a map file" in capsys.readouterr().err
+    assert css_map(["transfer", str(tmp_path / "a.npz"), "--from", m, "--to", m, "--out", str(tmp_path / "t.npz"),
+                    "--tolerance", "1e308"]) == 1
+    assert "--tolerance must be within 0..100 metres" in capsys.readouterr().err

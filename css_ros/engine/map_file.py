@@ -80,6 +80,8 @@ def read_map_info(path: str | os.PathLike[str]) -> MapInfo:
         MapError: unreadable, corrupt or crafted file; invalid values.
     """
     path = Path(path)
+    if path.is_dir():
+        raise MapError(f"{path} is a folder, not a map file (a css_replay output folder holds map.npz)")
     if not path.is_file():
         raise MapError(f"map file not found: {path}")
     try:

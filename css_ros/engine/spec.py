@@ -34,4 +34,5 @@ QUERY_MAHALANOBIS_CUTOFF = 3.0          # w_n(x) = 0 beyond this Mahalanobis dis
 
 # --- Moving a map to a retrained splat (docs/spec.md "Transfer") ----------------------------------
 DEFAULT_TRANSFER_TOLERANCE = 0.01   # m; τ added in quadrature to every old standard deviation (retraining jitter)
+MAX_TRANSFER_TOLERANCE = 100.0     # m; a larger τ is no tolerance but a mistake (and overflows the widened scales)
 TRANSFER_CUTOFF = 3.0               # Mahalanobis distance of an old/new pair beyond which the overlap is 0

@@ -6,16 +6,19 @@ A thin layer over :mod:`css_ros.engine.map_file`, :mod:`css_ros.engine.merge` an
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 from pathlib import Path
 from typing import Sequence
+
+import numpy as np
 
 from ..console import run_console
 from ..engine.gaussians import GaussianModel
 from ..engine.map_file import MapInfo, read_map_info
 from ..engine.merge import merge_maps
 from ..engine.semantic_map import SemanticMap
-from ..engine.spec import DEFAULT_TRANSFER_TOLERANCE
+from ..engine.spec import DEFAULT_TRANSFER_TOLERANCE, MAX_TRANSFER_TOLERANCE
 from ..engine.transfer import transfer_map
 from ..errors import CssError, MapError
 
@@ -73,6 +76,33 @@ def _model(path: Path) -> GaussianModel:
     return GaussianModel.from_ply(path)
 
 
+def _file_hash(path: Path) -> str:
+    """SHA-256 of a file's bytes (symlinks followed)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _refuse_same_maps(paths: Sequence[Path], maps: Sequence[SemanticMap]) -> None:
+    """A map merged with itself (the same file, a link to it, a byte-identical copy) or two maps without sources
+    holding identical evidence would count that evidence twice: refuse them."""
+    seen: dict[str, Path] = {}
+    for p in paths:
+        digest = _file_hash(p)
+        if digest in seen:
+            raise MapError(f"{p} and {seen[digest]} are the same map (identical content): merging a map with itself "
+                           "would count its evidence twice")
+        seen[digest] = p
+    for i, (pa, a) in enumerate(zip(paths, maps)):
+        for pb, b in zip(paths[i + 1:], maps[i + 1:]):
+            if not a.sources and not b.sources and np.array_equal(a.concentrations_readonly,
+                                                                    b.concentrations_readonly):
+                raise MapError(f"{pa} and {pb} hold identical evidence and list no sources: they are copies of one "
+                               "map, and merging them would count it twice")
+
+
 def _merge(args: argparse.Namespace) -> None:
     infos = [read_map_info(p) for p in args.maps]
     first = infos[0]
@@ -91,6 +121,7 @@ def _merge(args: argparse.Namespace) -> None:
                            "evidence is weighted differently and does not add up")
     model = _model(args.model)
     maps = [SemanticMap.load(p, model) for p in args.maps]
+    _refuse_same_maps(args.maps, maps)
     merged = merge_maps(maps, [str(p) for p in args.maps])
     merged.save(args.out)
     print(f"merged {len(maps)} maps into {args.out}: {merged.frames_observed} frames, sources "
@@ -123,8 +154,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif args.command == "merge":
             _merge(args)
         else:
-            if not (args.tolerance >= 0):
-                raise CssError(f"--tolerance must be >= 0 metres, got {args.tolerance}")
+            if not 0 <= args.tolerance <= MAX_TRANSFER_TOLERANCE:
+                raise CssError(f"--tolerance must be within 0..{MAX_TRANSFER_TOLERANCE:g} metres (how far a retrained "
+                               f"Gaussian may have moved), got {args.tolerance}")
             _transfer(args)
 
     return run_console("css_map", work)
