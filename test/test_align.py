@@ -152,3 +152,33 @@ def test_css_align_from_a_bag_of_odometry_with_extrinsics(tmp_path: Path) -> Non
                  "--out", str(out)]) == 0
     sim = Similarity.from_params(read_params_file(out)["splat_to_map"])
     assert abs(sim.scale / TRUTH.scale - 1) < 0.01 and angle_deg(sim.R, TRUTH.R) < 0.5
+
+
+def test_css_align_refuses_duplicated_names_bad_bounds_huge_and_binary_files(tmp_path: Path, capsys) -> None:
+    """Every image given twice (the second copy 5 m off), non-finite residual bounds, 1e308 coordinates and a binary
+    file each get a one-line error naming the problem (exit 1), and nothing is written."""
+    views = load_inria(REAL / "cameras.json")
+    rows = _robot_side(views[::5], np.random.default_rng(3))
+    good = [f"{n}.jpg," + ",".join(f"{x:.9f}" for x in [*p, *q]) for n, p, q in rows]
+    twice = [f"{n}.jpg," + ",".join(f"{x:.9f}" for x in [p[0] + 5.0, p[1], p[2], *q]) for n, p, q in rows]
+    csv = tmp_path / "robot.csv"
+    out = tmp_path / "out.yaml"
+    cams = str(REAL / "cameras.json")
+
+    def refused(argv: list[str], message: str) -> None:
+        assert main([cams, "--poses-csv", str(csv), "--out", str(out), *argv]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert not out.exists()
+
+    csv.write_text("\n".join(["name,x,y,z,qx,qy,qz,qw", *good, *twice]) + "\n")
+    refused([], "already on line")
+    csv.write_text("\n".join(["name,x,y,z,qx,qy,qz,qw", *good]) + "\n")
+    refused(["--max-residual", "nan"], "--max-residual must be a finite number > 0")
+    refused(["--max-rotation-residual", "inf"], "--max-rotation-residual must be a finite number > 0")
+    huge = good[:]
+    huge[2] = huge[2].split(",")[0] + ",1e308,0,0,0,0,0,1"
+    csv.write_text("\n".join(["name,x,y,z,qx,qy,qz,qw", *huge]) + "\n")
+    refused([], "not finite or beyond")
+    csv.write_bytes(bytes(range(256)) * 8)
+    refused([], "is not a text CSV file")

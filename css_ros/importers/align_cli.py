@@ -76,6 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Largest coordinate accepted in pose files [m or splat units]: beyond, the fit's arithmetic overflows.
+MAX_COORDINATE_M = 1e7
+
+
 def _rows(path: Path, width: int, what: str) -> list[list[str]]:
     try:
         size = path.stat().st_size
@@ -84,20 +88,29 @@ def _rows(path: Path, width: int, what: str) -> list[list[str]]:
     if size > MAX_CSV_BYTES:
         raise InputError(f"{what} {path}: {size} bytes, more than {MAX_CSV_BYTES}")
     rows = []
-    with open(path, newline="") as fh:
-        for k, row in enumerate(csv.reader(fh)):
-            row = [c.strip() for c in row]
-            if not row or not any(row) or row[0].startswith("#"):
-                continue
-            if len(row) != width:
-                raise InputError(f"{what} {path}, line {k + 1}: {len(row)} columns, expected {width}")
-            try:
-                float(row[1])
-            except ValueError:
-                if k == 0:
-                    continue  # header
-                raise InputError(f"{what} {path}, line {k + 1}: not a number: {row[1]!r}") from None
-            rows.append(row)
+    first_line: dict[str, int] = {}
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            for k, row in enumerate(csv.reader(fh)):
+                row = [c.strip() for c in row]
+                if not row or not any(row) or row[0].startswith("#"):
+                    continue
+                if len(row) != width:
+                    raise InputError(f"{what} {path}, line {k + 1}: {len(row)} columns, expected {width}")
+                try:
+                    float(row[1])
+                except ValueError:
+                    if k == 0:
+                        continue  # header
+                    raise InputError(f"{what} {path}, line {k + 1}: not a number: {row[1]!r}") from None
+                name = _stem(row[0])
+                if name in first_line:  # two poses for one image: which one is right cannot be known
+                    raise InputError(f"{what} {path}, line {k + 1}: image {row[0]!r} already on line "
+                                     f"{first_line[name]}; give each image once")
+                first_line[name] = k + 1
+                rows.append(row)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{what} {path} is not a text CSV file ({type(exc).__name__}: {exc})") from None
     return rows
 
 
@@ -108,9 +121,15 @@ def _stem(name: str) -> str:
 def robot_poses_from_csv(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     out = {}
     for row in _rows(path, 8, "--poses-csv"):
-        v = np.array([float(x) for x in row[1:]])
-        if not np.all(np.isfinite(v)):
-            raise InputError(f"--poses-csv {path}: non-finite values for {row[0]}")
+        try:
+            v = np.array([float(x) for x in row[1:]])
+        except ValueError:
+            raise InputError(f"--poses-csv {path}: a value for {row[0]} is not a number") from None
+        if not np.all(np.isfinite(v)) or np.any(np.abs(v[:3]) > MAX_COORDINATE_M):
+            raise InputError(f"--poses-csv {path}: the position of {row[0]} is not finite or beyond "
+                             f"{MAX_COORDINATE_M:g} m")
+        if not 0.5 < np.linalg.norm(v[3:]) < 2.0:
+            raise InputError(f"--poses-csv {path}: the quaternion of {row[0]} has norm {np.linalg.norm(v[3:]):.3g}")
         q = v[3:] / np.linalg.norm(v[3:])
         out[_stem(row[0])] = (v[:3], q)
     return out
@@ -165,7 +184,18 @@ def run(args: argparse.Namespace) -> str:
         raise ConfigError("give the robot poses: --poses-csv FILE, or --bag BAG with --stamps-csv FILE")
     if args.bag is not None and args.stamps_csv is None:
         raise ConfigError("--bag needs --stamps-csv FILE (image name, stamp)")
+    for opt, value in (("--max-residual", args.max_residual), ("--max-rotation-residual", args.max_rotation_residual)):
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{opt} must be a finite number > 0, got {value}")
     views = load_views(args.poses, args.format, ignore_distortion=True)
+    stems = [v.stem for v in views]
+    twice = sorted({n for n in stems if stems.count(n) > 1})
+    if twice:
+        raise InputError(f"{args.poses}: image names given more than once ({', '.join(twice[:5])}); give each once")
+    far = [v.stem for v in views if not np.all(np.isfinite(v.position)) or np.any(np.abs(v.position) > MAX_COORDINATE_M)]
+    if far:
+        raise InputError(f"{args.poses}: camera positions not finite or beyond {MAX_COORDINATE_M:g} units "
+                         f"({', '.join(far[:5])})")
     missing: list[str] = []
     if args.poses_csv is not None:
         robot = robot_poses_from_csv(args.poses_csv)
