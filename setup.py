@@ -34,10 +34,12 @@ setup(
     extras_require={
         # torch pinned: an unpinned requirement pulls a multi-GB CUDA build.
         "torch": ["torch==2.13.0"],
+        # everything a user needs to run the node and every tool (css_view's viser included)
         "ros": [
             "ros-jazzy-rclpy",
             "ros-jazzy-common-interfaces",
             "ros-jazzy-rmw-fastrtps-cpp",
+            "viser==1.1.1",
         ],
         # GPU backend (docs/cuda.md): kernels in numba-cuda; needs a CUDA build of torch (or cupy) on the GPU
         # machine for device-wide sorts. Its simulator (NUMBA_ENABLE_CUDASIM=1) runs the tests without a GPU.

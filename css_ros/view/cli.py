@@ -160,6 +160,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def work() -> int:
+        try:
+            import viser  # noqa: F401
+        except ModuleNotFoundError:
+            raise CssError("css_view needs the viser package: pip install 'css_ros[view]' (or '.[ros]' / '.[all]' "
+                           "from a checkout)") from None
         if args.live:
             from .live import serve_live
             return serve_live(args)

@@ -21,7 +21,9 @@ PICK_MIN_OPACITY = 0.1
 
 
 def check_port_free(host: str, port: int) -> None:
-    """Raise :class:`CssError` when ``host:port`` cannot be bound (in use or not allowed)."""
+    """Raise :class:`CssError` when ``host:port`` cannot be bound (in use, not allowed, or not a port number)."""
+    if not 0 <= port <= 65535:
+        raise CssError(f"--port {port} is not a TCP port (0..65535; 0 = any free port)")
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -100,7 +102,8 @@ class MapView:
         self.server.gui.configure_theme(control_width="medium", show_logo=False, show_share_button=False,
                                         dark_mode=False)
         self.server.gui.main_panel.dock_right()
-        self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{port}"
+        # the port the server really took (--port 0 asks the system for a free one)
+        self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.server.get_port()}"
         self._build_gui(title)
         self._draw_trajectory()
         self.redraw()
