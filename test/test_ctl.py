@@ -60,6 +60,12 @@ def test_ctl_save_query_candidates_reset(tmp_path):
         assert rows[best].endswith("<- best next view (info gain)")
         assert "<- most uncertain" in rows[3] and sum("<- best next view" in row for row in rows) == 1
 
+        many = tmp_path / "poses.txt"   # one more than the node's max_candidates (256): every row NaN
+        many.write_text("\n".join("0 0 0 0 0 0 1" for _ in range(257)) + "\n")
+        r = css_ctl(domain, "candidates", "--file", str(many))
+        assert r.returncode == 1 and "scored none of the 257 views" in r.stderr
+        assert "<- most uncertain" not in r.stdout and "<- best next view" not in r.stdout
+
         r = css_ctl(domain, "reset")
         assert r.returncode == 0 and "True" in r.stdout
         r = css_ctl(domain, "--node", "/nobody", "save", timeout=60)
@@ -84,3 +90,9 @@ def test_candidates_table_marks_finite_maxima_only():
     assert lines[3].endswith("<- most uncertain") and not any("info gain)" in ln for ln in lines)
     rows["info_gain"][1] = 2.0
     assert candidates_table(rows).splitlines()[3].endswith("<- most uncertain  <- best next view (info gain)")
+
+
+def test_timeout_must_be_a_finite_number_of_seconds():
+    for bad in ("nan", "inf", "1e308", "0", "-1"):
+        r = css_ctl(0, "--timeout", bad, "save", timeout=30)
+        assert r.returncode == 1 and "--timeout must be a number of seconds" in r.stderr, (bad, r.stderr)

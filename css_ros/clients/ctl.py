@@ -175,13 +175,17 @@ def query_table(rows: np.ndarray, ignore_label: int = 255) -> str:
     return format_table(["x", "y", "z", "class", "E", "Var", "top classes (E)"], out)
 
 
+#: Longest --timeout accepted [s] (one day): beyond, a typo would hang the terminal.
+MAX_TIMEOUT_S = 86400.0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``css_ctl``: 0 on success, 1 with a one-line error (or a refused request), 2 usage."""
     args = build_parser().parse_args(argv)
 
     def work() -> int:
-        if args.timeout <= 0:
-            raise CssError("--timeout must be > 0")
+        if not 0 < args.timeout <= MAX_TIMEOUT_S:
+            raise CssError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S:g}], got {args.timeout}")
         if args.command == "query":
             xyz = read_rows(args.xyz, args.file, 3, "points")
         elif args.command == "candidates":
@@ -196,7 +200,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.command == "query":
                 print(query_table(query(link, args.node, xyz, args.timeout)))
                 return 0
-            print(candidates_table(candidates(link, args.node, poses, args.timeout)))
+            scores = candidates(link, args.node, poses, args.timeout)
+            print(candidates_table(scores))
+            if len(scores) and not np.any(np.isfinite(scores["u_var"])):
+                raise CssError(f"the node scored none of the {len(scores)} views (every row NaN): more than its "
+                               "max_candidates, or no camera_info yet; its log and /diagnostics say which")
             return 0
         finally:
             link.close()
