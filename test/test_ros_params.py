@@ -73,7 +73,11 @@ def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, defa
                                           ("ignore_label", 70000),
                                           ("camera_extrinsics", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
                                           ("splat_to_map", [-1.0, 0, 0, 0, 0, 0, 0, 1]),
-                                          ("pose_type", "odom"), ("pose_buffer", 0.0)])
+                                          ("pose_type", "odom"), ("pose_buffer", 0.0),
+                                          ("cameras", ["cam1", "cäm2"]),
+                                          ("camera_extrinsics", [1e308, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
+                                          ("splat_to_map", [1.0, 0, 2e7, 0, 0, 0, 0, 1]),
+                                          ("splat_to_map", [1e300, 0, 0, 0, 0, 0, 0, 1])])
 def test_check_params_rejects(field, value):
     p = NodeParams()
     setattr(p, field, value)

@@ -82,10 +82,11 @@ class Similarity:
             raise ConfigError(f"{name}: expected {SIMILARITY_VALUES} numbers [s, x, y, z, qx, qy, qz, qw], "
                               f"got {len(v)}")
         s = v[0]
-        if not (math.isfinite(s) and s > 0):
-            raise ConfigError(f"{name}: scale must be finite and > 0, got {s!r}")
-        if not all(math.isfinite(x) for x in v[1:4]):
-            raise ConfigError(f"{name}: translation must be finite, got {v[1:4]}")
+        if not (math.isfinite(s) and MIN_SCALE <= s <= MAX_SCALE):
+            raise ConfigError(f"{name}: scale must be finite and within {MIN_SCALE:g}..{MAX_SCALE:g}, got {s!r}")
+        if not all(math.isfinite(x) and abs(x) <= MAX_TRANSLATION_M for x in v[1:4]):
+            raise ConfigError(f"{name}: translation must be finite and within ±{MAX_TRANSLATION_M:g} m "
+                              f"(poses are float32 in messages), got {v[1:4]}")
         q = _quaternion(v[4:8], name)
         return cls(s, quaternion_xyzw_to_matrix(q), np.array(v[1:4]))
 
@@ -193,6 +194,13 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return 2.0 * np.outer(axis, axis) - np.eye(3)
     vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+#: Bounds of a similarity's scale and translation [m]: beyond, positions stop being representable in the float32
+#: of messages and clouds (1e7 m is 10 000 km; a float32 there resolves 1 m).
+MIN_SCALE = 1e-6
+MAX_SCALE = 1e6
+MAX_TRANSLATION_M = 1e7
 
 
 def parse_extrinsics(values: Sequence[float], num_cameras: int,

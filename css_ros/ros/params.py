@@ -303,8 +303,8 @@ def check_params(p: NodeParams) -> None:
     names = [c.strip("/") for c in p.cameras]
     if len(set(names)) != len(names):
         raise bad("cameras", "namespaces must be distinct")
-    bad_ns = [c for c in names if c and not all(part.replace("_", "a").isalnum() and not part[0].isdigit()
-                                                 for part in c.split("/"))]
+    bad_ns = [c for c in names if c and not all(part.isascii() and part.replace("_", "a").isalnum()
+                                                 and not part[0].isdigit() for part in c.split("/"))]
     if bad_ns:
         raise bad("cameras", f"not a valid ROS namespace: {bad_ns[0]!r}")
     parse_extrinsics(p.camera_extrinsics, len(p.cameras))   # ConfigError naming camera_extrinsics
