@@ -62,6 +62,20 @@ def colorbar_html(bar: ColorBar) -> str:
             f'</div><div style="font-size:11px">{html.escape(bar.label)}; grey = unobserved</div></div>')
 
 
+def initial_view(data: ViewData) -> tuple[np.ndarray, np.ndarray]:
+    """(look-at point, camera position) [m, map frame] framing the observed Gaussians (all when none is observed):
+    the centre of their 5th-95th percentile box, seen from the south-west above at ~35 degrees, 1.2 box diagonals
+    away."""
+    pts = data.centers[data.semantics.observed] if np.any(data.semantics.observed) else data.centers
+    if len(pts) == 0:
+        return np.zeros(3), np.array([-3.0, -3.0, 3.0])
+    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
+    centre = 0.5 * (lo + hi)
+    diag = max(float(np.linalg.norm(hi - lo)), 0.5)
+    direction = np.array([-0.57, -0.57, 0.59])   # south-west, 35 degrees above the horizon
+    return centre, centre + 1.2 * diag * direction / np.linalg.norm(direction)
+
+
 def legend_html(names, palette) -> str:
     """Colour swatches of the classes (the toggles below carry the same names)."""
     items = "".join(
@@ -106,7 +120,19 @@ class MapView:
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.server.get_port()}"
         self._build_gui(title)
         self._draw_trajectory()
+        self.frame_camera()
         self.redraw()
+
+    def frame_camera(self) -> None:
+        """Open on the observed map (all Gaussians when none is observed): z up in the map frame, looking at the
+        centre of its bounding box (5th-95th percentiles, so a few stray Gaussians do not zoom out) from above at
+        about 35 degrees, far enough for the box to fill the view."""
+        centers, view_from = initial_view(self.data)
+        self.server.scene.set_up_direction("+z")
+        cam = self.server.initial_camera
+        cam.up = (0.0, 0.0, 1.0)
+        cam.look_at = tuple(float(v) for v in centers)
+        cam.position = tuple(float(v) for v in view_from)
 
     # ------------------------------------------------------------------ GUI
     def _build_gui(self, title: str) -> None:
