@@ -4,9 +4,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from css_ros.errors import InputError
-from css_ros.io.evidence import (DELTA, HEADER_SIZE, SNAPSHOT, EvidenceLedger, EvidenceOutbox, decode_packet,
-                                 encode_packet)
+from css_ros.engine.gaussians import GaussianModel
+from css_ros.engine.semantic_map import SemanticMap, SourceEvidence
+from css_ros.errors import InputError, MapError
+from css_ros.io import evidence as ev
+from css_ros.io.evidence import DELTA, HEADER_SIZE, SNAPSHOT, EvidenceLedger, EvidenceOutbox, decode_packet
+
+
+def encode_packet(kind, origin, fp, seq, rows, values, prior, n, epoch=1, frames=None, **kw):
+    """The module's encoder; by default epoch 1 and frames = the sequence number (deltas: one frame per packet)
+    or the snapshot id (all parts of a snapshot claim the same frames)."""
+    if frames is None:
+        frames = kw.get("snapshot_id") or seq
+    return ev.encode_packet(kind, origin, fp, seq, rows, values, prior, n, epoch=epoch, frames=frames, **kw)
 
 FP = "0123456789abcdef" * 4
 N, C, PRIOR = 50, 3, 1e-3
@@ -16,7 +26,7 @@ def test_packet_round_trip_and_layout():
     rows = np.array([1, 7, 49])
     vals = np.arange(9, dtype=float).reshape(3, 3) / 7
     data = encode_packet(DELTA, "robot_a", FP, 5, rows, vals, PRIOR, N)
-    assert len(data) == HEADER_SIZE + 3 * (4 + 8 * C) and HEADER_SIZE == 120 and data[:4] == b"CSSE"
+    assert len(data) == HEADER_SIZE + 3 * (4 + 8 * C) and HEADER_SIZE == 136 and data[:4] == b"CSSE"
     pkt = decode_packet(data, max_rows=10)
     assert (pkt.kind, pkt.origin, pkt.seq, pkt.range_end, pkt.num_classes, pkt.prior) == (DELTA, "robot_a", 5, N, C, PRIOR)
     assert pkt.fingerprint_digest == bytes.fromhex(FP)
@@ -70,16 +80,16 @@ def test_outbox_publishes_only_its_own_evidence():
     own_true[:10] = 0.0                                              # Gaussians seen only by others
     alpha = PRIOR + received + own_true
     box = EvidenceOutbox("me", FP, N, C, PRIOR, max_rows=16)
-    packets = [decode_packet(p, 16) for p in box.snapshot(box.own(alpha, received))]
+    packets = [decode_packet(p, 16) for p in box.snapshot(box.own(alpha, received), 1)]
     assert len(packets) == 3 and all(p.kind == SNAPSHOT for p in packets)
     got = np.zeros((N, C))
     for p in packets:
         got[p.rows] = p.values
     np.testing.assert_allclose(got, own_true, rtol=1e-12, atol=1e-14)
     assert not np.any(np.isin(np.arange(10), np.concatenate([p.rows for p in packets])))  # no echo
-    assert box.deltas(alpha, received) == []                         # nothing new: nothing sent
+    assert box.deltas(alpha, received, 2) == []                         # nothing new: nothing sent
     alpha[12] += 0.5
-    (delta,) = [decode_packet(p, 16) for p in box.deltas(alpha, received)]
+    (delta,) = [decode_packet(p, 16) for p in box.deltas(alpha, received, 2)]
     assert delta.seq == 4 and delta.rows.tolist() == [12]
     np.testing.assert_allclose(delta.values[0], 0.5, rtol=1e-12)
 
@@ -93,7 +103,7 @@ def test_deltas_equal_the_plain_formula_and_the_received_total_is_kept_in_step()
     box = EvidenceOutbox("me", FP, n, c, PRIOR, max_rows=64)
     received = rng.uniform(0, 3, (n, c))
     alpha = PRIOR + received + rng.uniform(0, 1, (n, c)) * (rng.random((n, c)) < 0.3)
-    box.snapshot(box.own(alpha, received))
+    box.snapshot(box.own(alpha, received), 1)
     grow = rng.choice(n, 50, replace=False)
     alpha[grow, rng.integers(0, c, 50)] += rng.uniform(0.01, 2.0, 50)
     alpha[::37, 1] += 1e-15                                            # rounding-level alone: not sent
@@ -102,10 +112,10 @@ def test_deltas_equal_the_plain_formula_and_the_received_total_is_kept_in_step()
     delta = own - box.published
     want_rows = np.flatnonzero(np.any(delta > 1e-12 * alpha.sum(axis=1, keepdims=True), axis=1))
     want_vals = np.maximum(delta[want_rows], 0.0)
-    packets = [decode_packet(p, n) for p in box.deltas(alpha, received)]
+    packets = [decode_packet(p, n) for p in box.deltas(alpha, received, 2)]
     assert np.array_equal(np.concatenate([p.rows for p in packets]), want_rows) and set(want_rows) == set(grow)
     np.testing.assert_array_equal(np.concatenate([p.values for p in packets]), want_vals)
-    assert box.deltas(alpha, received) == []
+    assert box.deltas(alpha, received, 2) == []
 
     ledger = EvidenceLedger("me", FP, n, c, PRIOR, max_sources=4)
     conc = np.full((n, c), PRIOR)
@@ -122,3 +132,273 @@ def test_deltas_equal_the_plain_formula_and_the_received_total_is_kept_in_step()
     np.testing.assert_allclose(conc, PRIOR + ledger.received_total(), rtol=1e-14)
     ledger.forget()
     assert not ledger.received_total().any() and not any(s.in_step for s in ledger.sources.values())
+
+
+# ---------------------------------------------------------------------------------------------------- restarts
+def _snap(origin, seq, total, epoch=1, frames=None, parts=1, fp=FP, n=N):
+    """The packets of one snapshot of ``total`` (N, C) in ``parts`` parts, sequence numbers seq, seq + 1, ..."""
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+    rows = np.arange(n)
+    return [decode_packet(encode_packet(SNAPSHOT, origin, fp, seq + k, rows[lo:hi], total[lo:hi], PRIOR, n,
+                                        epoch=epoch, frames=frames or seq, snapshot_id=seq, range_start=lo,
+                                        range_end=hi, part=k, parts=parts), n)
+            for k, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))]
+
+
+def _delta(origin, seq, vals, epoch=1, frames=None, rows=None, fp=FP, n=N):
+    rows = np.arange(n) if rows is None else rows
+    return decode_packet(encode_packet(DELTA, origin, fp, seq, rows, vals, PRIOR, n, epoch=epoch,
+                                       frames=frames or seq), n)
+
+
+def _apply_all(ledger, alpha, packets, now=None):
+    return [ledger.apply(p, alpha, now) for p in packets]
+
+
+def test_a_restarted_source_is_recognised_at_once():
+    """A peer restarted with the same origin id (a new epoch, sequence numbers from 1 again) is applied from its first
+    snapshot on: no lock-out until its new sequence passes the old one."""
+    rng = np.random.default_rng(2)
+    alpha = np.full((N, C), PRIOR)
+    ledger = EvidenceLedger("me", FP, N, C, PRIOR, max_sources=4)
+    total = np.zeros((N, C))
+    assert _apply_all(ledger, alpha, _snap("a", 1, total)) == [None]
+    for seq in range(2, 16):                                          # 14 deltas: the old life reaches seq 15
+        d = rng.uniform(0, 1, (N, C))
+        assert ledger.apply(_delta("a", seq, d), alpha) is None
+        total += d
+    restarted = total * 0.75                                          # its checkpoint held less
+    assert _apply_all(ledger, alpha, _snap("a", 1, restarted, epoch=2, parts=2)) == [None, None]
+    np.testing.assert_allclose(alpha, PRIOR + restarted, rtol=1e-13)
+    d = rng.uniform(0, 1, (N, C))
+    assert ledger.apply(_delta("a", 3, d, epoch=2), alpha) is None     # in step with the new life at once
+    assert ledger.apply(_delta("a", 16, d, epoch=1), alpha) is not None  # a late packet of the old life: refused
+    np.testing.assert_allclose(alpha, PRIOR + restarted + d, rtol=1e-13)
+
+
+def test_a_forged_huge_sequence_number_locks_no_source_out():
+    """A forged delta with sequence 2^64 - 1 under a peer's origin changes nothing; a forged snapshot with it holds
+    only until the peer's next snapshot, also after the receiver's map was reset."""
+    rng = np.random.default_rng(3)
+    alpha = np.full((N, C), PRIOR)
+    ledger = EvidenceLedger("me", FP, N, C, PRIOR, max_sources=4)
+    d = [rng.uniform(0, 1, (N, C)) for _ in range(4)]
+    assert _apply_all(ledger, alpha, _snap("a", 1, d[0])) == [None]
+    top = 2**64 - 1
+    assert ledger.apply(_delta("a", top, d[3], frames=2), alpha) is not None
+    assert ledger.apply(_delta("a", 2, d[1]), alpha) is None          # the peer goes on
+    np.testing.assert_allclose(alpha, PRIOR + d[0] + d[1], rtol=1e-13)
+    assert _apply_all(ledger, alpha, _snap("a", top, 5 * d[3], frames=3)) == [None]   # forged, applied ...
+    assert ledger.apply(_delta("a", 3, d[2]), alpha) is not None
+    assert _apply_all(ledger, alpha, _snap("a", 4, d[0] + d[1] + d[2], frames=4)) == [None]  # ... until this
+    assert ledger.apply(_delta("a", 5, d[3]), alpha) is None
+    np.testing.assert_allclose(alpha, PRIOR + sum(d), rtol=1e-13)
+    assert _apply_all(ledger, alpha, _snap("a", top, d[3], frames=6)) == [None]   # forged again, then a reset
+    alpha[...] = PRIOR
+    ledger.forget()
+    assert _apply_all(ledger, alpha, _snap("a", 6, sum(d), frames=6)) == [None]
+    assert ledger.apply(_delta("a", 7, d[0], frames=7), alpha) is None
+    np.testing.assert_allclose(alpha, PRIOR + sum(d) + d[0], rtol=1e-13)
+
+
+def test_refused_packets_take_no_source_slot():
+    """Eight junk origins, each with a refused packet, take no slot: an honest new peer is still applied; sources
+    holding no evidence give their slot to a new one."""
+    alpha = np.full((N, C), PRIOR)
+    ledger = EvidenceLedger("me", FP, N, C, PRIOR, max_sources=6)
+    ones = np.ones((N, C))
+    for k in range(8):
+        assert ledger.apply(_delta(f"junk{k}", 5, ones), alpha) is not None       # late start: refused
+        assert _apply_all(ledger, alpha, _snap(f"junk{k}", 1, ones, fp="ee" * 32)) != [None]  # other splat
+    assert ledger.sources == {}
+    assert _apply_all(ledger, alpha, _snap("honest", 1, ones)) == [None]
+    for k in range(5):                                                         # empty sources fill the slots ...
+        assert _apply_all(ledger, alpha, _snap(f"empty{k}", 1, np.zeros((N, C)))) == [None]
+    assert _apply_all(ledger, alpha, _snap("late", 1, ones)) == [None]         # ... and give one up
+    assert len(ledger.sources) == 6 and {"honest", "late"} <= set(ledger.sources)
+    np.testing.assert_allclose(alpha, PRIOR + 2 * ones, rtol=1e-15)
+
+
+def test_a_source_cannot_claim_more_than_its_frames_can_add():
+    """One frame adds at most P (pixels of the largest image) per Gaussian and in total: a snapshot or delta beyond
+    P times the frames it claims is refused, and so are frames claimed faster than max_frame_rate."""
+    n, c, p = 20_000, 4, 640.0 * 480.0
+    alpha = np.full((n, c), PRIOR)
+    ledger = EvidenceLedger("me", FP, n, c, PRIOR, max_sources=4, max_frame_evidence=p, max_frame_rate=30.0)
+    huge = np.full((n, c), 1e9)
+    assert _apply_all(ledger, alpha, _snap("x", 1, huge, frames=60, n=n), now=0.0) == [ev.BOUND_REASON]
+    assert not ledger.sources
+    fine = np.zeros((n, c))
+    fine[:10, 1] = 0.5 * p                                           # 10 Gaussians, each half an image
+    assert _apply_all(ledger, alpha, _snap("x", 1, fine, frames=10, n=n), now=0.0) == [None]
+    refused = [ledger.apply(_delta("x", 2, huge[:100], frames=11 + k, rows=np.arange(100), n=n), alpha, now=0.1)
+               for k in range(50)]                                   # 50 deltas of 1e9: none moves the sequence
+    assert set(refused) == {ev.BOUND_REASON}
+    one = np.zeros((100, c))
+    one[:, 2] = p                                                    # each of 100 Gaussians fully seen in 1 frame
+    assert ledger.apply(_delta("x", 2, one, frames=11, rows=np.arange(100), n=n), alpha, now=0.1) is not None, \
+        "100 full images in one frame"
+    assert ledger.apply(_delta("x", 2, one[:1], frames=11, rows=np.arange(1), n=n), alpha, now=0.1) is None
+    assert ledger.apply(_delta("x", 3, one[:1], frames=10**6, rows=np.arange(1), n=n), alpha, now=0.2) == \
+        "frames claimed faster than evidence_max_frame_rate"
+    assert ledger.apply(_delta("x", 3, one[:1], frames=10 + 300, rows=np.arange(1), n=n), alpha, now=10.0) is None
+    assert alpha.max() <= PRIOR + 2 * p
+
+
+def test_packets_of_format_1_are_refused_by_name():
+    data = bytearray(encode_packet(DELTA, "a", FP, 1, np.array([1]), np.ones((1, C)), PRIOR, N))
+    data[4:6] = (1).to_bytes(2, "little")
+    with pytest.raises(InputError, match="format 1"):
+        decode_packet(bytes(data), 10)
+
+
+# ---------------------------------------------------------------------------------------------------- checkpoints
+class _Node:
+    """A css_node's evidence exchange without ROS: its map, ledger and outbox, wired as css_ros/ros/evidence.py does
+    (a snapshot first after every start, reset and load, then deltas); frames add evidence directly."""
+
+    def __init__(self, model, origin, smap=None):
+        self.model, self.origin = model, origin
+        self.smap = smap if smap is not None else SemanticMap(model, C, prior=PRIOR)
+        self.box = EvidenceOutbox(origin, model.fingerprint, model.num_gaussians, C, PRIOR, max_rows=100)
+        self.bind()
+
+    def bind(self):
+        m = self.model
+        self.ledger = EvidenceLedger(self.origin, m.fingerprint, m.num_gaussians, C, PRIOR, max_sources=4,
+                                     received=ev.received_sources(self.smap, self.origin))
+        self.smap.evidence_origin, self.smap.received = self.origin, self.ledger.sources
+        self.snapshot_due = True
+
+    def publish(self):
+        conc, frames = self.smap.concentrations, self.smap.frames_observed
+        received = self.ledger.received_total()
+        if self.snapshot_due:
+            self.snapshot_due = False
+            return self.box.snapshot(self.box.own(conc, received), frames)
+        return self.box.deltas(conc, received, frames)
+
+    def receive(self, packets):
+        n = self.model.num_gaussians
+        return [self.ledger.apply(decode_packet(p, n), self.smap.concentrations) for p in packets]
+
+    def reset(self):                                  # ~/reset_map: MapWorker.reset_map + on_map_replaced
+        self.smap.reset()
+        self.ledger.forget()
+        self.box.reset()
+        self.snapshot_due = True
+
+    def load(self, path):                             # ~/load_map: MapWorker.load_map + on_map_replaced
+        loaded = SemanticMap.load(path, self.model)
+        self.smap.concentrations[...] = loaded.concentrations
+        self.smap.frames_observed = loaded.frames_observed
+        self.smap.evidence_origin, self.smap.received = loaded.evidence_origin, loaded.received
+        self.bind()
+        self.box.reset()
+
+
+def _observe(node, rng):
+    """One frame: evidence on a few Gaussians (what a rendered segmentation would add)."""
+    n = node.model.num_gaussians
+    add = np.zeros((n, C))
+    rows = rng.choice(n, 40, replace=False)
+    add[rows, rng.integers(0, C, 40)] = rng.uniform(0.1, 3.0, 40)
+    node.smap.concentrations[...] += add
+    node.smap.frames_observed += 1
+    return add
+
+
+def _exchange(a, b, rounds=2):
+    for _ in range(rounds):
+        a.receive(b.publish())
+        b.receive(a.publish())
+
+
+def test_a_crashed_and_resumed_node_keeps_the_group_exactly_once(tmp_path):
+    """A and B exchange evidence; B's checkpoint keeps each source's evidence apart from its own, so B resumed from it
+    (after a kill: the frame it fused after its checkpoint is lost, in every map alike) re-states only its own
+    evidence; ~/reset_map withdraws it, ~/load_map re-states the file's. Every map equals the sum of the frames the
+    group still holds, to rounding."""
+    import ros_helpers as rh
+
+    model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
+    rng = np.random.default_rng(7)
+    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
+    own_a, own_b = [], []
+    for _ in range(4):
+        own_a.append(_observe(a, rng))
+        own_b.append(_observe(b, rng))
+        _exchange(a, b)
+    ckpt = tmp_path / "b.npz"
+    b.smap.save(ckpt)
+    saved_b = sum(own_b)
+    _observe(b, rng)                                   # fused after the checkpoint, sent, then B is killed
+    a.receive(b.publish())
+    own_a.append(_observe(a, rng))
+    a.publish()                                        # B is down: this delta is lost to it
+    b = _Node(model, "robot_b", SemanticMap.load(ckpt, model))   # resumed (same origin; a new epoch)
+    assert set(b.smap.received) == {"robot_a"}
+    for _ in range(3):
+        own_a.append(_observe(a, rng))
+        own_b.append(_observe(b, rng))
+        _exchange(a, b)
+    a.snapshot_due = True                              # A's periodic snapshot re-syncs B (its deltas were a gap)
+    _exchange(a, b)
+    want = PRIOR + sum(own_a) + saved_b + sum(own_b[4:])
+    for node in (a, b):
+        np.testing.assert_allclose(node.smap.concentrations, want, rtol=1e-12, err_msg=node.origin)
+    b.smap.save(ckpt)
+    b.reset()                                          # B's own evidence is withdrawn everywhere
+    _exchange(a, b)
+    a.snapshot_due = True
+    _exchange(a, b)
+    for node in (a, b):
+        np.testing.assert_allclose(node.smap.concentrations, PRIOR + sum(own_a), rtol=1e-12, err_msg=node.origin)
+    b.load(ckpt)                                       # ... and re-stated from the file, A's part replaced by A
+    own_a.append(_observe(a, rng))
+    _exchange(a, b)
+    a.snapshot_due = True
+    _exchange(a, b)
+    want = PRIOR + sum(own_a) + saved_b + sum(own_b[4:])
+    for node in (a, b):
+        np.testing.assert_allclose(node.smap.concentrations, want, rtol=1e-12, err_msg=node.origin)
+
+
+def test_map_files_keep_received_sources_and_old_files_still_load(tmp_path):
+    import ros_helpers as rh
+
+    model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
+    n = model.num_gaussians
+    smap = SemanticMap(model, C, prior=PRIOR)
+    ev_a = np.zeros((n, C))
+    ev_a[[3, 9], 1] = [2.0, 5.0]
+    smap.concentrations[...] += ev_a + 0.25
+    smap.evidence_origin = "robot_b"
+    smap.received = {"robot_a": SourceEvidence(ev_a, epoch=2**64 - 1, last_seq=7, frames=3, in_step=True)}
+    path = smap.save(tmp_path / "m.npz")
+    back = SemanticMap.load(path, model)
+    assert back.evidence_origin == "robot_b" and set(back.received) == {"robot_a"}
+    got = back.received["robot_a"]
+    np.testing.assert_array_equal(got.evidence, ev_a)
+    assert (got.epoch, got.last_seq, got.frames, got.in_step) == (2**64 - 1, 7, 3, True)
+    # another node resuming it: robot_b's own part becomes a received source, robot_a's stays
+    rec = ev.received_sources(back, "robot_c")
+    np.testing.assert_allclose(rec["robot_b"].evidence, np.full((n, C), 0.25), rtol=1e-12)
+    assert set(ev.received_sources(back, "robot_a")) == {"robot_b"}   # its own evidence, as robot_b held it
+
+    with np.load(path) as data:
+        members = {k: data[k] for k in data.files}
+    old = {k: v for k, v in members.items() if k != "evidence_origin" and not k.startswith("received_")}
+    np.savez(tmp_path / "old.npz", **old)
+    legacy = SemanticMap.load(tmp_path / "old.npz", model)
+    assert legacy.evidence_origin == "" and legacy.received == {}
+    assert set(ev.received_sources(legacy, "robot_b")) == set()          # all of it is own
+    for name, bad, why in [
+        ("state", {**members, "received_state": members["received_state"][:, :3]}, "inconsistent shapes"),
+        ("partial", {k: v for k, v in members.items() if k != "received_rows"}, "not all of"),
+        ("exceeds", {**members, "received_evidence": members["received_evidence"] * 10}, "exceeds"),
+        ("rows", {**members, "received_rows": members["received_rows"][::-1].copy()}, "not increasing"),
+    ]:
+        np.savez(tmp_path / f"{name}.npz", **bad)
+        with pytest.raises(MapError, match=why):
+            SemanticMap.load(tmp_path / f"{name}.npz", model)

@@ -17,7 +17,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 import ros_helpers as rh  # noqa: E402
 
 from css_ros.engine.gaussians import GaussianModel  # noqa: E402
-from css_ros.io.evidence import DELTA, SNAPSHOT, encode_packet  # noqa: E402
+from css_ros.io import evidence as ev  # noqa: E402
+from css_ros.io.evidence import DELTA, SNAPSHOT  # noqa: E402
 
 pytestmark = pytest.mark.slow
 PRIOR = 1e-3
@@ -29,6 +30,12 @@ def _params(model: Path, ckpt: Path, **kw) -> dict:
     return dict(model_path=str(model), class_file="", num_classes=rh.NUM_CLASSES, prior=PRIOR,
                 checkpoint_path=str(ckpt), resume=False, checkpoint_period=0.0, log_period=0.5, warmup=False,
                 evidence_period=0.2, evidence_snapshot_period=SNAPSHOT_PERIOD, **kw)
+
+
+def encode_packet(kind, origin, fp, seq, rows, values, prior, n, **kw):
+    """The module's encoder, epoch 1, claiming one frame per sequence number (a snapshot: its id)."""
+    kw.setdefault("frames", kw.get("snapshot_id") or seq)
+    return ev.encode_packet(kind, origin, fp, seq, rows, values, prior, n, epoch=1, **kw)
 
 
 def _frame(i: int) -> tuple[np.ndarray, tuple[float, float, float]]:
@@ -124,8 +131,8 @@ def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
     model = GaussianModel.from_ply(model_path)
     n, c, fp = model.num_gaussians, rh.NUM_CLASSES, model.fingerprint
     ckpt = tmp_path / "n.npz"
-    node = rh.NodeProcess(_params(model_path, ckpt, evidence_in="/crafted/evidence", evidence_max_rate=40.0),
-                          domain, tmp_path / "n.log")
+    node = rh.NodeProcess(_params(model_path, ckpt, evidence_in="/crafted/evidence", evidence_max_rate=40.0,
+                                  evidence_allowed_origins="crafted,robot_z"), domain, tmp_path / "n.log")
     client = rh.RosClient(domain)
     try:
         pub = client.node.create_publisher(UInt8MultiArray, "/crafted/evidence",
@@ -156,6 +163,7 @@ def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
         bad[3, 1] = 1e12
         send(pkt(DELTA, 7, bad))                                               # huge
         send(encode_packet(DELTA, "crafted", "ab" * 32, 8, rows, d[0], PRIOR, n))  # other model
+        send(encode_packet(SNAPSHOT, "intruder", fp, 1, rows, d[0], PRIOR, n, snapshot_id=1))  # not allowed
         np.testing.assert_allclose(_saved(client, ckpt)[0], PRIOR + d[0], rtol=1e-12)
         total = d[0] + d[1] + d[2]
         send(encode_packet(SNAPSHOT, "crafted", fp, 9, rows[: n // 2], total[: n // 2], PRIOR, n, snapshot_id=9,
@@ -168,7 +176,7 @@ def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
         assert got, "snapshot did not bridge the gap"
         m, sources = _saved(client, ckpt)
         assert sources == ["crafted"]
-        assert int(client.wait_until(lambda: client.diagnostics().get("evidence_packets_from[crafted]"), 10.0)) >= 5
+        assert client.wait_until(lambda: int(client.diagnostics().get("evidence_packets_from[crafted]", 0)) >= 5, 10.0)
         for _ in range(120):                                                   # a flood: 120 packets at once
             msg = UInt8MultiArray()
             msg.data = pkt(DELTA, 1, d[0])
@@ -178,6 +186,7 @@ def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
         assert diag, "flood not reported"
         for reason in ("replayed or duplicate sequence number", "non-finite evidence", "negative evidence",
                        "evidence above the per-packet bound", "evidence of another splat model",
+                       "origin not in evidence_allowed_origins",
                        "sequence gap or late start: waiting for a snapshot"):
             assert int(diag.get(f"evidence_refused[{reason}]", 0)) >= 1, reason
         np.testing.assert_allclose(_saved(client, ckpt)[0], expected, rtol=1e-12)  # nothing of it reached the map
@@ -185,3 +194,62 @@ def test_gaps_snapshots_replays_and_bad_packets_from_a_source(tmp_path):
     finally:
         client.close()
         node.stop()
+
+
+def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
+    """A (even frames) and B (odd frames) exchange evidence; B is killed with SIGKILL right after a checkpoint while A
+    keeps mapping, and restarted with resume:=true (same namespace, default origin id). At the end A and B both equal
+    one node fed every frame (1e-9 relative): the resumed B knows which evidence is its own, A recognises B's restart
+    at once (no "replayed" lock-out), and a ~/load_map of B's checkpoint counts nothing twice either."""
+    from std_srvs.srv import Trigger
+
+    domain = rh.next_domain_id()
+    model = rh.write_wall_model(tmp_path / "wall.ply")
+    frames = list(range(10))
+    paths = {n: tmp_path / f"{n}.npz" for n in ("a", "b", "ref")}
+    peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
+    origin = {"a": "robot_a", "b": ""}                      # B: the default origin (host name and pid)
+
+    def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
+        ev = dict(publish_evidence=True, evidence_in=peer[name], evidence_origin=origin[name]) if name != "ref" else {}
+        node = rh.NodeProcess({**_params(model, paths[name], **ev), **kw}, domain, tmp_path / f"{name}{log}.log",
+                              remaps={"__ns": f"/{name}"})
+        assert node.wait_log("services:", 60.0), node.log()   # up (the killed B's entities linger in DDS a while)
+        client = _client(domain, f"/{name}")
+        assert client.wait_connected(60.0), node.log()
+        return node, client
+
+    nodes, clients = {}, {}
+    try:
+        for name in ("a", "b", "ref"):
+            nodes[name], clients[name] = start(name)
+        a, ref = clients["a"], clients["ref"]
+        _feed(ref, frames)
+        want = _saved(ref, paths["ref"])[0]
+        _feed(a, [0, 2])
+        _feed(clients["b"], [1, 3])
+        time.sleep(1.5 * SNAPSHOT_PERIOD)                   # B holds A's evidence and A B's
+        assert clients["b"].call(clients["b"].save_client).success
+        clients["b"].close()
+        nodes["b"].kill9()                                   # mid-run: A keeps mapping meanwhile
+        _feed(a, [4, 6])
+        nodes["b"], clients["b"] = start("b", log="_resumed", resume=True)
+        b = clients["b"]
+        assert "resumed from" in nodes["b"].log()
+        _feed(b, [5, 7, 9])
+        _feed(a, [8])
+        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=30.0)
+        for name, m in zip("ab", maps):
+            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after B's restart")
+        assert not any(k.startswith("evidence_refused[replayed") for k in a.diagnostics()), a.diagnostics()
+        load = b.node.create_client(Trigger, "/b/css_node/load_map")
+        assert b.call(load).success                          # B reloads its checkpoint: still exactly once
+        time.sleep(2.5 * SNAPSHOT_PERIOD)
+        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=20.0)
+        for name, m in zip("ab", maps):
+            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after B's load_map")
+    finally:
+        for c in clients.values():
+            c.close()
+        for n in nodes.values():
+            n.stop()

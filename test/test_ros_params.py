@@ -77,7 +77,10 @@ def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, defa
                                           ("cameras", ["cam1", "cäm2"]),
                                           ("camera_extrinsics", [1e308, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
                                           ("splat_to_map", [1.0, 0, 2e7, 0, 0, 0, 0, 1]),
-                                          ("splat_to_map", [1e300, 0, 0, 0, 0, 0, 0, 1])])
+                                          ("splat_to_map", [1e300, 0, 0, 0, 0, 0, 0, 1]),
+                                          ("model_swap_min_ratio", 1.5), ("model_swap_min_ratio", float("nan")),
+                                          ("model_swap_warn_ratio", -0.1),
+                                          ("model_swap_warn_ratio", 0.5)])   # below model_swap_min_ratio 0.7
 def test_check_params_rejects(field, value):
     p = NodeParams()
     setattr(p, field, value)

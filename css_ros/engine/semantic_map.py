@@ -7,7 +7,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Sequence
+from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
 
 import numpy as np
 
@@ -42,10 +42,22 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "frames_observed": ("iu", ()),
     "sources": ("U", ("S",)),
     "sensor_model": ("U", ()),
+    # evidence exchange (css_node, docs/maps.md): the origin id of the map's own evidence and, per received source,
+    # its id, (epoch, last sequence number, frames, in step) and its evidence as sparse rows (counts per source)
+    "evidence_origin": ("U", ()),
+    "received_sources": ("U", ("S",)),
+    "received_state": ("u", ("S", 4)),
+    "received_counts": ("iu", ("S",)),
+    "received_rows": ("iu", ("R",)),
+    "received_evidence": ("f", ("R", "C")),
 }
-_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model")
+_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model", "evidence_origin", "received_sources",
+                     "received_state", "received_counts", "received_rows", "received_evidence")
+_RECEIVED_MEMBERS = ("received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
 #: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
 MAX_SOURCES = 4096
+#: Most received sources whose evidence a map file keeps apart (each becomes an (N, C) float64 array when loaded).
+MAX_RECEIVED_SOURCES = 64
 
 
 #: Largest byte size of a scalar member of a map file (the fingerprint string is 64 characters of 4 bytes).
@@ -132,6 +144,53 @@ def _check_map_headers(path: Path, model: "GaussianModel | int", num_classes: in
                        f"the model give ({n_model}, {file_classes})")
     if num_classes is not None and file_classes != num_classes:
         raise MapError(f"map file {path} has {file_classes} classes, expected {num_classes}")
+    present = [k for k in _RECEIVED_MEMBERS if k in shapes]
+    if present and len(present) != len(_RECEIVED_MEMBERS):
+        raise MapError(f"map file {path} has {', '.join(present)} but not all of {', '.join(_RECEIVED_MEMBERS)}")
+    if present:
+        s, r = shapes["received_sources"][0], shapes["received_rows"][0]
+        if s > MAX_RECEIVED_SOURCES:
+            raise MapError(f"map file {path} keeps the evidence of {s} received sources, at most {MAX_RECEIVED_SOURCES}")
+        if (tuple(shapes["received_state"]) != (s, 4) or tuple(shapes["received_counts"]) != (s,)
+                or tuple(shapes["received_evidence"]) != (r, file_classes) or r > s * n_model):
+            raise MapError(f"map file {path}: received evidence of inconsistent shapes (sources {s}, state "
+                           f"{shapes['received_state']}, counts {shapes['received_counts']}, rows {r}, evidence "
+                           f"{shapes['received_evidence']}; at most {n_model} rows per source)")
+
+def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarray,
+                      prior: float) -> dict[str, SourceEvidence]:
+    """The received sources of a map file (``received_*`` members, shapes checked by :func:`_check_map_headers`):
+    ids of 1..32 ASCII characters, each once; rows strictly increasing per source; evidence finite, >= 0, and in
+    total at most what the concentrations hold above the prior. An old file without them: none."""
+    if not members:
+        return {}
+    names, state, counts = members["received_sources"], members["received_state"], members["received_counts"]
+    rows, values = members["received_rows"].astype(np.int64), members["received_evidence"].astype(np.float64)
+    n, c = conc.shape
+    ids = [str(v) for v in names]
+    if len(set(ids)) != len(ids) or not all(0 < len(i) <= 32 and i.isascii() for i in ids):
+        raise MapError(f"map file {path}: received source ids must be distinct, 1..32 ASCII characters")
+    if np.any(counts < 0) or int(counts.sum()) != rows.size:
+        raise MapError(f"map file {path}: received_counts do not add up to the {rows.size} received rows")
+    if not np.all(np.isfinite(values)) or np.any(values < 0) or np.any(values > MAX_CONCENTRATION):
+        raise MapError(f"map file {path}: received evidence must be finite and in [0, {MAX_CONCENTRATION:g}]")
+    out: dict[str, SourceEvidence] = {}
+    total = np.zeros((n, c))
+    start = 0
+    for k, name in enumerate(ids):
+        r = rows[start:start + int(counts[k])]
+        if r.size and (np.any(np.diff(r) <= 0) or r[0] < 0 or r[-1] >= n):
+            raise MapError(f"map file {path}: rows of received source {name!r} not increasing within 0..{n - 1}")
+        ev = np.zeros((n, c))
+        ev[r] = values[start:start + r.size]
+        total += ev
+        epoch, seq, frames, in_step = (int(v) for v in state[k])
+        out[name] = SourceEvidence(ev, epoch, seq, frames, bool(in_step))
+        start += r.size
+    if np.any(total > (conc - prior) + 1e-9 * conc):
+        raise MapError(f"map file {path}: the received evidence exceeds what the concentrations hold")
+    return out
+
 
 def _update_name(fingerprint: str) -> str:
     """How logs name the update a map was fused with."""
@@ -175,6 +234,22 @@ class RenderedView:
     probabilities: np.ndarray | None = None
     depth: np.ndarray | None = None
     confidence: np.ndarray | None = None
+
+
+@dataclass
+class SourceEvidence:
+    """The evidence of one other node (source) that a map holds (css_node's evidence exchange, docs/maps.md).
+
+    ``evidence`` is that source's (N, C) float64 part of the concentrations; ``epoch``, ``last_seq`` and ``frames``
+    are those of its last packet applied, ``in_step`` whether the next delta of that epoch can be applied. Saved
+    with the map so that a resumed node knows which evidence is its own and which it received.
+    """
+
+    evidence: np.ndarray
+    epoch: int = 0
+    last_seq: int = 0
+    frames: int = 0
+    in_step: bool = False
 
 
 @dataclass(frozen=True)
@@ -262,6 +337,10 @@ class SemanticMap:
         self.sensor_model = sensor_model
         #: origin ids of the sources whose evidence this map holds (css_node's own and received ones), sorted
         self.sources: list[str] = []
+        #: origin id under which css_node publishes this map's own evidence ("": none / not known)
+        self.evidence_origin = ""
+        #: evidence of other nodes held in ``concentrations``, per origin id (css_node's evidence ledger keeps it)
+        self.received: Mapping[str, SourceEvidence] = {}
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
     # ------------------------------------------------------------------ state
@@ -305,6 +384,9 @@ class SemanticMap:
         """Forget every observation: all concentrations back to the prior."""
         self.concentrations[...] = self.prior
         self.frames_observed = 0
+        for src in self.received.values():   # their evidence is gone too; each must re-state it by a snapshot
+            src.evidence[...] = 0.0
+            src.in_step = False
         self.fused_sensor_model = self.sensor_fingerprint
 
     def _background_moments(self) -> tuple[float, float, float]:
@@ -565,8 +647,24 @@ class SemanticMap:
                 frames_observed=np.int64(self.frames_observed),
                 sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
                 sensor_model=np.array(self.fused_sensor_model),
+                evidence_origin=np.array(self.evidence_origin),
+                **self._received_members(),
             )
         return path
+
+    def _received_members(self) -> dict[str, Any]:
+        """The ``received_*`` members of a map file: each source's nonzero rows, in sorted source order."""
+        names = sorted(self.received)
+        rows = [np.flatnonzero(np.any(self.received[n].evidence != 0.0, axis=1)) for n in names]
+        return dict(
+            received_sources=np.array(names, dtype=str).reshape(-1),
+            received_state=np.array([[s.epoch, s.last_seq, s.frames, int(s.in_step)]
+                                     for s in (self.received[n] for n in names)], dtype=np.uint64).reshape(-1, 4),
+            received_counts=np.array([r.size for r in rows], dtype=np.int64),
+            received_rows=np.concatenate(rows + [np.zeros(0, np.int64)]).astype(np.int64),
+            received_evidence=np.concatenate([self.received[n].evidence[r] for n, r in zip(names, rows)]
+                                             + [np.zeros((0, self.num_classes))]),
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], model: "GaussianModel", expected_classes: int | None = None,
@@ -599,6 +697,8 @@ class SemanticMap:
                 frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
                 sources = [str(v) for v in data["sources"]] if "sources" in data.files else []
                 fused_sm = str(data["sensor_model"]) if "sensor_model" in data.files else NO_SENSOR_MODEL
+                evidence_origin = str(data["evidence_origin"]) if "evidence_origin" in data.files else ""
+                received = {k: np.array(data[k]) for k in _RECEIVED_MEMBERS if k in data.files}
                 if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
                     raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not "
                                    f"{getattr(model, 'source', None) or 'the given model'}")
@@ -625,6 +725,8 @@ class SemanticMap:
         smap.concentrations[...] = conc
         smap.frames_observed = frames
         smap.sources = sources
+        smap.evidence_origin = evidence_origin
+        smap.received = _received_sources(path, received, conc, prior)
         # a map holding only the prior carries no evidence of any update: it takes the sensor model the caller names
         empty = "sensor_model" in kwargs and not np.any(conc != prior)
         smap.fused_sensor_model = smap.sensor_fingerprint if empty else fused_sm

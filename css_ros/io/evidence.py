@@ -1,18 +1,19 @@
 """Evidence exchange between css_nodes of one splat: the packet encoding and the exactly-once ledger (ROS-free).
 
 A node publishes only the evidence it fused itself (never what it received: no echo), as numbered packets
-carried in ``std_msgs/UInt8MultiArray`` (``data`` = the bytes below; layout unused). Little endian:
+carried in ``std_msgs/UInt8MultiArray`` (``data`` = the bytes below; layout unused). Little endian (format 2;
+format 1 packets, of css_ros before the epoch and frame fields, are refused):
 
 =========  ======  =====================================================================================
 offset     type    field
 =========  ======  =====================================================================================
 0          4 B     magic ``CSSE``
-4          u16     format version (1)
+4          u16     format version (2)
 6          u8      kind: 0 delta (add these rows), 1 snapshot part (these rows *are* the source's total)
 7          u8      reserved (0)
 8          32 B    origin id, ASCII, NUL padded (unique per publishing node)
 40         32 B    SHA-256 digest of the splat model (``GaussianModel.fingerprint``)
-72         u64     sequence number (1, 2, ... per origin; every packet, deltas and snapshot parts alike)
+72         u64     sequence number (1, 2, ... per origin and epoch; every packet, deltas and snapshot parts)
 80         u64     snapshot id (the sequence number of the snapshot's first part; 0 for deltas)
 88         u32     range start (snapshot: first Gaussian the part covers; 0 for deltas)
 92         u32     range end (snapshot: one past the last Gaussian it covers; N for deltas)
@@ -21,35 +22,49 @@ offset     type    field
 104        u32     number of classes C
 108        u32     number of rows R (≤ the bound set by the node)
 112        f64     prior α_0 of the publishing map
-120        R u32   Gaussian ids, strictly increasing, inside the range
-120 + 4R   R·C f64 evidence per row and class (κ-weighted label counts, ≥ 0)
+120        u64     epoch: one id per start of the publishing node (and per map reset / load), ns since 1970
+128        u64     frames: how many frames the source's evidence holds (its map's ``frames_observed``)
+136        R u32   Gaussian ids, strictly increasing, inside the range
+136 + 4R   R·C f64 evidence per row and class (κ-weighted label counts, ≥ 0)
 =========  ======  =====================================================================================
 
 A snapshot of a source is a run of parts with consecutive sequence numbers whose ranges tile [0, N); a part
 replaces that source's evidence on its range (rows left out are zero). A receiver applies deltas of a source
-only while it is in step with it (the next sequence number); a gap, or a late start, puts the source out of
-step until the last part of the next complete snapshot has been applied. Old or repeated sequence numbers are
-refused.
+only while it is in step with it (the same epoch and the next sequence number); a gap, a late start or a new
+epoch (the source restarted, or reset / loaded its map) puts the source out of step until the last part of its
+next complete snapshot has been applied. A snapshot re-states the source whatever its sequence number and epoch
+(so a restart, or one forged packet with sequence 2^64 - 1, costs at most one snapshot period); old or repeated
+sequence numbers of deltas are refused. A packet that is refused changes nothing (no source slot, no sequence
+number). Bounds (``max_frame_evidence`` P = the largest image in pixels, since one frame adds at most one unit
+of evidence per pixel, spread over the Gaussians it sees): a delta adds at most P·f per Gaussian, f = frames
+since the source's previous delta; a source holds at most P·F in total, F = the frames it claims; within one
+epoch F grows at most at ``max_frame_rate`` frames/s (plus a burst of FRAME_BURST_S seconds).
 """
 from __future__ import annotations
 
 import struct
+import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 from numba import njit
 
+from ..engine.semantic_map import SourceEvidence
 from ..errors import InputError
 
+if TYPE_CHECKING:
+    from ..engine.semantic_map import SemanticMap
+
 __all__ = ["EvidencePacket", "encode_packet", "decode_packet", "EvidenceLedger", "DELTA", "SNAPSHOT",
-           "MAX_INCREMENT", "HEADER_SIZE", "ORIGIN_BYTES"]
+           "MAX_INCREMENT", "HEADER_SIZE", "ORIGIN_BYTES", "own_evidence", "new_epoch", "received_sources"]
 
 MAGIC = b"CSSE"
-VERSION = 1
+VERSION = 2
 DELTA = 0
 SNAPSHOT = 1
 ORIGIN_BYTES = 32
-_HEADER = struct.Struct("<4sHBB32s32sQQIIIIIId")
+_HEADER = struct.Struct("<4sHBB32s32sQQIIIIIIdQQ")
 HEADER_SIZE = _HEADER.size
 #: Largest evidence one packet may carry for one Gaussian and class (κ ≤ 1 per pixel: 1e9 is ~100 frames of
 #: a 10-megapixel camera on one Gaussian); larger values are refused as corrupt.
@@ -57,6 +72,26 @@ MAX_INCREMENT = 1e9
 #: Own-evidence changes below this fraction of a Gaussian's total are rounding (own = α - α_0 - received is
 #: a difference of float64 sums) and are not published: received evidence never comes back as an echo.
 ROUNDING_FRACTION = 1e-12
+#: Seconds of frames (at ``max_frame_rate``) a source may claim ahead of the time since its epoch was adopted.
+FRAME_BURST_S = 5.0
+#: Relative slack of the evidence bounds (the sender's float64 sums round).
+BOUND_SLACK = 1e-9
+BOUND_REASON = "evidence above what its frames can add (max_image_pixels per frame)"
+LATE_REASON = "sequence gap or late start: waiting for a snapshot"
+SNAPSHOT_REASON = "incomplete snapshot: waiting for the next one"
+
+
+def new_epoch(previous: int = 0) -> int:
+    """An epoch id for a start (or a map reset / load) of a publishing node: wall-clock ns, above ``previous``."""
+    return max(time.time_ns(), previous + 1)
+
+
+def own_evidence(concentrations: np.ndarray, prior: float, received: np.ndarray) -> np.ndarray:
+    """(N, C) a node's own evidence α - α_0 - received, rounding-level values (below ROUNDING_FRACTION of a
+    Gaussian's total) set to 0."""
+    own = concentrations - prior - received
+    own[own <= ROUNDING_FRACTION * concentrations.sum(axis=1, keepdims=True)] = 0.0
+    return own
 
 
 @dataclass(frozen=True)
@@ -74,13 +109,16 @@ class EvidencePacket:
     parts: int
     num_classes: int
     prior: float
+    epoch: int
+    frames: int
     rows: np.ndarray     # (R,) uint32 Gaussian ids
     values: np.ndarray   # (R, C) float64 evidence
 
 
 def encode_packet(kind: int, origin: str, fingerprint: str, seq: int, rows: np.ndarray, values: np.ndarray,
                   prior: float, num_gaussians: int, snapshot_id: int = 0, range_start: int = 0,
-                  range_end: int | None = None, part: int = 0, parts: int = 1) -> bytes:
+                  range_end: int | None = None, part: int = 0, parts: int = 1, *, epoch: int,
+                  frames: int) -> bytes:
     """The bytes of one packet. ``fingerprint``: hex SHA-256 of the model; ``values`` (R, C) float64."""
     origin_b = origin.encode("ascii")
     if len(origin_b) > ORIGIN_BYTES or not origin_b:
@@ -89,7 +127,7 @@ def encode_packet(kind: int, origin: str, fingerprint: str, seq: int, rows: np.n
     rows = np.ascontiguousarray(rows, dtype="<u4")
     header = _HEADER.pack(MAGIC, VERSION, kind, 0, origin_b, bytes.fromhex(fingerprint), seq, snapshot_id,
                           range_start, num_gaussians if range_end is None else range_end, part, parts,
-                          values.shape[1], len(rows), prior)
+                          values.shape[1], len(rows), prior, epoch, frames)
     return header + rows.tobytes() + values.tobytes()
 
 
@@ -102,7 +140,9 @@ def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
     if len(data) < HEADER_SIZE:
         raise InputError("truncated packet")
     (magic, version, kind, _, origin_b, digest, seq, snap, lo, hi, part, parts, c, r,
-     prior) = _HEADER.unpack_from(data)
+     prior, epoch, frames) = _HEADER.unpack_from(data)
+    if magic == MAGIC and version == 1:
+        raise InputError("packet format 1 (an older css_ros): update every node of the exchange")
     if magic != MAGIC or version != VERSION:
         raise InputError("not a css evidence packet (magic/version)")
     if kind not in (DELTA, SNAPSHOT):
@@ -129,19 +169,31 @@ def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
         raise InputError("negative evidence")
     if np.any(values > MAX_INCREMENT):
         raise InputError("evidence above the per-packet bound")
-    return EvidencePacket(kind, origin, digest, seq, snap, lo, hi, part, parts, c, prior, rows,
+    return EvidencePacket(kind, origin, digest, seq, snap, lo, hi, part, parts, c, prior, epoch, frames, rows,
                           values.astype(np.float64))
 
 
 @dataclass
-class SourceState:
-    """What a receiver knows of one source. ``evidence``: (N, C) float64, that source's evidence in the map."""
+class _Snapshot:
+    """A snapshot being received: its epoch, id, frames, next part / sequence number / range start, sum so far."""
 
-    evidence: np.ndarray
-    last_seq: int = 0
-    in_step: bool = False
-    snapshot_id: int = 0        # snapshot being received (0: none)
-    snapshot_next_part: int = 0
+    epoch: int
+    snapshot_id: int
+    frames: int
+    next_part: int = 0
+    next_seq: int = 0
+    next_start: int = 0
+    total: float = 0.0
+
+
+@dataclass
+class SourceState(SourceEvidence):
+    """What a receiver knows of one source (``evidence``: (N, C) float64, that source's evidence in the map)."""
+
+    total: float = 0.0                          # Σ of evidence, kept in step
+    frames_base: int = 0                        # frames before the latest increase (a delta covers frames - base)
+    clock: tuple[int, float] | None = None      # (frames, time.monotonic()) when the epoch was adopted (None: free)
+    pending: _Snapshot | None = None
     packets: int = 0
 
 
@@ -149,18 +201,29 @@ class EvidenceLedger:
     """Exactly-once bookkeeping of the evidence received from other nodes (one per map; not thread-safe).
 
     ``apply`` changes the map's concentrations and returns None, or returns the reason a packet was refused
-    (the map is then unchanged). Memory: 8·N·C bytes per source, at most ``max_sources`` sources.
+    (the map and the ledger are then unchanged: a refused packet takes no source slot and moves no sequence
+    number). Memory: 8·N·C bytes per source, at most ``max_sources`` sources (those of ``received``, the sources
+    a loaded map holds, are kept even beyond). A source holding no evidence gives its slot to a new one.
+    ``max_frame_evidence``: the most evidence one frame adds (pixels of the largest image);
+    ``max_frame_rate``: the most frames per second a source may claim within one epoch.
     """
 
     def __init__(self, own_origin: str, fingerprint: str, num_gaussians: int, num_classes: int, prior: float,
-                 max_sources: int, max_concentration: float = 1e15) -> None:
+                 max_sources: int, max_concentration: float = 1e15, max_frame_evidence: float = 4096.0 ** 2,
+                 max_frame_rate: float = 100.0, received: Mapping[str, SourceEvidence] | None = None) -> None:
         self.own_origin = own_origin
         self.digest = bytes.fromhex(fingerprint)
         self.n, self.c, self.prior = num_gaussians, num_classes, prior
         self.max_sources = max_sources
         self.max_concentration = max_concentration
+        self.max_frame_evidence, self.max_frame_rate = float(max_frame_evidence), float(max_frame_rate)
         self.sources: dict[str, SourceState] = {}
         self._total = np.zeros((num_gaussians, num_classes))   # Σ over sources of their evidence, kept in step
+        for name, src in (received or {}).items():
+            ev = np.array(src.evidence, dtype=np.float64).reshape(num_gaussians, num_classes)
+            self.sources[name] = SourceState(ev, src.epoch, src.last_seq, src.frames, src.in_step,
+                                             total=float(ev.sum()), frames_base=src.frames)
+            self._total += ev
 
     def received_total(self) -> np.ndarray:
         """(N, C) float64 Σ over sources of their evidence in the map, maintained as packets are applied (no
@@ -168,14 +231,15 @@ class EvidenceLedger:
         return self._total
 
     def forget(self) -> None:
-        """The map was reset or replaced: every source's evidence in it is gone; each must re-sync by snapshot."""
+        """The map was reset: every source's evidence in it is gone; each must re-sync by snapshot."""
         for s in self.sources.values():
             s.evidence[...] = 0.0
-            s.in_step = False
+            s.in_step, s.pending, s.total = False, None, 0.0
         self._total[...] = 0.0
 
-    def apply(self, pkt: EvidencePacket, concentrations: np.ndarray) -> str | None:
-        """Apply one decoded packet to ``concentrations`` (N, C) in place, or return why it was refused."""
+    def apply(self, pkt: EvidencePacket, concentrations: np.ndarray, now: float | None = None) -> str | None:
+        """Apply one decoded packet to ``concentrations`` (N, C) in place, or return why it was refused.
+        ``now``: time.monotonic() (the frame-rate bound)."""
         if pkt.origin == self.own_origin:
             return "own evidence (echo)"
         if pkt.fingerprint_digest != self.digest:
@@ -184,50 +248,126 @@ class EvidenceLedger:
             return "evidence of another class count or prior"
         if pkt.range_end > self.n or (pkt.rows.size and pkt.rows[-1] >= self.n):
             return "Gaussian id beyond the model"
-        state = self.sources.get(pkt.origin)
+        now = time.monotonic() if now is None else now
+        if pkt.kind == DELTA:
+            return self._delta(self.sources.get(pkt.origin), pkt, concentrations, now)
+        return self._snapshot_part(pkt, concentrations, now)
+
+    def _allowed_frames(self, state: SourceState, now: float) -> float:
+        """The most frames ``state``'s source may claim now (its epoch's start plus the rate, plus a burst)."""
+        if state.clock is None:
+            state.clock = (state.frames, now)
+        frames0, t0 = state.clock
+        return frames0 + self.max_frame_rate * (now - t0 + FRAME_BURST_S)
+
+    def _bound(self, frames: int) -> float:
+        return self.max_frame_evidence * frames * (1.0 + BOUND_SLACK)
+
+    def _delta(self, state: SourceState | None, pkt: EvidencePacket, conc: np.ndarray, now: float) -> str | None:
         if state is None:
-            if len(self.sources) >= self.max_sources:
-                return "too many sources"
-            state = SourceState(np.zeros((self.n, self.c)))
-            self.sources[pkt.origin] = state
+            return LATE_REASON
+        if pkt.epoch != state.epoch:
+            return "packet of another start (epoch) of this source: waiting for its snapshot"
         if pkt.seq <= state.last_seq:
             return "replayed or duplicate sequence number"
-        rows = pkt.rows
-        if pkt.kind == DELTA:
-            if not state.in_step or pkt.seq != state.last_seq + 1:
-                if state.in_step:
-                    state.in_step = False
-                state.last_seq = pkt.seq
-                return "sequence gap or late start: waiting for a snapshot"
-            new_alpha = concentrations[rows] + pkt.values
-            if np.any(new_alpha > self.max_concentration):
-                return "evidence would exceed the concentration bound"
-            concentrations[rows] = new_alpha
-            state.evidence[rows] += pkt.values
-            self._total[rows] += pkt.values
-        else:
-            if pkt.part == 0:
-                state.snapshot_id, state.snapshot_next_part = pkt.seq, 0
-            if pkt.snapshot_id != state.snapshot_id or pkt.part != state.snapshot_next_part:
-                state.snapshot_id, state.last_seq = 0, pkt.seq
-                state.in_step = False
-                return "incomplete snapshot: waiting for the next one"
-            lo, hi = pkt.range_start, pkt.range_end
-            block = np.zeros((hi - lo, self.c))
-            block[rows - lo] = pkt.values
-            new_alpha = concentrations[lo:hi] - state.evidence[lo:hi] + block
-            if np.any(new_alpha > self.max_concentration):
-                return "evidence would exceed the concentration bound"
-            concentrations[lo:hi] = np.maximum(new_alpha, self.prior)
-            self._total[lo:hi] += block - state.evidence[lo:hi]
-            state.evidence[lo:hi] = block
-            state.snapshot_next_part += 1
-            if state.snapshot_next_part == pkt.parts:
-                state.in_step = True
-                state.snapshot_id = 0
+        if not state.in_step or pkt.seq != state.last_seq + 1:
+            return LATE_REASON
+        if pkt.frames < state.frames:
+            return "frame count went back"
+        if pkt.frames > self._allowed_frames(state, now):
+            return "frames claimed faster than evidence_max_frame_rate"
+        since = pkt.frames - (state.frames if pkt.frames > state.frames else state.frames_base)
+        rows, values = pkt.rows, pkt.values
+        added = float(values.sum())
+        if (values.size and float(values.sum(axis=1).max()) > self._bound(since)) or \
+                state.total + added > self._bound(pkt.frames):
+            return BOUND_REASON
+        new_alpha = conc[rows] + values
+        if np.any(new_alpha > self.max_concentration):
+            return "evidence would exceed the concentration bound"
+        conc[rows] = new_alpha
+        state.evidence[rows] += values
+        self._total[rows] += values
+        state.total += added
+        if pkt.frames > state.frames:
+            state.frames_base, state.frames = state.frames, pkt.frames
         state.last_seq = pkt.seq
         state.packets += 1
         return None
+
+    def _snapshot_part(self, pkt: EvidencePacket, conc: np.ndarray, now: float) -> str | None:
+        state = self.sources.get(pkt.origin)
+        lo, hi = pkt.range_start, pkt.range_end
+        if pkt.part == 0:
+            if pkt.snapshot_id != pkt.seq or lo != 0:
+                return "bad sequence / part / range fields"
+            new_epoch = state is None or pkt.epoch != state.epoch or state.clock is None   # free first claim
+            if state is not None and not new_epoch and pkt.frames > self._allowed_frames(state, now):
+                return "frames claimed faster than evidence_max_frame_rate"
+            if state is None and len(self.sources) >= self.max_sources and not self._free_slot():
+                return "too many sources"
+            snap: _Snapshot | None = _Snapshot(pkt.epoch, pkt.seq, pkt.frames)
+        else:
+            snap = state.pending if state is not None else None
+            if snap is None or (pkt.epoch, pkt.snapshot_id, pkt.frames, pkt.part, pkt.seq, lo) != \
+                    (snap.epoch, snap.snapshot_id, snap.frames, snap.next_part, snap.next_seq, snap.next_start):
+                return SNAPSHOT_REASON
+        assert snap is not None
+        if pkt.part == pkt.parts - 1 and hi != self.n:
+            return "bad sequence / part / range fields"
+        block = np.zeros((hi - lo, self.c))
+        block[pkt.rows - lo] = pkt.values
+        block_total = float(block.sum())
+        if (block.size and float(block.sum(axis=1).max()) > self._bound(pkt.frames)) or \
+                snap.total + block_total > self._bound(pkt.frames):
+            return BOUND_REASON
+        old = state.evidence[lo:hi] if state is not None else np.zeros_like(block)
+        new_alpha = conc[lo:hi] - old + block
+        if np.any(new_alpha > self.max_concentration):
+            return "evidence would exceed the concentration bound"
+        if state is None:
+            state = self.sources[pkt.origin] = SourceState(np.zeros((self.n, self.c)))
+        conc[lo:hi] = np.maximum(new_alpha, self.prior)
+        self._total[lo:hi] += block - old
+        state.total += block_total - float(old.sum())
+        state.evidence[lo:hi] = block
+        if pkt.part == 0:
+            if new_epoch:
+                state.clock = (pkt.frames, now)
+            state.epoch, state.in_step = pkt.epoch, False
+        snap.next_part, snap.next_seq, snap.next_start = pkt.part + 1, pkt.seq + 1, hi
+        snap.total += block_total
+        state.pending = snap
+        state.last_seq = pkt.seq
+        state.packets += 1
+        if snap.next_part == pkt.parts:
+            state.in_step, state.pending, state.total = True, None, snap.total
+            state.frames = state.frames_base = pkt.frames
+        return None
+
+    def _free_slot(self) -> bool:
+        """Drop one source that holds no evidence (a new source may take its slot); False when none."""
+        for name, s in self.sources.items():
+            if s.total == 0.0 and s.pending is None and not s.evidence.any():
+                del self.sources[name]
+                return True
+        return False
+
+
+def received_sources(smap: "SemanticMap", own_origin: str) -> dict[str, SourceEvidence]:
+    """The received sources a node's ledger starts from, for a map resumed, loaded or kept (``smap.received``;
+    the rest of its evidence is the node's own). A map whose own evidence was published under another origin id
+    (``smap.evidence_origin``) keeps it as that origin's, never re-published under ``own_origin``; evidence of
+    ``own_origin`` that another node held (a file saved by a peer) is own. A map of an older css_ros (no
+    ``evidence_origin``) holds only own evidence."""
+    received = dict(smap.received)
+    if smap.evidence_origin and smap.evidence_origin != own_origin and smap.evidence_origin not in received:
+        conc = smap.concentrations_readonly
+        total = sum((s.evidence for s in received.values()), np.zeros(conc.shape))
+        received[smap.evidence_origin] = SourceEvidence(own_evidence(conc, smap.prior, total),
+                                                        frames=smap.frames_observed)
+    received.pop(own_origin, None)
+    return received
 
 
 class EvidenceOutbox:
@@ -244,26 +384,27 @@ class EvidenceOutbox:
         self.max_rows = max(1, int(max_rows))
         self.published = np.zeros((num_gaussians, num_classes))
         self.seq = 0
+        self.epoch = new_epoch()
         z = np.zeros((1, 1))
         _grown_rows(z, z, z, 0.0, 0.0, np.empty(1, np.int64))   # compile (or load) now, not under the map lock
 
     def own(self, concentrations: np.ndarray, received: np.ndarray) -> np.ndarray:
         """(N, C) this node's own evidence (rounding-level values set to 0)."""
-        own = concentrations - self.prior - received
-        own[own <= ROUNDING_FRACTION * concentrations.sum(axis=1, keepdims=True)] = 0.0
-        return own
+        return own_evidence(concentrations, self.prior, received)
 
     def reset(self) -> None:
-        """Forget what was published (after a map reset / load: the next snapshot re-states the total)."""
+        """Forget what was published and start a new epoch (after a map reset / load: the next snapshot, of the
+        new epoch, re-states the total and may hold fewer frames)."""
         self.published[...] = 0.0
+        self.seq, self.epoch = 0, new_epoch(self.epoch)
 
-    def deltas(self, concentrations: np.ndarray, received: np.ndarray) -> list[bytes]:
+    def deltas(self, concentrations: np.ndarray, received: np.ndarray, frames: int) -> list[bytes]:
         """Packets of the own evidence added since the last call (rows that grew), at most ``max_rows`` rows each.
 
         One fused pass over the map (:func:`_grown_rows`, no (N, C) temporaries): the publisher runs this every
         ``evidence_period`` while holding the map lock. The same rule as :meth:`own` and :meth:`snapshot`: own
         evidence below ROUNDING_FRACTION of a row's total counts as 0, and a row is sent when some class grew by
-        more than that.
+        more than that. ``frames``: the map's frames_observed (read under the same lock).
         """
         changed = _grown_rows(concentrations, received, self.published, self.prior, ROUNDING_FRACTION,
                               np.empty(self.n, np.int64))
@@ -274,10 +415,11 @@ class EvidenceOutbox:
             vals = np.maximum(own - self.published[rows], 0.0)
             self.published[rows] += vals
             self.seq += 1
-            out.append(encode_packet(DELTA, self.origin, self.fingerprint, self.seq, rows, vals, self.prior, self.n))
+            out.append(encode_packet(DELTA, self.origin, self.fingerprint, self.seq, rows, vals, self.prior, self.n,
+                                     epoch=self.epoch, frames=frames))
         return out
 
-    def snapshot(self, own: np.ndarray) -> list[bytes]:
+    def snapshot(self, own: np.ndarray, frames: int) -> list[bytes]:
         """Packets stating this node's whole own evidence (parts tiling [0, N)); deltas continue after it."""
         self.published[...] = own
         nz = np.flatnonzero(np.any(own != 0.0, axis=1))
@@ -290,7 +432,7 @@ class EvidenceOutbox:
             self.seq += 1
             out.append(encode_packet(SNAPSHOT, self.origin, self.fingerprint, self.seq, rows, own[rows], self.prior,
                                      self.n, snapshot_id=first, range_start=lo, range_end=hi, part=k,
-                                     parts=len(chunks)))
+                                     parts=len(chunks), epoch=self.epoch, frames=frames))
         return out
 
 

@@ -17,7 +17,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
 
 from ..errors import InputError
-from ..io.evidence import ORIGIN_BYTES, EvidenceLedger, EvidenceOutbox, decode_packet
+from ..io.evidence import ORIGIN_BYTES, EvidenceLedger, EvidenceOutbox, decode_packet, received_sources
 from .params import NodeParams
 from .work import WarnLimiter
 
@@ -47,8 +47,11 @@ class EvidenceLink:
     def __init__(self, node: Node, p: NodeParams, worker: Any, warn: WarnLimiter,
                  count: Callable[..., None]) -> None:
         self.p, self.worker, self.warn, self.count = p, worker, warn, count
-        self.origin = p.evidence_origin or default_origin()
+        # a resumed node keeps the origin of its checkpoint (also the default one): its peers know it by that id
+        self.origin = p.evidence_origin or worker.smap.evidence_origin or default_origin()
+        self.allowed = {o.strip() for o in p.evidence_allowed_origins.split(",") if o.strip()}
         self.rebind()
+        worker.on_map_replaced = self._map_replaced_locked
         self._buckets: dict[str, tuple[float, float]] = {}   # origin -> (tokens, time.monotonic())
         self.topics = [t.strip() for t in p.evidence_in.split(",") if t.strip()]
         qos = QoSProfile(depth=EVIDENCE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
@@ -65,10 +68,21 @@ class EvidenceLink:
         with self.worker.map_lock:
             smap = self.worker.smap
             fp, n, c = smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes
-            self.ledger = EvidenceLedger(self.origin, fp, n, c, smap.prior, self.p.evidence_max_sources)
+            self._adopt_locked()
             self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows) \
                 if self.p.publish_evidence else None   # 8 N C bytes: only when publishing
             self._next_snapshot = 0.0
+
+    def _adopt_locked(self) -> None:
+        """A ledger for the map's received sources (a resumed or loaded map brings them, see
+        :func:`~css_ros.io.evidence.received_sources`: the rest of its evidence is this node's own)."""
+        smap = self.worker.smap
+        self.ledger = EvidenceLedger(self.origin, smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes,
+                                     smap.prior, self.p.evidence_max_sources,
+                                     max_frame_evidence=float(self.p.max_image_pixels),
+                                     max_frame_rate=self.p.evidence_max_frame_rate,
+                                     received=received_sources(smap, self.origin))
+        smap.evidence_origin, smap.received = self.origin, self.ledger.sources
 
     @property
     def enabled(self) -> bool:
@@ -77,14 +91,22 @@ class EvidenceLink:
     # ------------------------------------------------------------------ sources
     def _update_sources(self) -> None:
         own = [self.origin] if self.pub is not None else []
-        received = [o for o, s in self.ledger.sources.items() if s.packets > 0]
+        received = list(self.ledger.sources)
         self.worker.smap.sources = sorted(set(own) | set(received) | set(self.worker.smap.sources))
 
-    def map_replaced(self) -> None:
-        """The map was reset or loaded: received evidence is gone, every source must re-sync by snapshot."""
-        with self.worker.map_lock:
+    def _map_replaced_locked(self) -> None:
+        """Under the map lock, right after a reset or a load (MapWorker.on_map_replaced). Reset: the received
+        evidence is gone, every source re-syncs by its next snapshot. Load: the file's received sources are adopted
+        (the rest of its evidence is own). Either way the own evidence is re-stated at once by a snapshot of a new
+        epoch, which replaces what the peers held of this node."""
+        smap = self.worker.smap
+        if smap.received is self.ledger.sources:      # a reset (a load brings the file's sources)
             self.ledger.forget()
-            self._next_snapshot = 0.0
+        else:
+            self._adopt_locked()
+        if self.outbox is not None:
+            self.outbox.reset()
+        self._next_snapshot = 0.0
 
     # ------------------------------------------------------------------ out
     def publish(self) -> None:
@@ -94,13 +116,14 @@ class EvidenceLink:
             return
         with self.worker.map_lock:
             alpha = self.worker.smap.concentrations
+            frames = self.worker.smap.frames_observed
             received = self.ledger.received_total()
             if now >= self._next_snapshot:
-                packets = self.outbox.snapshot(self.outbox.own(alpha, received))
+                packets = self.outbox.snapshot(self.outbox.own(alpha, received), frames)
                 self._next_snapshot = now + self.p.evidence_snapshot_period
                 self.count("evidence_snapshots_sent")
             else:
-                packets = self.outbox.deltas(alpha, received)
+                packets = self.outbox.deltas(alpha, received, frames)
         for data in packets:
             msg = UInt8MultiArray()
             msg.data = data
@@ -120,15 +143,27 @@ class EvidenceLink:
         self._buckets[origin] = (tokens - 1.0, now)
         return True
 
+    def _prune_buckets(self) -> None:
+        """Forget the token buckets of origins idle for a second (full again: the same as a new one)."""
+        now = time.monotonic()
+        for origin, (_, last) in list(self._buckets.items()):
+            if now - last >= 1.0:
+                del self._buckets[origin]
+
     def _on_packet(self, msg: Any) -> None:
         try:
             pkt = decode_packet(bytes(msg.data), self.p.evidence_max_rows)
         except InputError as exc:
             self._refuse(str(exc))
             return
-        if len(self._buckets) > 4 * self.p.evidence_max_sources and pkt.origin not in self._buckets:
-            self._refuse("too many sources")
+        if self.allowed and pkt.origin not in self.allowed:
+            self._refuse("origin not in evidence_allowed_origins")
             return
+        if len(self._buckets) >= 4 * self.p.evidence_max_sources and pkt.origin not in self._buckets:
+            self._prune_buckets()
+            if len(self._buckets) >= 4 * self.p.evidence_max_sources:
+                self._refuse("too many sources")
+                return
         if not self._allow(pkt.origin):
             self._refuse("flood: more than evidence_max_rate packets/s from one source")
             return

@@ -95,7 +95,7 @@ class CssNode(Node):
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
-        self.model_watcher = ModelWatcher(self, p, self.warn, self.stats.count, log.info)
+        self.model_watcher = ModelWatcher(self, p, self.warn, self.stats.count, log.info, log.warning)
         if p.view_period > 0:  # css_view --live
             self.worker.view_stream = ViewPublisher(self, self.smap, self.classes, p.view_period,
                                                     p.view_max_changes, p.min_evidence,
@@ -232,8 +232,7 @@ class CssNode(Node):
             response.success, response.message = False, f"no checkpoint at {path}"
         else:
             try:
-                response.success, response.message = True, self.worker.load_map(path)
-                self.evidence.map_replaced()
+                response.success, response.message = True, self.worker.load_map(path)   # evidence re-synced in it
                 self.stats.count("maps_loaded")
                 self.get_logger().info(response.message)
             except MapError as exc:
@@ -242,8 +241,7 @@ class CssNode(Node):
         return response
 
     def _on_reset_map(self, request: Any, response: Any) -> Any:
-        self.worker.reset_map()
-        self.evidence.map_replaced()
+        self.worker.reset_map()   # the evidence exchange re-syncs under the same lock (worker.on_map_replaced)
         self.stats.count("resets")
         response.success = True
         response.message = f"all {self.smap.model.num_gaussians} Gaussians reset to the prior"

@@ -163,8 +163,19 @@ class NodeParams:
                               "the transfer of SPEC §10 while the node runs (empty: off)")
     model_watch_period: float = _p(2.0, "s", "time between two scans of model_watch_dir (a file must be "
                                    "unchanged over two scans)")
+    model_swap_min_ratio: float = _p(0.7, "", "a newer splat of model_watch_dir whose transfer keeps less than "
+                                     "this share of the map's evidence is refused, with a warning (almost surely "
+                                     "another scene, or a splat in another frame): the map stays on the current "
+                                     "splat (0: accept any; docs/maps.md gives the measured ratios)")
+    model_swap_warn_ratio: float = _p(0.95, "", "a swap that keeps less than this share of the evidence (but at "
+                                      "least model_swap_min_ratio) is done with a warning naming the ratio")
     evidence_max_rate: float = _p(200.0, "packets/s", "evidence packets accepted per source and second (a "
                                   "flood beyond is refused)")
+    evidence_allowed_origins: str = _p("", "", "comma-separated origin ids whose evidence is accepted (empty: any; "
+                                       "DDS does not authenticate peers, docs/reliability.md)")
+    evidence_max_frame_rate: float = _p(100.0, "frames/s", "most frames per second a source's evidence may claim "
+                                        "(each adds at most max_image_pixels to a Gaussian and to the source's "
+                                        "total); more is refused")
 
 
 def param_table() -> list[tuple[str, Any, str, str]]:
@@ -286,10 +297,19 @@ def check_params(p: NodeParams) -> None:
         raise bad("num_classes", "must be >= 0")
     if not 0 <= p.ignore_label <= 65535:
         raise bad("ignore_label", "must be in 0..65535")
+    for name in ("model_swap_min_ratio", "model_swap_warn_ratio"):
+        if not (math.isfinite(getattr(p, name)) and 0 <= getattr(p, name) <= 1):
+            raise bad(name, "must be in [0, 1] (a share of the map's evidence)")
+    if p.model_swap_warn_ratio < p.model_swap_min_ratio:
+        raise bad("model_swap_warn_ratio", f"must be >= model_swap_min_ratio ({p.model_swap_min_ratio:g})")
     if not (math.isfinite(p.evidence_max_rate) and p.evidence_max_rate > 0):
         raise bad("evidence_max_rate", "must be finite and > 0")
     if len(p.evidence_origin) > 32 or not p.evidence_origin.isascii():
         raise bad("evidence_origin", "at most 32 ASCII characters")
+    if any(len(o.strip()) > 32 or not o.isascii() for o in p.evidence_allowed_origins.split(",")):
+        raise bad("evidence_allowed_origins", "origin ids of at most 32 ASCII characters, comma-separated")
+    if not (math.isfinite(p.evidence_max_frame_rate) and p.evidence_max_frame_rate > 0):
+        raise bad("evidence_max_frame_rate", "must be finite and > 0")
     if p.pose_type not in POSE_TYPES:
         raise bad("pose_type", f"expected one of {', '.join(POSE_TYPES)}")
     for name in ("pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap"):

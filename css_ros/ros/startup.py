@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import time
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -21,7 +23,7 @@ from ..engine.semantic_map import SemanticMap
 from ..engine.sensor_model import SensorModel
 from ..engine.similarity import Similarity
 from ..engine.warmup import warm_up_kernels
-from ..errors import ConfigError, MapError, ModelError, SensorModelError
+from ..errors import ConfigError, CssError, MapError, ModelError, SensorModelError
 from ..io.paths import resolve_data_path
 from .params import DEFAULT_CLASSES, NodeParams, checkpoint_file
 
@@ -117,14 +119,68 @@ def adopt_own_update(smap: SemanticMap) -> None:
         smap.fused_sensor_model = smap.sensor_fingerprint
 
 
+def checkpoint_fingerprint(path: Path) -> str | None:
+    """The model fingerprint a checkpoint file records (None: no such file, or not a readable map file).
+
+    Reads one small member only (its size checked first); the full checks are SemanticMap.load's."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            if zf.getinfo("model_fingerprint.npy").file_size > 4096:
+                return None
+        with np.load(path, allow_pickle=False) as data:
+            return str(data["model_fingerprint"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error):
+        return None
+
+
+def newest_watched_model(params: NodeParams, model_path: Path, log_info: Callable[[str], None],
+                         log_warning: Callable[[str], None]) -> tuple[Path, GaussianModel] | None:
+    """The splat to start on instead of ``model_path`` after earlier swaps (docs/maps.md, "Live").
+
+    With ``model_watch_dir``, ``resume`` and checkpoints on: the newest ``*.ply`` of the folder that is newer
+    than ``model_path`` (modification time, the swap's own rule) and has a checkpoint recording its fingerprint,
+    i.e. the splat an earlier run swapped to, whose map holds every frame fused since. Files are read newest
+    first until one matches; unreadable ones are skipped. None: no such file (start on ``model_path``; a newer
+    splat without a checkpoint is then swapped to by the running node as usual).
+    """
+    p = params
+    if not (p.model_watch_dir and p.resume and p.checkpoint_path):
+        return None
+    folder = Path(p.model_watch_dir).expanduser()
+    try:
+        since = model_path.stat().st_mtime_ns
+        files = sorted(((f.stat().st_mtime_ns, f) for f in folder.glob("*.ply") if f.is_file()), reverse=True)
+    except OSError as exc:
+        log_warning(f"model_watch_dir {folder} unreadable at start: {exc}; starting on model_path")
+        return None
+    for mtime, path in files:
+        if mtime <= since or path.resolve() == model_path.resolve():
+            continue
+        try:
+            model = GaussianModel.from_ply(path)
+        except (CssError, OSError) as exc:
+            log_warning(f"model_watch_dir: {path} unreadable at start ({exc}); skipped")
+            continue
+        ckpt = checkpoint_path(p, model.fingerprint)
+        if ckpt is not None and checkpoint_fingerprint(ckpt) == model.fingerprint:
+            log_info(f"starting on {path} (model_watch_dir, newer than model_path {model_path}): the map was "
+                     f"moved to it by an earlier run and its checkpoint {ckpt} holds it")
+            return path, model
+    return None
+
+
 def load_engine(params: NodeParams, log_info: Callable[[str], None],
                 log_warning: Callable[[str], None]) -> Engine:
-    """Model, classes and map (resumed from the checkpoint when it matches, else fresh)."""
+    """Model, classes and map (resumed from the checkpoint when it matches, else fresh). With
+    ``model_watch_dir``, the model may be a newer splat of that folder (:func:`newest_watched_model`)."""
     p = params
     model_path = resolve_data_path(p.model_path)
     if not model_path.is_file():
         raise ModelError(f"model file not found: {model_path} (parameter model_path={p.model_path!r})")
     model = GaussianModel.from_ply(model_path)
+    watched = newest_watched_model(p, model_path, log_info, log_warning)
+    if watched is not None:
+        model_path, model = watched
     classes = load_classes(p, log_warning)
     C = classes.num_classes
     sensor_model = load_sensor_model(p, classes)   # before the checkpoint: a bad file never renames it aside

@@ -30,32 +30,52 @@ class ViewPublisher:
 
     def __init__(self, node: Node, smap: Any, classes: Any, period: float, max_changes: int,
                  min_evidence: float, splat_to_map: Similarity | None = None) -> None:
-        self.smap, self.period, self.max_changes, self.min_evidence = smap, period, max_changes, min_evidence
+        self.period, self.max_changes, self.min_evidence = period, max_changes, min_evidence
+        self.node, self.classes, self.splat_to_map = node, classes, splat_to_map
         self.clock = node.get_clock()
-        n = smap.model.num_gaussians
-        latched = QoSProfile(depth=max(1, -(-n // MODEL_CHUNK)), history=HistoryPolicy.KEEP_LAST,
-                             reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         info_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_info = node.create_publisher(String, "~/view/info", info_qos)
-        self.pub_model = node.create_publisher(PointCloud2, "~/view/model", latched)
+        self.pub_model: Any = None
         self.pub_sem = node.create_publisher(PointCloud2, "~/view/semantics", 10)
         node.create_service(Trigger, "~/view/resync", self._on_resync)
-        self.sent = np.full(n, UNSENT, dtype=np.int64)   # key last sent per Gaussian
         changed_gaussians(np.ones((1, 1)), 1e-3, 0.5, 255, np.zeros(1, np.int64))  # compile (or load) now
         self._resync = threading.Event()
+        self._rebind_lock = threading.Lock()
+        self._rebind: Any = None   # a map on another splat (model swap), taken over by the worker's next tick
         self._version = -1
         self._next = 0.0
         self.last_cost_s = 0.0
         self.last_sent = 0
-        model = smap.model
+        self._start_stream(smap)
+
+    def _start_stream(self, smap: Any) -> None:
+        """(Re)start the stream on ``smap``: ``~/view/info``, then ``~/view/model`` from a new transient-local
+        publisher whose history holds exactly this model's chunks (a late joiner never gets another model's),
+        and every Gaussian counted unsent (the next ``~/view/semantics`` send them all)."""
+        n = smap.model.num_gaussians
+        latched = QoSProfile(depth=max(1, -(-n // MODEL_CHUNK)), history=HistoryPolicy.KEEP_LAST,
+                             reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        if self.pub_model is not None:
+            self.node.destroy_publisher(self.pub_model)
+        self.pub_model = self.node.create_publisher(PointCloud2, "~/view/model", latched)
+        self.smap = smap
+        self.sent = np.full(n, UNSENT, dtype=np.int64)   # key last sent per Gaussian
+        self.pending = 0
+        model, classes = smap.model, self.classes
         header = rc.header_msg(self.clock.now().nanoseconds, "map")
         self.pub_info.publish(String(data=info_json(n, model.fingerprint, classes.names, classes.palette,
-                                                    min_evidence, smap.prior)))
-        if splat_to_map is not None and not splat_to_map.is_identity:
-            model = splat_to_map.transform_model(model)   # the map frame, as every other 3D output
+                                                    self.min_evidence, smap.prior)))
+        if self.splat_to_map is not None and not self.splat_to_map.is_identity:
+            model = self.splat_to_map.transform_model(model)   # the map frame, as every other 3D output
         for cols in model_chunks(model.means, model.covariances(), model.base_colors, model.opacities):
             self.pub_model.publish(rc.cloud_msg(header, cols))
+
+    def rebind(self, smap: Any) -> None:
+        """The node's map moved to another splat (model swap): the worker's next :meth:`tick` restarts the
+        stream on ``smap`` (new info and model, then every Gaussian's semantics)."""
+        with self._rebind_lock:
+            self._rebind = smap
 
     def _on_resync(self, request: Any, response: Any) -> Any:
         self._resync.set()
@@ -64,6 +84,11 @@ class ViewPublisher:
 
     def tick(self, now: float, map_version: int, map_lock: threading.Lock) -> None:
         """Called by the worker between jobs: publish the changed Gaussians when due."""
+        with self._rebind_lock:
+            rebind, self._rebind = self._rebind, None
+        if rebind is not None:
+            self._start_stream(rebind)
+            self._version, self._next = -1, 0.0   # the new map's semantics go out now
         resync = self._resync.is_set()
         if now < self._next or (map_version == self._version and not resync and self.pending == 0):
             return

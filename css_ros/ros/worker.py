@@ -112,6 +112,8 @@ class MapWorker:
         self._cloud_version = -1        # map_version of the last ~/semantic_cloud (-1: none yet)
         self._cloud_next = 0.0          # time.monotonic() before which no cloud is sent
         self.view_stream: Any = None    # ros.view_publisher.ViewPublisher for css_view --live, or None
+        #: called under the map lock after a reset or a load (the evidence exchange re-syncs in the same step)
+        self.on_map_replaced: Callable[[], None] | None = None
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -293,10 +295,13 @@ class MapWorker:
         with self.map_lock:
             self.smap.concentrations[...] = loaded.concentrations
             self.smap.frames_observed = loaded.frames_observed
+            self.smap.evidence_origin, self.smap.received = loaded.evidence_origin, loaded.received
             # load refused other updates' evidence: what it accepted is this map's own (or the prior only)
             self.smap.fused_sensor_model = self.smap.sensor_fingerprint
             self.map_version += 1
             self.policy.saved(time.monotonic(), self.policy.dirty)  # the map now equals the file
+            if self.on_map_replaced is not None:
+                self.on_map_replaced()
         note = ""
         if (loaded.prior, loaded.background) != (self.smap.prior, self.smap.background):
             note = (f"; its prior/background ({loaded.prior:g}, {loaded.background:g}) differ from the node's "
@@ -336,3 +341,5 @@ class MapWorker:
             self.smap.reset()
             self.policy.changed()
             self.map_version += 1
+            if self.on_map_replaced is not None:
+                self.on_map_replaced()

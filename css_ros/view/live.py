@@ -61,6 +61,7 @@ class LiveFollower:
         self.node, self.context = self.link.node, self.link.context
         self.lock = threading.Lock()
         self.info: dict[str, Any] | None = None
+        self.model_changed = False     # the node swapped its splat (model_watch_dir) after we started
         self.chunks: dict[int, Any] = {}
         self.pending: list[Any] = []
         self.frames: list[np.ndarray] = []
@@ -87,6 +88,7 @@ class LiveFollower:
         with self.lock:
             if self.info is not None and info["fingerprint"] != self.info["fingerprint"]:
                 self.on_status("the node now runs another model: restart css_view --live")
+                self.model_changed = True   # its semantics index the new splat: no longer applied to this page
                 return
             self.info = info
 
@@ -96,6 +98,8 @@ class LiveFollower:
 
     def _on_semantics(self, msg: Any) -> None:
         with self.lock:
+            if self.model_changed:
+                return
             self.pending.append(msg)
             self.last_update = time.monotonic()
 
