@@ -51,6 +51,9 @@ def main(args: Sequence[str] | None = None) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    from .transport import configure_transport
+
+    transport_line, transport_warn = configure_transport()  # before init: Fast DDS reads it then
     try:
         rclpy.init(args=[sys.argv[0], *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
@@ -63,6 +66,8 @@ def main(args: Sequence[str] | None = None) -> int:
     try:
         from .node import CssNode
 
+        log = rclpy.logging.get_logger(NODE_NAME)
+        (log.warning if transport_warn else log.info)(transport_line)
         try:
             node = CssNode()
         except CssError as exc:  # ModelError, MapError, ConfigError, class file
