@@ -167,7 +167,7 @@ def test_candidate_info_gain_matches_the_engine_on_the_same_map(live: Live, tmp_
     pts = unpack_scored_views(msg)
     np.testing.assert_allclose(np.stack([pts[k] for k in ("x", "y", "z")], 1), positions.astype(np.float32))
     cams = [Camera.from_pose(rh.K, rh.WIDTH, rh.HEIGHT, p, q).scaled(0.25) for p, q in zip(positions[:5], quats[:5])]
-    ref = smap.score_views(cams)
+    ref = smap.score_views(cams, pixel_scale=1 / 0.25 ** 2)   # the node counts candidates at full resolution
     assert ref.shape == (5, 3), "SemanticMap.score_views returns no info_gain column"
     gain = pts["info_gain"].astype(np.float64)
     assert np.all(np.isfinite(gain[:5])) and np.all(gain[:5] >= 0) and np.isnan(gain[5])

@@ -490,7 +490,8 @@ class SemanticMap:
         """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view)."""
         return self._render_frame(self._backend.prepare(camera), probabilities)
 
-    def score_views(self, cameras: Sequence["Camera"], importance: np.ndarray | None = None) -> np.ndarray:
+    def score_views(self, cameras: Sequence["Camera"], importance: np.ndarray | None = None,
+                    pixel_scale: float = 1.0) -> np.ndarray:
         """U_var, U_exp (SPEC §6) and the information gain of many query views, e.g. the candidates of an
         active-perception planner: U_var and U_exp are the same numbers as ``render(cam).u_var`` / ``.u_exp``, without
         building the images, with the Dirichlet moments computed once per batch of views.
@@ -499,7 +500,9 @@ class SemanticMap:
         if the view were observed: each Gaussian's evidence from the view (kappa mass, times the sensor model's net
         vote weight at the pixel's label and depth when one is set) through the closed form of
         :mod:`css_ros.engine.info_gain`, weighted by ``importance`` ((N,) >= 0 per Gaussian; None = 1, see
-        :meth:`task_importance`, :meth:`class_importance`). The cuda backend gives NaN gains (not computed there yet).
+        :meth:`task_importance`, :meth:`class_importance`). ``pixel_scale``: pixels of the image that would be
+        observed per scored pixel (1 / f**2 for candidates rendered at ``cam.scaled(f)``): the evidence counts as the
+        full-resolution observation would add it. The cuda backend gives NaN gains (not computed there yet).
 
         Returns:
             (len(cameras), 3) float64, columns (U_var, U_exp, info_gain), in the order of ``cameras`` (columns 0 and
@@ -515,18 +518,27 @@ class SemanticMap:
             out[:, :2] = self._backend.score_views(cams, self._concentrations, e_b, v_b, s_b)
             return out
         moments = MomentSums.of(self.concentrations_readonly)
+        scale = self._check_pixel_scale(pixel_scale)
         for i, (expectation, variance, mass) in enumerate(self._backend.score_images(
                 cams, self._concentrations, e_b, v_b, s_b, self._mass_weights())):
             out[i, :2] = image_uncertainty(expectation, variance)
             if mass is not None:
-                out[i, 2] = view_gain(moments, mass[0], mass[1], imp)
+                out[i, 2] = view_gain(moments, mass[0], scale * mass[1], imp)
         return out
 
-    def select_views(self, cameras: Sequence["Camera"], k: int, importance: np.ndarray | None = None) -> "SelectedViews":
+    @staticmethod
+    def _check_pixel_scale(pixel_scale: float) -> float:
+        if not (np.isfinite(pixel_scale) and pixel_scale > 0):
+            raise MapError(f"pixel_scale must be finite and > 0, got {pixel_scale}")
+        return float(pixel_scale)
+
+    def select_views(self, cameras: Sequence["Camera"], k: int, importance: np.ndarray | None = None,
+                     pixel_scale: float = 1.0) -> "SelectedViews":
         """A greedy batch of ``k`` views for a planner that will visit several: the first has the largest info gain;
         each next one the largest gain given the views before it were observed (their evidence added to the map's
         moments as the expected observation would add it: alpha_n += m_n E[theta_n]), so views that see the same
-        surfaces as an earlier pick lose their shared gain. The map is not changed.
+        surfaces as an earlier pick lose their shared gain. The map is not changed. ``pixel_scale`` as in
+        :meth:`score_views`.
 
         Returns:
             :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
@@ -542,8 +554,10 @@ class SemanticMap:
             raise MapError(f"select_views needs the evidence mass, which the {self.backend_name} backend does not "
                            "compute yet; use backend numba or torch")
         e_b, v_b, s_b = self._background_moments()
-        masses = [m for _, _, m in self._backend.score_images(cams, self._concentrations, e_b, v_b, s_b,
-                                                              self._mass_weights())]
+        scale = self._check_pixel_scale(pixel_scale)
+        masses = [m if m is None else (m[0], scale * m[1])
+                  for _, _, m in self._backend.score_images(cams, self._concentrations, e_b, v_b, s_b,
+                                                            self._mass_weights())]
         moments = MomentSums.of(self.concentrations_readonly)
         chosen: list[int] = []
         gains: list[float] = []

@@ -224,7 +224,8 @@ class MapWorker:
                 self.warn("candidates", "invalid candidate pose", f"{exc}; scored NaN", dropped=False)
         if cams:
             with self.map_lock:
-                scores = self.smap.score_views(cams)
+                # candidates are rendered at candidate_scale: their evidence counts as a full-size frame would add it
+                scores = self.smap.score_views(cams, pixel_scale=1.0 / self.p.candidate_scale ** 2)
             job.u_var[scored], job.u_exp[scored] = scores[:, 0], scores[:, 1]
             if scores.shape[1] > 2:  # (U_var, U_exp, info_gain); an engine without the column leaves NaN
                 job.info_gain[scored] = scores[:, 2]
