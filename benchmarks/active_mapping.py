@@ -472,13 +472,10 @@ def _git_commit() -> str:
 
 
 def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_frame import cpu_model  # the one /proc/cpuinfo reader of the benchmarks
+
+    return cpu_model()
 
 
 def _size(text: str) -> tuple[int, int]:

@@ -70,6 +70,18 @@ def test_port_in_use_is_named(tiny_map):
     assert f"cannot serve on 127.0.0.1:{port}" in r.stderr and "--port" in r.stderr
 
 
+def printed_url(proc: subprocess.Popen, timeout: float = 60.0) -> str | None:
+    """The URL css_view prints on its "css_view: open URL" line (None if it exits or takes too long)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            return None
+        if line.startswith("css_view: open "):
+            return line.split()[2]
+    return None
+
+
 def test_port_out_of_range_is_refused_and_port_0_prints_the_port_taken(tiny_map):
     r = css_view(str(tiny_map / "map.npz"), "--model", str(tiny_map / "model.ply"), "--port", "70000")
     assert r.returncode == 1 and "--port 70000 is not a TCP port" in r.stderr and "Traceback" not in r.stderr
@@ -77,14 +89,7 @@ def test_port_out_of_range_is_refused_and_port_0_prints_the_port_taken(tiny_map)
                              str(tiny_map / "model.ply"), "--port", "0", "--exit-after", "60"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        url = None
-        deadline = time.monotonic() + 60
-        while url is None and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            if line.startswith("css_view: open "):
-                url = line.split()[2]
+        url = printed_url(proc)
         assert url is not None and not url.endswith(":0")
         with urllib.request.urlopen(url, timeout=10) as resp:
             assert resp.status == 200
@@ -99,14 +104,7 @@ def test_serves_the_page_and_prints_the_url(tiny_map):
                              str(tiny_map / "model.ply"), "--port", str(port), "--exit-after", "60"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        url = None
-        deadline = time.monotonic() + 60
-        while url is None and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            if line.startswith("css_view: open "):
-                url = line.split()[2]
+        url = printed_url(proc)
         assert url == f"http://127.0.0.1:{port}"
         with urllib.request.urlopen(url, timeout=10) as resp:
             assert resp.status == 200 and b"<html" in resp.read(2000).lower()
