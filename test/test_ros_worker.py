@@ -163,7 +163,7 @@ def test_info_gain_stored_per_view_in_request_order_across_slices(model):
     ok = np.arange(7) != 5
     cams = [Camera.from_pose(rh.K, rh.WIDTH, rh.HEIGHT, job.positions_splat[i], job.quats_splat[i])
             .scaled(w.p.candidate_scale) for i in np.flatnonzero(ok)]
-    ref = w.smap.score_views(cams)
+    ref = w.smap.score_views(cams, pixel_scale=1.0 / w.p.candidate_scale ** 2)   # as the worker counts them
     assert ref.shape == (6, 3), "SemanticMap.score_views returns no info_gain column"
     np.testing.assert_allclose(np.c_[u_var, u_exp, gain][ok], ref, rtol=1e-12)
     assert np.all(np.isnan([u_var[5], u_exp[5], gain[5]])) and np.all(gain[ok] >= 0)
@@ -171,11 +171,11 @@ def test_info_gain_stored_per_view_in_request_order_across_slices(model):
 
 def test_engine_without_info_gain_column_answers_nan_gains(model):
     w, sink, _, _ = make_worker(model)
-    w.smap.score_views = lambda cams: np.full((len(cams), 2), 0.25)   # type: ignore[method-assign]
+    w.smap.score_views = lambda cams, **kw: np.full((len(cams), 2), 0.25)   # type: ignore[method-assign]
     w.process_slice(request(3))
     (_, u_var, _), = sink.scores
     assert np.all(u_var == 0.25) and np.all(np.isnan(sink.gains[0]))
-    w.smap.score_views = lambda cams: np.tile([0.25, 0.5, 3.0], (len(cams), 1))  # type: ignore[method-assign]
+    w.smap.score_views = lambda cams, **kw: np.tile([0.25, 0.5, 3.0], (len(cams), 1))  # type: ignore[method-assign]
     w.process_slice(request(2))
     np.testing.assert_array_equal(sink.gains[1], [3.0, 3.0])
 
