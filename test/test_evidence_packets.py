@@ -257,36 +257,73 @@ class _Node:
     """A css_node's evidence exchange without ROS: its map, ledger and outbox, wired as css_ros/ros/evidence.py does
     (a snapshot first after every start, reset and load, then deltas); frames add evidence directly."""
 
-    def __init__(self, model, origin, smap=None):
+    def __init__(self, model, origin, smap=None, resume=False, window=30.0):
         self.model, self.origin = model, origin
         self.smap = smap if smap is not None else SemanticMap(model, C, prior=PRIOR)
         self.box = EvidenceOutbox(origin, model.fingerprint, model.num_gaussians, C, PRIOR, max_rows=100)
+        checkpoint_epoch = self.smap.evidence_epoch
         self.bind()
+        self.outgoing, self.recovery, self.adopted = [], None, False
+        if resume:                                    # EvidenceLink._start_recovery
+            self.own_base = self.box.own(self.smap.concentrations, self.ledger.received_total()).copy()
+            self.frames_base = self.smap.frames_observed
+            self.recovery = ev.EvidenceRecovery(origin, model.fingerprint, model.num_gaussians, C, PRIOR,
+                                                checkpoint_epoch, self.frames_base, self.box.epoch,
+                                                max_frame_evidence=4096.0 ** 2, max_sources=4, now=0.0,
+                                                window=window)
 
     def bind(self):
         m = self.model
         self.ledger = EvidenceLedger(self.origin, m.fingerprint, m.num_gaussians, C, PRIOR, max_sources=4,
                                      received=ev.received_sources(self.smap, self.origin))
         self.smap.evidence_origin, self.smap.received = self.origin, self.ledger.sources
+        self.smap.evidence_epoch = self.box.epoch
         self.snapshot_due = True
 
     def publish(self):
         conc, frames = self.smap.concentrations, self.smap.frames_observed
         received = self.ledger.received_total()
+        out, self.outgoing = self.outgoing, []        # returns due to restarted peers
+        flags = ev.FLAG_RESUMED if self.recovery is not None and not self.adopted else 0
         if self.snapshot_due:
             self.snapshot_due = False
-            return self.box.snapshot(self.box.own(conc, received), frames)
-        return self.box.deltas(conc, received, frames)
+            return out + self.box.snapshot(self.box.own(conc, received), frames, flags)
+        return out + self.box.deltas(conc, received, frames)
 
-    def receive(self, packets):
+    def receive(self, packets, now=1.0):
         n = self.model.num_gaussians
-        return [self.ledger.apply(decode_packet(p, n), self.smap.concentrations) for p in packets]
+        reasons = []
+        for p in packets:
+            pkt = decode_packet(p, n)
+            if pkt.kind == ev.RETURN:                 # EvidenceLink._on_return
+                if pkt.subject != self.origin:
+                    continue
+                if self.recovery is None:
+                    reasons.append("not recovering")
+                    continue
+                reason, got = self.recovery.offer(pkt, now)
+                self.adopted |= reason == ev.NOT_NEEDED_REASON   # answered: stop flagging
+                if got is not None:                   # EvidenceLink._adopt_return_locked
+                    _, frames, evidence = got
+                    conc = self.smap.concentrations
+                    conc[...] = np.maximum(conc - self.own_base + evidence, PRIOR)
+                    self.smap.frames_observed += frames - self.frames_base
+                    self.own_base, self.frames_base = evidence, frames
+                    self.snapshot_due = self.adopted = True
+                reasons.append(reason)
+                continue
+            reasons.append(self.ledger.apply(pkt, self.smap.concentrations))
+            for subject in self.ledger.returns_due:
+                self.outgoing += self.ledger.return_packets(subject, 100)
+            self.ledger.returns_due.clear()
+        return reasons
 
     def reset(self):                                  # ~/reset_map: MapWorker.reset_map + on_map_replaced
         self.smap.reset()
         self.ledger.forget()
         self.box.reset()
-        self.snapshot_due = True
+        self.smap.evidence_epoch = self.box.epoch
+        self.snapshot_due, self.recovery = True, None
 
     def load(self, path):                             # ~/load_map: MapWorker.load_map + on_map_replaced
         loaded = SemanticMap.load(path, self.model)
@@ -295,6 +332,8 @@ class _Node:
         self.smap.evidence_origin, self.smap.received = loaded.evidence_origin, loaded.received
         self.bind()
         self.box.reset()
+        self.smap.evidence_epoch = self.box.epoch
+        self.recovery = None
 
 
 def _observe(node, rng):
@@ -402,3 +441,124 @@ def test_map_files_keep_received_sources_and_old_files_still_load(tmp_path):
         np.savez(tmp_path / f"{name}.npz", **bad)
         with pytest.raises(MapError, match=why):
             SemanticMap.load(tmp_path / f"{name}.npz", model)
+
+
+@pytest.mark.parametrize("checkpoint", ["older", "none", "latest"])
+def test_a_killed_node_takes_back_its_unsaved_evidence_from_a_peer(tmp_path, checkpoint):
+    """B is killed with an older checkpoint (or none: a fresh map under the same origin) after it published more
+    frames; resumed, its first snapshot is flagged "resumed", A (which holds B's previous epoch with more frames)
+    sends it back a return, B adopts it as its own evidence and re-states it: both maps equal one node fed every
+    frame the group published (the frame B fused but never published before the kill is lost everywhere). B fuses
+    a frame before its first snapshot (its frames may exceed the copy's: B, not A, decides). "latest": B saved
+    after its last published frame, the return is not needed."""
+    import ros_helpers as rh
+
+    model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
+    rng = np.random.default_rng(11)
+    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
+    own_a, own_b = [], []
+    ckpt = tmp_path / "b.npz"
+    for k in range(4):
+        own_a.append(_observe(a, rng))
+        own_b.append(_observe(b, rng))
+        _exchange(a, b)
+        if k == 1 and checkpoint == "older" or k == 3 and checkpoint == "latest":
+            b.smap.save(ckpt)                         # "older": two of B's four frames
+    published_frames = b.smap.frames_observed
+    _observe(b, rng)                                  # fused, never published: lost with the kill
+    own_a.append(_observe(a, rng))
+    a.publish()                                       # B is down: lost to it
+    smap = SemanticMap.load(ckpt, model) if checkpoint != "none" else None
+    b = _Node(model, "robot_b", smap, resume=True)
+    own_b.append(_observe(b, rng))                    # mapping at once, before its first snapshot
+    first = b.publish()
+    assert decode_packet(first[0], model.num_gaussians).flags == ev.FLAG_RESUMED
+    assert a.receive(first) == [None] * len(first)
+    returned = a.publish()
+    kinds = [decode_packet(p, model.num_gaussians).kind for p in returned]
+    assert ev.RETURN in kinds
+    reasons = b.receive(returned)
+    if checkpoint == "latest":
+        assert set(reasons) == {ev.NOT_NEEDED_REASON} and b.adopted
+    else:
+        assert all(r is None for r in reasons)
+    assert b.adopted and b.smap.frames_observed == published_frames + 1
+    for _ in range(3):
+        own_a.append(_observe(a, rng))
+        own_b.append(_observe(b, rng))
+        _exchange(a, b)
+    a.snapshot_due = b.snapshot_due = True            # the periodic snapshots (B's: no longer flagged)
+    _exchange(a, b)
+    want = PRIOR + sum(own_a) + sum(own_b)
+    for node in (a, b):
+        np.testing.assert_allclose(node.smap.concentrations, want, rtol=1e-12, err_msg=node.origin)
+    assert all(s.returnable is None for s in a.ledger.sources.values())   # B's unflagged snapshot ended it
+    assert b.smap.frames_observed == published_frames + 4
+
+
+def test_forged_or_late_returns_are_refused(tmp_path):
+    """Returns for another node, of an epoch before the checkpoint's or of the current one, holding no more frames,
+    above what their frames can add, or after the window change nothing."""
+    ev_ = np.zeros((N, C))
+    ev_[[2, 7], 1] = [3.0, 4.0]
+
+    def rec():
+        return ev.EvidenceRecovery("robot_b", FP, N, C, PRIOR, checkpoint_epoch=100, checkpoint_frames=5,
+                                   current_epoch=200, max_frame_evidence=10.0, max_sources=4, now=0.0, window=30.0)
+
+    def ret(epoch=150, frames=9, values=ev_, subject="robot_b", sender="robot_a"):
+        (p,) = ev.encode_return(sender, subject, FP, epoch, frames, values, PRIOR, 100)
+        return decode_packet(p, 100)
+
+    assert rec().offer(ret(subject="robot_c"), 1.0)[0] == "return for another node"
+    assert "did not run last" in rec().offer(ret(epoch=99), 1.0)[0]
+    assert "did not run last" in rec().offer(ret(epoch=200), 1.0)[0]
+    assert "no more" in rec().offer(ret(epoch=100, frames=5), 1.0)[0]
+    huge = ev_.copy()
+    huge[2, 1] = 1000.0                                # above 10 per frame × 9 frames
+    assert rec().offer(ret(values=huge), 1.0)[0] == ev.BOUND_REASON
+    assert rec().offer(ret(), 31.0)[0] == "return after the recovery window"
+    r = rec()
+    reason, got = r.offer(ret(), 1.0)
+    assert reason is None and got is not None and got[:2] == (150, 9)
+    np.testing.assert_array_equal(got[2], ev_)
+    assert "no more" in r.offer(ret(), 2.0)[0]        # a second, equal one: the first was adopted
+    with pytest.raises(InputError, match="unknown packet flags"):
+        p = bytearray(ev.encode_return("robot_a", "robot_b", FP, 150, 9, ev_, PRIOR, 100)[0])
+        p[7] = 4
+        decode_packet(bytes(p), 100)
+    # a ledger never applies a return (it is for its subject only)
+    led = EvidenceLedger("robot_c", FP, N, C, PRIOR, max_sources=4)
+    assert led.apply(ret(), np.full((N, C), PRIOR)) == "return packet (for its subject only)"
+
+
+def test_a_node_killed_again_before_it_took_its_evidence_back_still_gets_it(tmp_path):
+    """B is killed, resumed, and killed again before a return reached it: A keeps the copy of B's first epoch (not
+    the second start's smaller one) while B stays resumed, and the third start takes it back."""
+    import ros_helpers as rh
+
+    model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
+    rng = np.random.default_rng(5)
+    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
+    own_a, own_b = [], []
+    ckpt = tmp_path / "b.npz"
+    for k in range(4):
+        own_a.append(_observe(a, rng))
+        own_b.append(_observe(b, rng))
+        _exchange(a, b)
+        if k == 0:
+            b.smap.save(ckpt)
+    published_frames = b.smap.frames_observed
+    b = _Node(model, "robot_b", SemanticMap.load(ckpt, model), resume=True)   # killed; resumed
+    assert a.receive(b.publish()) == [None]
+    a.publish()                                        # its return is lost: B is killed again at once
+    b = _Node(model, "robot_b", SemanticMap.load(ckpt, model), resume=True)
+    a.receive(b.publish())
+    b.receive(a.publish())
+    assert b.adopted and b.smap.frames_observed == published_frames
+    _exchange(a, b)
+    a.snapshot_due = b.snapshot_due = True
+    _exchange(a, b)
+    want = PRIOR + sum(own_a) + sum(own_b)
+    for node in (a, b):
+        np.testing.assert_allclose(node.smap.concentrations, want, rtol=1e-12, err_msg=node.origin)

@@ -253,3 +253,61 @@ def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
             c.close()
         for n in nodes.values():
             n.stop()
+
+
+@pytest.mark.parametrize("saved", ["early", "never"])
+def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp_path, saved):
+    """Like the test above, but B is killed with SIGKILL long after its last checkpoint (saved after its first frame)
+    or with none at all (a fresh map under its fixed origin id). Resumed, B flags its first snapshots "resumed"; A,
+    holding more frames of B's previous epoch, sends them back (a return), B adopts them as its own and re-states
+    them: A and B both end equal to one node fed every frame (1e-9 relative)."""
+    domain = rh.next_domain_id()
+    model = rh.write_wall_model(tmp_path / "wall.ply")
+    frames = list(range(10))
+    paths = {n: tmp_path / f"{n}.npz" for n in ("a", "b", "ref")}
+    peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
+
+    def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
+        ev = dict(publish_evidence=True, evidence_in=peer[name], evidence_origin=f"robot_{name}") \
+            if name != "ref" else {}
+        node = rh.NodeProcess({**_params(model, paths[name], **ev), **kw}, domain, tmp_path / f"{name}{log}.log",
+                              remaps={"__ns": f"/{name}"})
+        assert node.wait_log("services:", 60.0), node.log()
+        client = _client(domain, f"/{name}")
+        assert client.wait_connected(60.0), node.log()
+        return node, client
+
+    nodes, clients = {}, {}
+    try:
+        for name in ("a", "b", "ref"):
+            nodes[name], clients[name] = start(name)
+        a, ref = clients["a"], clients["ref"]
+        _feed(ref, frames)
+        want = _saved(ref, paths["ref"])[0]
+        _feed(a, [0, 2])
+        _feed(clients["b"], [1])
+        if saved == "early":
+            assert clients["b"].call(clients["b"].save_client).success   # B's only checkpoint: one frame
+        _feed(clients["b"], [3])
+        time.sleep(1.5 * SNAPSHOT_PERIOD)                   # A holds B's frames 1 and 3 (published), B A's
+        clients["b"].close()
+        nodes["b"].kill9()
+        _feed(a, [4, 6])
+        nodes["b"], clients["b"] = start("b", log="_resumed", resume=True)
+        b = clients["b"]
+        _feed(b, [5, 7, 9])
+        _feed(a, [8])
+        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=30.0)
+        for name, m in zip("ab", maps):
+            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after B's restart")
+        assert "took back the own evidence" in nodes["b"].log(), nodes["b"].log()   # (diagnostics: one topic)
+        assert "return packet(s)" in nodes["a"].log(), nodes["a"].log()
+        time.sleep(2.5 * SNAPSHOT_PERIOD)                   # settled: nothing counted twice later either
+        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=10.0)
+        for name, m in zip("ab", maps):
+            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after settling")
+    finally:
+        for c in clients.values():
+            c.close()
+        for n in nodes.values():
+            n.stop()

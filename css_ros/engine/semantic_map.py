@@ -45,14 +45,15 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     # evidence exchange (css_node, docs/maps.md): the origin id of the map's own evidence and, per received source,
     # its id, (epoch, last sequence number, frames, in step) and its evidence as sparse rows (counts per source)
     "evidence_origin": ("U", ()),
+    "evidence_epoch": ("u", ()),
     "received_sources": ("U", ("S",)),
     "received_state": ("u", ("S", 4)),
     "received_counts": ("iu", ("S",)),
     "received_rows": ("iu", ("R",)),
     "received_evidence": ("f", ("R", "C")),
 }
-_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model", "evidence_origin", "received_sources",
-                     "received_state", "received_counts", "received_rows", "received_evidence")
+_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model", "evidence_origin", "evidence_epoch",
+                     "received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
 _RECEIVED_MEMBERS = ("received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
 #: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
 MAX_SOURCES = 4096
@@ -339,6 +340,8 @@ class SemanticMap:
         self.sources: list[str] = []
         #: origin id under which css_node publishes this map's own evidence ("": none / not known)
         self.evidence_origin = ""
+        #: epoch under which css_node published the own evidence when this map was saved (0: none / not known)
+        self.evidence_epoch = 0
         #: evidence of other nodes held in ``concentrations``, per origin id (css_node's evidence ledger keeps it)
         self.received: Mapping[str, SourceEvidence] = {}
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
@@ -662,6 +665,7 @@ class SemanticMap:
                 sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
                 sensor_model=np.array(self.fused_sensor_model),
                 evidence_origin=np.array(self.evidence_origin),
+                evidence_epoch=np.uint64(self.evidence_epoch),
                 **self._received_members(),
             )
         return path
@@ -712,6 +716,7 @@ class SemanticMap:
                 sources = [str(v) for v in data["sources"]] if "sources" in data.files else []
                 fused_sm = str(data["sensor_model"]) if "sensor_model" in data.files else NO_SENSOR_MODEL
                 evidence_origin = str(data["evidence_origin"]) if "evidence_origin" in data.files else ""
+                evidence_epoch = int(data["evidence_epoch"]) if "evidence_epoch" in data.files else 0
                 received = {k: np.array(data[k]) for k in _RECEIVED_MEMBERS if k in data.files}
                 if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
                     raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not "
@@ -740,6 +745,7 @@ class SemanticMap:
         smap.frames_observed = frames
         smap.sources = sources
         smap.evidence_origin = evidence_origin
+        smap.evidence_epoch = evidence_epoch
         smap.received = _received_sources(path, received, conc, prior)
         # a map holding only the prior carries no evidence of any update: it takes the sensor model the caller names
         empty = "sensor_model" in kwargs and not np.any(conc != prior)

@@ -9,8 +9,10 @@ offset     type    field
 =========  ======  =====================================================================================
 0          4 B     magic ``CSSE``
 4          u16     format version (2)
-6          u8      kind: 0 delta (add these rows), 1 snapshot part (these rows *are* the source's total)
-7          u8      reserved (0)
+6          u8      kind: 0 delta (add these rows), 1 snapshot part (these rows *are* the source's total),
+                   2 return part (a snapshot part of the *subject*'s evidence as the sender holds it)
+7          u8      flags: bit 0 "resumed" (a snapshot of a node restarted with resume: peers holding more
+                   frames of its previous epoch send it a return); other bits 0
 8          32 B    origin id, ASCII, NUL padded (unique per publishing node)
 40         32 B    SHA-256 digest of the splat model (``GaussianModel.fingerprint``)
 72         u64     sequence number (1, 2, ... per origin and epoch; every packet, deltas and snapshot parts)
@@ -26,7 +28,14 @@ offset     type    field
 128        u64     frames: how many frames the source's evidence holds (its map's ``frames_observed``)
 136        R u32   Gaussian ids, strictly increasing, inside the range
 136 + 4R   R·C f64 evidence per row and class (κ-weighted label counts, ≥ 0)
+end        32 B    return parts only: the subject's origin id, ASCII, NUL padded
 =========  ======  =====================================================================================
+
+A return (kind 2) gives a restarted node back its own evidence of its previous epoch as a peer holds it (the
+frames it fused and published before a ``kill -9``, after its last checkpoint). Its origin is the sender (so the
+allow-list and rate limits apply), epoch / frames are the subject's old epoch and frames, sequence numbers count
+the return's parts (1, 2, ...; not the sender's stream), and the parts tile [0, N) as a snapshot's do. Only the
+subject uses it (:class:`EvidenceRecovery`); other receivers ignore it.
 
 A snapshot of a source is a run of parts with consecutive sequence numbers whose ranges tile [0, N); a part
 replaces that source's evidence on its range (rows left out are zero). A receiver applies deltas of a source
@@ -57,12 +66,18 @@ if TYPE_CHECKING:
     from ..engine.semantic_map import SemanticMap
 
 __all__ = ["EvidencePacket", "encode_packet", "decode_packet", "EvidenceLedger", "DELTA", "SNAPSHOT",
-           "MAX_INCREMENT", "HEADER_SIZE", "ORIGIN_BYTES", "own_evidence", "new_epoch", "received_sources"]
+           "MAX_INCREMENT", "HEADER_SIZE", "ORIGIN_BYTES", "own_evidence", "new_epoch", "received_sources",
+           "RETURN", "FLAG_RESUMED", "encode_return", "EvidenceRecovery", "RETURN_WINDOW_S",
+           "NOT_NEEDED_REASON"]
 
 MAGIC = b"CSSE"
 VERSION = 2
 DELTA = 0
 SNAPSHOT = 1
+RETURN = 2
+FLAG_RESUMED = 1
+#: Seconds after a resumed start during which a node flags its snapshots "resumed" and accepts returns.
+RETURN_WINDOW_S = 30.0
 ORIGIN_BYTES = 32
 _HEADER = struct.Struct("<4sHBB32s32sQQIIIIIIdQQ")
 HEADER_SIZE = _HEADER.size
@@ -79,6 +94,7 @@ BOUND_SLACK = 1e-9
 BOUND_REASON = "evidence above what its frames can add (max_image_pixels per frame)"
 LATE_REASON = "sequence gap or late start: waiting for a snapshot"
 SNAPSHOT_REASON = "incomplete snapshot: waiting for the next one"
+NOT_NEEDED_REASON = "return holds no more than this node's evidence"
 
 
 def new_epoch(previous: int = 0) -> int:
@@ -113,22 +129,30 @@ class EvidencePacket:
     frames: int
     rows: np.ndarray     # (R,) uint32 Gaussian ids
     values: np.ndarray   # (R, C) float64 evidence
+    flags: int = 0       # FLAG_RESUMED
+    subject: str = ""    # return parts: whose evidence it is
 
 
 def encode_packet(kind: int, origin: str, fingerprint: str, seq: int, rows: np.ndarray, values: np.ndarray,
                   prior: float, num_gaussians: int, snapshot_id: int = 0, range_start: int = 0,
                   range_end: int | None = None, part: int = 0, parts: int = 1, *, epoch: int,
-                  frames: int) -> bytes:
+                  frames: int, flags: int = 0, subject: str = "") -> bytes:
     """The bytes of one packet. ``fingerprint``: hex SHA-256 of the model; ``values`` (R, C) float64."""
     origin_b = origin.encode("ascii")
     if len(origin_b) > ORIGIN_BYTES or not origin_b:
         raise InputError(f"origin id must be 1..{ORIGIN_BYTES} ASCII characters, got {origin!r}")
     values = np.ascontiguousarray(values, dtype="<f8")
     rows = np.ascontiguousarray(rows, dtype="<u4")
-    header = _HEADER.pack(MAGIC, VERSION, kind, 0, origin_b, bytes.fromhex(fingerprint), seq, snapshot_id,
+    tail = b""
+    if kind == RETURN:
+        tail = subject.encode("ascii")
+        if len(tail) > ORIGIN_BYTES or not tail:
+            raise InputError(f"subject id must be 1..{ORIGIN_BYTES} ASCII characters, got {subject!r}")
+        tail = tail.ljust(ORIGIN_BYTES, b"\0")
+    header = _HEADER.pack(MAGIC, VERSION, kind, flags, origin_b, bytes.fromhex(fingerprint), seq, snapshot_id,
                           range_start, num_gaussians if range_end is None else range_end, part, parts,
                           values.shape[1], len(rows), prior, epoch, frames)
-    return header + rows.tobytes() + values.tobytes()
+    return header + rows.tobytes() + values.tobytes() + tail
 
 
 def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
@@ -139,17 +163,20 @@ def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
     """
     if len(data) < HEADER_SIZE:
         raise InputError("truncated packet")
-    (magic, version, kind, _, origin_b, digest, seq, snap, lo, hi, part, parts, c, r,
+    (magic, version, kind, flags, origin_b, digest, seq, snap, lo, hi, part, parts, c, r,
      prior, epoch, frames) = _HEADER.unpack_from(data)
     if magic == MAGIC and version == 1:
         raise InputError("packet format 1 (an older css_ros): update every node of the exchange")
     if magic != MAGIC or version != VERSION:
         raise InputError("not a css evidence packet (magic/version)")
-    if kind not in (DELTA, SNAPSHOT):
+    if kind not in (DELTA, SNAPSHOT, RETURN):
         raise InputError("unknown packet kind")
+    if flags & ~FLAG_RESUMED:
+        raise InputError("unknown packet flags")
     if r > max_rows:
         raise InputError("too many rows in one packet")
-    if c < 1 or len(data) != HEADER_SIZE + r * (4 + 8 * c):
+    tail = ORIGIN_BYTES if kind == RETURN else 0
+    if c < 1 or len(data) != HEADER_SIZE + r * (4 + 8 * c) + tail:
         raise InputError("packet size does not match its header")
     if seq < 1 or parts < 1 or part >= parts or lo > hi:
         raise InputError("bad sequence / part / range fields")
@@ -159,6 +186,14 @@ def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
         raise InputError("origin id is not ASCII") from None
     if not origin:
         raise InputError("empty origin id")
+    subject = ""
+    if kind == RETURN:
+        try:
+            subject = data[len(data) - ORIGIN_BYTES:].rstrip(b"\0").decode("ascii")
+        except UnicodeDecodeError:
+            raise InputError("origin id is not ASCII") from None
+        if not subject:
+            raise InputError("empty origin id")
     rows = np.frombuffer(data, dtype="<u4", count=r, offset=HEADER_SIZE).astype(np.int64)
     values = np.frombuffer(data, dtype="<f8", count=r * c, offset=HEADER_SIZE + 4 * r).reshape(r, c)
     if r and (np.any(np.diff(rows) <= 0) or rows[0] < lo or rows[-1] >= hi):
@@ -170,7 +205,7 @@ def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
     if np.any(values > MAX_INCREMENT):
         raise InputError("evidence above the per-packet bound")
     return EvidencePacket(kind, origin, digest, seq, snap, lo, hi, part, parts, c, prior, epoch, frames, rows,
-                          values.astype(np.float64))
+                          values.astype(np.float64), flags, subject)
 
 
 @dataclass
@@ -195,6 +230,9 @@ class SourceState(SourceEvidence):
     clock: tuple[int, float] | None = None      # (frames, time.monotonic()) when the epoch was adopted (None: free)
     pending: _Snapshot | None = None
     packets: int = 0
+    #: (epoch, frames, evidence) of the source's previous epoch, kept when it restarted "resumed":
+    #: sent back to it as a return on each of its resumed snapshots (dropped at its first unflagged one)
+    returnable: tuple[int, int, np.ndarray] | None = None
 
 
 class EvidenceLedger:
@@ -218,6 +256,8 @@ class EvidenceLedger:
         self.max_concentration = max_concentration
         self.max_frame_evidence, self.max_frame_rate = float(max_frame_evidence), float(max_frame_rate)
         self.sources: dict[str, SourceState] = {}
+        #: origins whose returnable evidence is due to be sent back (the caller drains it after apply)
+        self.returns_due: list[str] = []
         self._total = np.zeros((num_gaussians, num_classes))   # Σ over sources of their evidence, kept in step
         for name, src in (received or {}).items():
             ev = np.array(src.evidence, dtype=np.float64).reshape(num_gaussians, num_classes)
@@ -249,6 +289,8 @@ class EvidenceLedger:
         if pkt.range_end > self.n or (pkt.rows.size and pkt.rows[-1] >= self.n):
             return "Gaussian id beyond the model"
         now = time.monotonic() if now is None else now
+        if pkt.kind == RETURN:
+            return "return packet (for its subject only)"
         if pkt.kind == DELTA:
             return self._delta(self.sources.get(pkt.origin), pkt, concentrations, now)
         return self._snapshot_part(pkt, concentrations, now)
@@ -327,13 +369,17 @@ class EvidenceLedger:
             return "evidence would exceed the concentration bound"
         if state is None:
             state = self.sources[pkt.origin] = SourceState(np.zeros((self.n, self.c)))
+        if pkt.part == 0:
+            self._note_resumed(state, pkt)
         conc[lo:hi] = np.maximum(new_alpha, self.prior)
         self._total[lo:hi] += block - old
         state.total += block_total - float(old.sum())
         state.evidence[lo:hi] = block
         if pkt.part == 0:
             if new_epoch:
-                state.clock = (pkt.frames, now)
+                # a resumed source may claim the frames of its previous epoch at once (it adopts their return)
+                back = state.returnable[1] if state.returnable is not None else 0
+                state.clock = (max(pkt.frames, back), now)
             state.epoch, state.in_step = pkt.epoch, False
         snap.next_part, snap.next_seq, snap.next_start = pkt.part + 1, pkt.seq + 1, hi
         snap.total += block_total
@@ -345,6 +391,29 @@ class EvidenceLedger:
             state.frames = state.frames_base = pkt.frames
         return None
 
+    def _note_resumed(self, state: SourceState, pkt: EvidencePacket) -> None:
+        """Part 0 of a snapshot, before it is applied: keep the source's previous epoch's evidence when it comes back
+        "resumed" (a new epoch; the source, which knows its checkpoint, decides whether it holds more), and mark a
+        return due for each of its resumed snapshots; an unflagged snapshot ends that."""
+        if not pkt.flags & FLAG_RESUMED:
+            state.returnable = None
+            return
+        # kept while the source stays resumed (killed again before it took the copy back: the same copy)
+        if state.returnable is None and pkt.epoch != state.epoch and state.in_step and state.pending is None \
+                and state.total > 0.0:
+            state.returnable = (state.epoch, state.frames, state.evidence.copy())
+        if state.returnable is not None and state.returnable[0] != pkt.epoch:
+            self.returns_due.append(pkt.origin)
+
+    def return_packets(self, subject: str, max_rows: int) -> list[bytes]:
+        """The return parts of ``subject``'s kept previous-epoch evidence (empty when none is kept)."""
+        state = self.sources.get(subject)
+        if state is None or state.returnable is None:
+            return []
+        epoch, frames, evidence = state.returnable
+        return encode_return(self.own_origin, subject, self.digest.hex(), epoch, frames, evidence, self.prior,
+                             max_rows)
+
     def _free_slot(self) -> bool:
         """Drop one source that holds no evidence (a new source may take its slot); False when none."""
         for name, s in self.sources.items():
@@ -352,6 +421,88 @@ class EvidenceLedger:
                 del self.sources[name]
                 return True
         return False
+
+
+def encode_return(sender: str, subject: str, fingerprint: str, epoch: int, frames: int, evidence: np.ndarray,
+                  prior: float, max_rows: int) -> list[bytes]:
+    """The return parts (kind RETURN) giving ``subject`` back its evidence ``evidence`` (N, C) of ``epoch``."""
+    n = evidence.shape[0]
+    nz = np.flatnonzero(np.any(evidence != 0.0, axis=1))
+    chunks = [nz[a:a + max_rows] for a in range(0, nz.size, max(1, max_rows))] or [nz]
+    starts = [0] + [int(ch[0]) for ch in chunks[1:]]
+    ends = starts[1:] + [n]
+    return [encode_packet(RETURN, sender, fingerprint, k + 1, rows, evidence[rows], prior, n, snapshot_id=1,
+                          range_start=lo, range_end=hi, part=k, parts=len(chunks), epoch=epoch, frames=frames,
+                          subject=subject)
+            for k, (rows, lo, hi) in enumerate(zip(chunks, starts, ends))]
+
+
+class EvidenceRecovery:
+    """A node restarted with ``resume``: takes back, from a peer's return, its own evidence of the epoch it ran
+    before (the frames fused and published after its last checkpoint, which a ``kill -9`` lost).
+
+    Accepted only within ``window`` seconds of the start, for the subject = this node's origin, an epoch at or
+    after its checkpoint's (``checkpoint_epoch``; 0: no checkpoint, any earlier epoch) and before its current one,
+    and more (epoch, frames) than it holds (the checkpoint's, then the best return adopted); the parts must tile
+    [0, N) and keep the ledger's bounds (P per frame and row, P·F in total). Several peers: the best one wins
+    (equal ones after it are refused as "no more"). ``offer`` returns (reason refused or None, the complete
+    (epoch, frames, evidence) to adopt or None)."""
+
+    def __init__(self, origin: str, fingerprint: str, num_gaussians: int, num_classes: int, prior: float,
+                 checkpoint_epoch: int, checkpoint_frames: int, current_epoch: int, max_frame_evidence: float,
+                 max_sources: int, now: float, window: float = RETURN_WINDOW_S) -> None:
+        self.origin, self.digest = origin, bytes.fromhex(fingerprint)
+        self.n, self.c, self.prior = num_gaussians, num_classes, prior
+        self.first_epoch, self.current_epoch = checkpoint_epoch, current_epoch
+        self.best = (checkpoint_epoch, checkpoint_frames)
+        self.max_frame_evidence, self.max_sources = float(max_frame_evidence), max_sources
+        self.until = now + window
+        self._pending: dict[str, tuple[int, int, int, int, np.ndarray]] = {}   # sender -> epoch, frames, part, start
+
+    def open(self, now: float) -> bool:
+        return now < self.until
+
+    def offer(self, pkt: EvidencePacket, now: float) -> tuple[str | None, tuple[int, int, np.ndarray] | None]:
+        if pkt.kind != RETURN or pkt.subject != self.origin:
+            return "return for another node", None
+        if not self.open(now):
+            self._pending.clear()
+            return "return after the recovery window", None
+        if pkt.fingerprint_digest != self.digest:
+            return "evidence of another splat model", None
+        if pkt.num_classes != self.c or pkt.prior != self.prior:
+            return "evidence of another class count or prior", None
+        if pkt.range_end > self.n or (pkt.rows.size and pkt.rows[-1] >= self.n):
+            return "Gaussian id beyond the model", None
+        if pkt.epoch < self.first_epoch or pkt.epoch >= self.current_epoch:
+            return "return of an epoch this node did not run last", None
+        if (pkt.epoch, pkt.frames) <= self.best:
+            return NOT_NEEDED_REASON, None
+        lo, hi = pkt.range_start, pkt.range_end
+        if pkt.part == 0:
+            if lo != 0 or pkt.seq != 1:
+                return "bad sequence / part / range fields", None
+            if pkt.origin not in self._pending and len(self._pending) >= self.max_sources:
+                return "too many sources", None
+            cur = (pkt.epoch, pkt.frames, 0, 0, np.zeros((self.n, self.c)))
+        else:
+            cur = self._pending.get(pkt.origin)   # type: ignore[assignment]
+            if cur is None or (pkt.epoch, pkt.frames, pkt.part, lo) != cur[:4] or pkt.seq != pkt.part + 1:
+                return SNAPSHOT_REASON, None
+        if pkt.part == pkt.parts - 1 and hi != self.n:
+            return "bad sequence / part / range fields", None
+        bound = self.max_frame_evidence * pkt.frames * (1.0 + BOUND_SLACK)
+        buf = cur[4]
+        if (pkt.values.size and float(pkt.values.sum(axis=1).max()) > bound) or \
+                float(buf.sum()) + float(pkt.values.sum()) > bound:
+            return BOUND_REASON, None
+        buf[pkt.rows] = pkt.values
+        if pkt.part + 1 < pkt.parts:
+            self._pending[pkt.origin] = (pkt.epoch, pkt.frames, pkt.part + 1, hi, buf)
+            return None, None
+        self._pending.pop(pkt.origin, None)
+        self.best = (pkt.epoch, pkt.frames)
+        return None, (pkt.epoch, pkt.frames, buf)
 
 
 def received_sources(smap: "SemanticMap", own_origin: str) -> dict[str, SourceEvidence]:
@@ -419,7 +570,7 @@ class EvidenceOutbox:
                                      epoch=self.epoch, frames=frames))
         return out
 
-    def snapshot(self, own: np.ndarray, frames: int) -> list[bytes]:
+    def snapshot(self, own: np.ndarray, frames: int, flags: int = 0) -> list[bytes]:
         """Packets stating this node's whole own evidence (parts tiling [0, N)); deltas continue after it."""
         self.published[...] = own
         nz = np.flatnonzero(np.any(own != 0.0, axis=1))
@@ -432,7 +583,7 @@ class EvidenceOutbox:
             self.seq += 1
             out.append(encode_packet(SNAPSHOT, self.origin, self.fingerprint, self.seq, rows, own[rows], self.prior,
                                      self.n, snapshot_id=first, range_start=lo, range_end=hi, part=k,
-                                     parts=len(chunks), epoch=self.epoch, frames=frames))
+                                     parts=len(chunks), epoch=self.epoch, frames=frames, flags=flags))
         return out
 
 

@@ -17,7 +17,10 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
 
 from ..errors import InputError
-from ..io.evidence import ORIGIN_BYTES, EvidenceLedger, EvidenceOutbox, decode_packet, received_sources
+import numpy as np
+
+from ..io.evidence import (FLAG_RESUMED, NOT_NEEDED_REASON, ORIGIN_BYTES, RETURN, RETURN_WINDOW_S, EvidenceLedger,
+                           EvidenceOutbox, EvidenceRecovery, decode_packet, received_sources)
 from .params import NodeParams
 from .work import WarnLimiter
 
@@ -47,10 +50,14 @@ class EvidenceLink:
     def __init__(self, node: Node, p: NodeParams, worker: Any, warn: WarnLimiter,
                  count: Callable[..., None]) -> None:
         self.p, self.worker, self.warn, self.count = p, worker, warn, count
+        self.logger = node.get_logger()
         # a resumed node keeps the origin of its checkpoint (also the default one): its peers know it by that id
         self.origin = p.evidence_origin or worker.smap.evidence_origin or default_origin()
         self.allowed = {o.strip() for o in p.evidence_allowed_origins.split(",") if o.strip()}
+        checkpoint_epoch = int(worker.smap.evidence_epoch)   # the epoch the checkpoint's own evidence was of
         self.rebind()
+        if p.resume and self.outbox is not None:
+            self._start_recovery(checkpoint_epoch)
         worker.on_map_replaced = self._map_replaced_locked
         self._buckets: dict[str, tuple[float, float]] = {}   # origin -> (tokens, time.monotonic())
         self.topics = [t.strip() for t in p.evidence_in.split(",") if t.strip()]
@@ -72,6 +79,40 @@ class EvidenceLink:
             self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows) \
                 if self.p.publish_evidence else None   # 8 N C bytes: only when publishing
             self._next_snapshot = 0.0
+            self.recovery: EvidenceRecovery | None = None
+            self._own_base: np.ndarray | None = None
+            self._frames_base, self._adopted = 0, False
+            if self.outbox is not None:
+                smap.evidence_epoch = self.outbox.epoch
+
+    def _start_recovery(self, checkpoint_epoch: int) -> None:
+        """A resumed start: for a while, flag the snapshots "resumed" and take back from a peer's return the own
+        evidence of the previous epoch that the checkpoint lacks (see :class:`~css_ros.io.evidence.EvidenceRecovery`).
+        ``_own_base`` / ``_frames_base``: the own evidence and frames the map holds of before this start."""
+        assert self.outbox is not None
+        with self.worker.map_lock:
+            smap = self.worker.smap
+            self._own_base = self.outbox.own(smap.concentrations, self.ledger.received_total()).copy()
+            self._frames_base = int(smap.frames_observed)
+            self.recovery = EvidenceRecovery(
+                self.origin, smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes, smap.prior,
+                checkpoint_epoch, self._frames_base, self.outbox.epoch, float(self.p.max_image_pixels),
+                self.p.evidence_max_sources, time.monotonic(),
+                window=max(RETURN_WINDOW_S, 3.0 * self.p.evidence_snapshot_period))
+        self.logger.info(f"resumed: asking peers for own evidence after epoch {checkpoint_epoch} "
+                         f"({self._frames_base} frames held)")
+
+    def _adopt_return_locked(self, epoch: int, frames: int, evidence: np.ndarray) -> None:
+        """Under the map lock: the returned evidence of the previous epoch replaces the own part this start began
+        with (own evidence fused since the start is kept); the next publish re-states it by a snapshot."""
+        smap = self.worker.smap
+        alpha = smap.concentrations
+        assert self._own_base is not None
+        alpha[...] = np.maximum(alpha - self._own_base + evidence, smap.prior)
+        smap.frames_observed += frames - self._frames_base
+        self._own_base, self._frames_base = evidence, frames
+        self._next_snapshot = 0.0
+        self._adopted = True
 
     def _adopt_locked(self) -> None:
         """A ledger for the map's received sources (a resumed or loaded map brings them, see
@@ -106,7 +147,9 @@ class EvidenceLink:
             self._adopt_locked()
         if self.outbox is not None:
             self.outbox.reset()
+            smap.evidence_epoch = self.outbox.epoch
         self._next_snapshot = 0.0
+        self.recovery = None   # a reset / load is meant: no returned evidence comes back over it
 
     # ------------------------------------------------------------------ out
     def publish(self) -> None:
@@ -118,8 +161,13 @@ class EvidenceLink:
             alpha = self.worker.smap.concentrations
             frames = self.worker.smap.frames_observed
             received = self.ledger.received_total()
+            rec = self.recovery
+            if rec is not None and not rec.open(now):
+                self.recovery = rec = None
+                self._own_base = None
+            flags = FLAG_RESUMED if rec is not None and not self._adopted else 0
             if now >= self._next_snapshot:
-                packets = self.outbox.snapshot(self.outbox.own(alpha, received), frames)
+                packets = self.outbox.snapshot(self.outbox.own(alpha, received), frames, flags)
                 self._next_snapshot = now + self.p.evidence_snapshot_period
                 self.count("evidence_snapshots_sent")
             else:
@@ -167,17 +215,55 @@ class EvidenceLink:
         if not self._allow(pkt.origin):
             self._refuse("flood: more than evidence_max_rate packets/s from one source")
             return
+        if pkt.kind == RETURN:
+            self._on_return(pkt)
+            return
+        returns: list[bytes] = []
         with self.worker.map_lock:
             reason = self.ledger.apply(pkt, self.worker.smap.concentrations)
             if reason is None:
                 self.worker.policy.changed()
                 self.worker.map_version += 1
+            for subject in self.ledger.returns_due:
+                if self.pub is not None:
+                    returns += self.ledger.return_packets(subject, self.p.evidence_max_rows)
+            self.ledger.returns_due.clear()
+        if returns and self.pub is not None:
+            for data in returns:
+                msg = UInt8MultiArray()
+                msg.data = data
+                self.pub.publish(msg)
+            self.count("evidence_returns_sent")
+            self.logger.info(f"sent {len(returns)} return packet(s) of a restarted peer's previous evidence")
         if reason is not None:
             self._refuse(reason, pkt.origin)
             return
         self.count("evidence_packets_applied")
         self.count(f"evidence_packets_from[{pkt.origin}]")   # diagnostics name the contributing sources
         self._update_sources()
+
+    def _on_return(self, pkt: Any) -> None:
+        """A peer gives a restarted node back its evidence of the previous epoch (others' returns are ignored)."""
+        if pkt.subject != self.origin:
+            return
+        if self.recovery is None:
+            self._refuse("return while not recovering from a restart", pkt.origin)
+            return
+        with self.worker.map_lock:
+            reason, got = self.recovery.offer(pkt, time.monotonic())
+            if got is not None:
+                self._adopt_return_locked(*got)
+                self.worker.policy.changed()
+                self.worker.map_version += 1
+        if reason == NOT_NEEDED_REASON:   # a peer answered: the checkpoint holds as much (stop asking)
+            self._adopted = True
+            self.count("evidence_returns_not_needed")
+        elif reason is not None:
+            self._refuse(reason, pkt.origin)
+        elif got is not None:
+            self.count("evidence_returns_adopted")
+            self.logger.info(f"took back the own evidence of epoch {got[0]} ({got[1]} frames) from {pkt.origin!r}")
+            self.count(f"evidence_returned_by[{pkt.origin}]")
 
     def _refuse(self, reason: str, origin: str = "") -> None:
         self.count(f"evidence_refused[{reason}]")
