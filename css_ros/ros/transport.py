@@ -39,14 +39,25 @@ def rmem_max(path: str = "/proc/sys/net/core/rmem_max") -> int | None:
         return None
 
 
+#: Environment variable that opts css_node into receiving over UDP (value ``udp``). Not the default: with every
+#: transport UDP, the node's own large outputs (a 20 000-candidate answer, ~/semantic_cloud) reach local subscribers
+#: that kept Fast DDS's default socket buffers only through slow repairs (a 0.8 MB answer was not acknowledged
+#: within 4.5 s at shutdown), which is worse for most robots than the synchronised-camera loss it cures.
+OPT_IN_VAR = "CSS_NODE_TRANSPORT"
+
+
 def configure_transport(env: MutableMapping[str, str] | None = None, cwd: Path | None = None,
                         cap: int | None = -1) -> tuple[str, bool]:
-    """Set css_node's Fast DDS transport in ``env`` (os.environ) before ``rclpy.init``.
+    """Set css_node's Fast DDS transport in ``env`` (os.environ) before ``rclpy.init`` when the user opted in
+    (``CSS_NODE_TRANSPORT=udp``); otherwise leave Fast DDS's defaults (shared memory + UDP) and say so.
 
     Returns the start-up log line and whether it is a warning (a kernel cap below :data:`RMEM_MAX_WARN`, or a
     configuration that leaves the inputs on shared memory). ``cap``: net.core.rmem_max (-1: read it).
     """
     env = os.environ if env is None else env
+    if env.get(OPT_IN_VAR, "").lower() != "udp":
+        return ("DDS transport: Fast DDS defaults (shared memory between processes on this host; for several "
+                f"cameras publishing same-stamp bursts set {OPT_IN_VAR}=udp, docs/reliability.md)"), False
     rmw = env.get("RMW_IMPLEMENTATION", "")
     if rmw not in FASTDDS_RMWS:
         return f"DDS transport: {rmw}'s own (no Fast DDS settings)", False
