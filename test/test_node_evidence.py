@@ -32,6 +32,19 @@ def _params(model: Path, ckpt: Path, **kw) -> dict:
                 evidence_period=0.2, evidence_snapshot_period=SNAPSHOT_PERIOD, **kw)
 
 
+def _start_peer(tmp_path, domain: int, model, paths: dict, name: str, peer: dict, origin: dict, log: str = "",
+                **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
+    """Start node ``name`` (a, b: evidence peers with ``origin[name]``; ref: no exchange) under /<name> and a client
+    of it; waits until it is up (a killed node's entities linger in DDS a while)."""
+    ev = dict(publish_evidence=True, evidence_in=peer[name], evidence_origin=origin[name]) if name != "ref" else {}
+    node = rh.NodeProcess({**_params(model, paths[name], **ev), **kw}, domain, tmp_path / f"{name}{log}.log",
+                          remaps={"__ns": f"/{name}"})
+    assert node.wait_log("services:", 60.0), node.log()
+    client = _client(domain, f"/{name}")
+    assert client.wait_connected(60.0), node.log()
+    return node, client
+
+
 def encode_packet(kind, origin, fp, seq, rows, values, prior, n, **kw):
     """The module's encoder, epoch 1, claiming one frame per sequence number (a snapshot: its id)."""
     kw.setdefault("frames", kw.get("snapshot_id") or seq)
@@ -211,13 +224,7 @@ def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
     origin = {"a": "robot_a", "b": ""}                      # B: the default origin (host name and pid)
 
     def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
-        ev = dict(publish_evidence=True, evidence_in=peer[name], evidence_origin=origin[name]) if name != "ref" else {}
-        node = rh.NodeProcess({**_params(model, paths[name], **ev), **kw}, domain, tmp_path / f"{name}{log}.log",
-                              remaps={"__ns": f"/{name}"})
-        assert node.wait_log("services:", 60.0), node.log()   # up (the killed B's entities linger in DDS a while)
-        client = _client(domain, f"/{name}")
-        assert client.wait_connected(60.0), node.log()
-        return node, client
+        return _start_peer(tmp_path, domain, model, paths, name, peer, origin, log, **kw)
 
     nodes, clients = {}, {}
     try:
@@ -268,14 +275,7 @@ def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp
     peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
 
     def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
-        ev = dict(publish_evidence=True, evidence_in=peer[name], evidence_origin=f"robot_{name}") \
-            if name != "ref" else {}
-        node = rh.NodeProcess({**_params(model, paths[name], **ev), **kw}, domain, tmp_path / f"{name}{log}.log",
-                              remaps={"__ns": f"/{name}"})
-        assert node.wait_log("services:", 60.0), node.log()
-        client = _client(domain, f"/{name}")
-        assert client.wait_connected(60.0), node.log()
-        return node, client
+        return _start_peer(tmp_path, domain, model, paths, name, peer, {"a": "robot_a", "b": "robot_b"}, log, **kw)
 
     nodes, clients = {}, {}
     try:
