@@ -58,6 +58,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from css_ros.engine.spec import DEFAULT_MIN_EVIDENCE
+
 REPO = Path(__file__).resolve().parents[1]
 STRATEGIES: tuple[str, ...] = ("random", "u_var", "u_exp", "coverage", "info_gain", "info_gain_task")
 ERROR_KINDS: tuple[str, ...] = ("frame", "range")
@@ -78,7 +80,7 @@ PITCH_RANGE_DEG = (-30.0, 10.0)
 ROBOT_RADIUS_M = 0.25            # footprints are inflated by this; the walls keep it too (+ 0.1 m)
 CLEARANCE_M = 0.2                # no Gaussian centre closer than this to the camera ("not inside an object")
 VISIBLE_KAPPA = 0.1              # coverage: a Gaussian is visible in a view when its kappa mass reaches this
-UNOBSERVED_EVIDENCE = 0.5        # coverage: S_n - C alpha_0 below this = not yet observed
+UNOBSERVED_EVIDENCE = DEFAULT_MIN_EVIDENCE   # coverage: S_n - C alpha_0 below this = not yet observed (SPEC §9)
 #: the task poses: a robot driving west along the north corridor (y = 2 m), its camera sweeping +-20 deg
 TASK_CORRIDOR_Y = 2.0
 TASK_X = tuple(np.linspace(2.6, -2.4, 10).round(3))

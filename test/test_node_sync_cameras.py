@@ -5,7 +5,6 @@ Fast DDS's default shared-memory segment), at 1 Hz with the pose at the frame st
 "Synchronised cameras"); the transport choice that makes it so (css_ros/ros/transport.py)."""
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
@@ -24,21 +23,16 @@ class SyncClient:
     """Publishers of two synchronised cameras and one pose stream; reads css_node's /diagnostics."""
 
     def __init__(self, domain_id: int) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, Image
 
+        from css_ros.clients.node_link import NodeLink
         from css_ros.ros.conversions import camera_info_msg, header_msg, image_msg, pose_stamped_msg, time_msg
 
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node(f"css_sync_client_{os.getpid()}", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self.link = NodeLink("css_sync_client", start=False, domain_id=domain_id)
+        self.node = self.link.node
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.pubs: list[list[Any]] = []
         self.msgs: list[list[Any]] = []
@@ -60,15 +54,7 @@ class SyncClient:
         self.lock = threading.Lock()
         self.diag: dict[str, str] = {}
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.05)
-        except Exception:  # noqa: BLE001 - shutting down
-            pass
+        self.link.start()
 
     def _on_diag(self, msg: Any) -> None:
         for st in msg.status:
@@ -97,12 +83,7 @@ class SyncClient:
         self.pose_pub.publish(self.pose)
 
     def close(self) -> None:
-        import rclpy
-
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-        self._thread.join(5.0)
+        self.link.close()
 
 
 def stream(client: SyncClient, fps: float, frames: int, pose_rate: float) -> None:

@@ -21,7 +21,7 @@ from ..engine.semantic_map import SemanticMap
 from ..engine.sensor_model import SensorModel, uniform_edges
 from ..errors import ConfigError, CssError
 from ..evaluation import cli as replay_cli
-from ..evaluation.calibration_metrics import reliability_bins
+from ..evaluation.calibration_metrics import ReliabilityBins
 from ..evaluation.config import ReplayConfig
 from ..evaluation.source import FrameSource
 from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
@@ -165,9 +165,9 @@ def calibrate(args: argparse.Namespace) -> int:
                        f"in {counts.frames_fit} fitting frames (need {MIN_LABELLED_PIXELS})")
     sensor = fit_sensor_model(counts, classes.names, votes=args.votes, per_class=args.per_class,
                               pseudo_count=args.pseudo_count, weight_floor=args.weight_floor)
-    p_right = right_rates(counts.fit, args.pseudo_count)
-    judged = counts.heldout if counts.frames_heldout else counts.fit
-    labels_report = label_reliability(judged, p_right)
+    conf, ok = label_samples(counts.heldout if counts.frames_heldout else counts.fit,
+                             right_rates(counts.fit, args.pseudo_count))
+    labels_report = label_reliability(conf, ok)
     info: dict[str, Any] = {
         "bags": [str(c.bag) for c in configs], "frames_fit": counts.frames_fit,
         "frames_heldout": counts.frames_heldout, "heldout_every": args.heldout_every, "pixels_fit": fit_pixels,
@@ -178,22 +178,19 @@ def calibrate(args: argparse.Namespace) -> int:
         "votes": args.votes,
         "input_label_calibration": {"before": labels_report["before"], "after": labels_report["after"]},
     }
-    panels = []
+    panels = []  # the reliability diagrams, from the bins the reports already hold
     if labels_report["after"] is not None:
-        conf, ok = label_samples(judged, p_right)
         panels.append(("input labels, held-out frames", {
-            "paper: every label right (p = 1)": reliability_bins(np.ones_like(conf), ok),
-            "fitted p(label right | label, depth)": reliability_bins(conf, ok)}))
+            "paper: every label right (p = 1)": ReliabilityBins.from_json(labels_report["before"]["bins"]),
+            "fitted p(label right | label, depth)": ReliabilityBins.from_json(labels_report["after"]["bins"])}))
     if not args.no_confidence:
         samples = confidence_pass(configs, sensor, args.heldout_every, args.quiet)
         cmap, conf_report = fit_confidence(samples)
         sensor = SensorModel(sensor.class_names, sensor.depth_edges, sensor.weight, sensor.confusion, cmap)
         info["confidence_calibration"] = conf_report
-        test = samples.heldout.columns() if samples.heldout.total_seen else samples.fit.columns()
-        right = test["right"].astype(np.float64)
         panels.append(("map labels (online renders), " + conf_report["judged_on"], {
-            "expectation E of the label": reliability_bins(test["expectation"].astype(np.float64), right),
-            "calibrated confidence": reliability_bins(cmap(test["expectation"], test["evidence"]), right)}))
+            "expectation E of the label": ReliabilityBins.from_json(conf_report["before"]["bins"]),
+            "calibrated confidence": ReliabilityBins.from_json(conf_report["after"]["bins"])}))
     sensor = SensorModel(sensor.class_names, sensor.depth_edges, sensor.weight, sensor.confusion, sensor.confidence,
                          info)
     write_outputs(args.out, sensor, counts, classes, panels)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 
-from ..engine.sensor_model import ConfidenceMap, SensorModel
+from ..engine.sensor_model import ConfidenceMap, SensorModel, depth_bins
 from ..evaluation.calibration_metrics import calibration_summary
 from ..evaluation.metrics import PixelSampler
 from .fit import isotonic_fit, logistic_fit, reliability_weight, smoothed_rates
@@ -79,7 +79,7 @@ class LabelDepthCounts:
         has_depth = np.isfinite(d)
         self.no_depth += int(np.count_nonzero(valid & ~has_depth))
         keep = valid & has_depth
-        bins = np.clip(np.searchsorted(self.edges, d[keep], side="right") - 1, 0, b - 1)
+        bins = depth_bins(self.edges, d[keep])
         flat = (lab[keep] * b + bins) * c + tru[keep]
         target = self.heldout if heldout else self.fit
         target += np.bincount(flat, minlength=c * b * c).reshape(c, b, c)
@@ -157,10 +157,10 @@ def right_rates(counts: np.ndarray, pseudo_count: float = DEFAULT_PSEUDO_COUNT) 
     return smoothed_rates(counts.astype(np.float64), pseudo_count)[np.arange(c), :, np.arange(c)]
 
 
-def label_reliability(counts: np.ndarray, p_right: np.ndarray) -> dict[str, Any]:
+def label_reliability(conf: np.ndarray, correct: np.ndarray) -> dict[str, Any]:
     """Held-out calibration of "the input label is right": the paper's assumption (probability 1) against the
-    fitted p(label right | label, depth bin) ``p_right`` (C, B), from (C, B, C) counts (calibration_summary)."""
-    conf, correct = label_samples(counts, p_right)
+    fitted p(label right | label, depth bin), from the per-pixel samples of :func:`label_samples`
+    (calibration_summary)."""
     if conf.size == 0:
         return {"before": None, "after": None}
     return {"before": calibration_summary(np.ones_like(conf), correct),
@@ -185,8 +185,8 @@ class ConfidenceSamples:
 
 
 def _features(expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
-    e = np.clip(expectation.astype(np.float64), 1e-6, 1.0 - 1e-6)
-    return np.column_stack([np.log(e / (1.0 - e)), np.log1p(np.maximum(evidence.astype(np.float64), 0.0))])
+    """(n, 2) features of the confidence map's logistic score (ConfidenceMap.features)."""
+    return np.column_stack(ConfidenceMap.features(expectation, evidence))
 
 
 def fit_confidence(samples: ConfidenceSamples) -> tuple[ConfidenceMap, dict[str, Any]]:

@@ -1,13 +1,12 @@
 """css_calibrate's figures: reliability vs depth per class, confusion per depth band, reliability diagrams."""
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..engine.atomic import atomic_file
 from ..evaluation.calibration_plots import reliability_panels_figure
 
 __all__ = ["confusion_bands_figure", "reliability_by_depth_figure", "reliability_panels_figure", "save_figure"]
@@ -27,15 +26,10 @@ def _plt() -> Any:
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
-    """Write ``fig`` as PNG atomically (temporary file, rename) and close it."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
+    """Write ``fig`` as PNG atomically (engine.atomic.atomic_file) and close it."""
     try:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        with atomic_file(path) as fh:
+            fig.savefig(fh, format="png", dpi=dpi, bbox_inches="tight")
     finally:
         _plt().close(fig)
 

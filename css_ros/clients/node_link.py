@@ -14,15 +14,16 @@ class NodeLink:
     Args:
         prefix: node name prefix (a number keeps names unique when several run at once).
         start: spin right away; False lets the caller create its subscriptions first, then :meth:`start`.
+        domain_id: ROS domain (None: ROS_DOMAIN_ID, as every ROS process).
     """
 
-    def __init__(self, prefix: str = "css_ctl", start: bool = True) -> None:
+    def __init__(self, prefix: str = "css_ctl", start: bool = True, domain_id: int | None = None) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
 
         self.context = Context()
-        rclpy.init(context=self.context)
+        rclpy.init(context=self.context, **({} if domain_id is None else {"domain_id": domain_id}))
         self.node = rclpy.create_node(f"{prefix}_{time.monotonic_ns() % 10**9}", context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)

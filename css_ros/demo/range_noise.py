@@ -68,6 +68,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.special import expit, ndtri
 
+from ..engine.sensor_model import depth_bins
 from .segmentation_noise import SegmentationNoise, _boundary_mask, confusion_matrix
 
 if TYPE_CHECKING:
@@ -453,7 +454,7 @@ def depth_band_counts(labels: np.ndarray, gt: np.ndarray, depth: np.ndarray,
     """(B, 2) int64 per depth band [edges ``bands``, m]: (correct, labelled) pixel counts of one frame."""
     edges = np.asarray(bands, dtype=np.float64)
     valid = (np.asarray(gt) != ignore_label) & np.isfinite(depth)
-    b = np.clip(np.searchsorted(edges, np.asarray(depth)[valid], side="right") - 1, 0, len(edges) - 2)
+    b = depth_bins(edges, np.asarray(depth)[valid])
     ok = (np.asarray(labels)[valid] == np.asarray(gt)[valid]).astype(np.int64)
     out = np.zeros((len(edges) - 1, 2), dtype=np.int64)
     out[:, 0] = np.bincount(b, ok, len(edges) - 1).astype(np.int64)

@@ -7,7 +7,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Literal, Mapping, Sequence
 
 import numpy as np
 
@@ -313,9 +313,6 @@ class SemanticMap:
             raise MapError(f"background must be a positive finite number, got {background}")
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise MapError(f"depth_scale must be a positive finite number, got {depth_scale}")
-        if sensor_model is not None and sensor_model.num_classes != int(num_classes):
-            raise SensorModelError(f"{sensor_model.source or 'sensor model'} is for {sensor_model.num_classes} "
-                                   f"classes, the map has {num_classes}")
         self.model = model
         self.num_classes = int(num_classes)
         self.prior = float(prior)
@@ -547,46 +544,49 @@ class SemanticMap:
             :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
             one's gain when chosen). Fewer than ``k`` when there are fewer cameras.
         Raises:
-            CssError: on a backend without the evidence mass (cuda).
+            MapError: on a backend without the evidence mass (cuda).
         """
         from .info_gain import MomentSums, SelectedViews, view_gain
 
         imp = self._check_importance(importance)
         cams = list(cameras)
-        if not self._backend.scores_mass:
-            raise MapError(f"select_views needs the evidence mass, which the {self.backend_name} backend does not "
-                           "compute yet; use backend numba or torch")
-        e_b, v_b, s_b = self._background_moments()
         scale = self._check_pixel_scale(pixel_scale)
-        masses = [m if m is None else (m[0], scale * m[1])
-                  for _, _, m in self._backend.score_images(cams, self._concentrations, e_b, v_b, s_b,
-                                                            self._mass_weights())]
+        masses = [(ids, scale * mass) for ids, mass in self._view_masses(cams, self._mass_weights(), "select_views")]
         moments = MomentSums.of(self.concentrations_readonly)
         chosen: list[int] = []
         gains: list[float] = []
         for _ in range(min(int(k), len(cams))):
-            scores = np.array([-np.inf if i in chosen or m is None else view_gain(moments, m[0], m[1], imp)
-                               for i, m in enumerate(masses)])
+            scores = np.array([-np.inf if i in chosen else view_gain(moments, ids, mass, imp)
+                               for i, (ids, mass) in enumerate(masses)])
             best = int(np.argmax(scores))
             chosen.append(best)
             gains.append(float(scores[best]))
-            m = masses[best]
-            if m is not None:
-                moments.observe_expected(m[0], m[1])
+            moments.observe_expected(*masses[best])
         return SelectedViews(np.array(chosen, dtype=np.int64), np.array(gains))
 
     def task_importance(self, task_cameras: Sequence["Camera"]) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = its kappa mass summed over ``task_cameras`` (the views a robot
         will later take or act from), for ``score_views`` / ``select_views``: surfaces no task view sees count 0."""
-        e_b, v_b, s_b = self._background_moments()
         imp = np.zeros(self.model.num_gaussians)
         unit = (np.array([0.0, 1.0]), np.ones(self.num_classes))
-        for _, _, mass in self._backend.score_images(list(task_cameras), self._concentrations, e_b, v_b, s_b, unit):
-            if mass is None:
-                raise MapError(f"task_importance needs the kappa mass, which the {self.backend_name} backend does "
-                               "not compute yet; use backend numba or torch")
-            np.add.at(imp, mass[0], mass[1])
+        for ids, mass in self._view_masses(list(task_cameras), unit, "task_importance"):
+            np.add.at(imp, ids, mass)
         return imp
+
+    def _view_masses(self, cameras: list["Camera"], mass_weights: tuple[np.ndarray, np.ndarray],
+                     what: str) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Per view, (model ids (M,), evidence mass (M,)) of its visible Gaussians (RasterBackend.score_images).
+
+        Raises:
+            MapError: the backend does not compute the mass (cuda).
+        """
+        if not self._backend.scores_mass:
+            raise MapError(f"{what} needs the evidence mass, which the {self.backend_name} backend does not compute "
+                           "yet; use backend numba or torch")
+        e_b, v_b, s_b = self._background_moments()
+        for _, _, mass in self._backend.score_images(cameras, self._concentrations, e_b, v_b, s_b, mass_weights):
+            assert mass is not None  # scores_mass backends always return it when asked
+            yield mass
 
     def class_importance(self, class_id: int) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = E[theta_n^c], the map's probability that Gaussian n is of class
@@ -737,7 +737,8 @@ class SemanticMap:
         if frames < 0:
             raise MapError(f"map file {path}: frames_observed={frames} < 0")
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
-        if "sensor_model" in kwargs and fused_sm != smap.sensor_fingerprint and np.any(conc != prior):
+        has_evidence = bool(np.any(conc != prior))
+        if "sensor_model" in kwargs and fused_sm != smap.sensor_fingerprint and has_evidence:
             raise MapError(f"map file {path} was fused with {_update_name(fused_sm)}, this map uses "
                            f"{_update_name(smap.sensor_fingerprint)}: their evidence is not in the same units (start a new "
                            "map, or use the sensor model it was made with)")
@@ -748,6 +749,6 @@ class SemanticMap:
         smap.evidence_epoch = evidence_epoch
         smap.received = _received_sources(path, received, conc, prior)
         # a map holding only the prior carries no evidence of any update: it takes the sensor model the caller names
-        empty = "sensor_model" in kwargs and not np.any(conc != prior)
+        empty = "sensor_model" in kwargs and not has_evidence
         smap.fused_sensor_model = smap.sensor_fingerprint if empty else fused_sm
         return smap

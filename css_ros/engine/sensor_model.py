@@ -60,11 +60,17 @@ class ConfidenceMap:
     knots_x: np.ndarray
     knots_y: np.ndarray
 
+    @staticmethod
+    def features(expectation: np.ndarray, evidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(logit E with E clipped to [1e-6, 1 - 1e-6], log(1 + evidence)), float64, the inputs' shape: the two
+        features of the logistic score (css_calibrate fits its coefficients on these)."""
+        e = np.clip(np.asarray(expectation, dtype=np.float64), 1e-6, 1.0 - 1e-6)
+        return np.log(e / (1.0 - e)), np.log1p(np.maximum(np.asarray(evidence, dtype=np.float64), 0.0))
+
     def score(self, expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
         """The logistic score before the isotonic correction (same shape as the inputs, float64)."""
-        e = np.clip(np.asarray(expectation, dtype=np.float64), 1e-6, 1.0 - 1e-6)
-        ev = np.log1p(np.maximum(np.asarray(evidence, dtype=np.float64), 0.0))
-        z = self.coef[0] * np.log(e / (1.0 - e)) + self.coef[1] * ev + self.coef[2]
+        logit_e, log_ev = self.features(expectation, evidence)
+        z = self.coef[0] * logit_e + self.coef[1] * log_ev + self.coef[2]
         return 0.5 * (1.0 + np.tanh(0.5 * np.clip(z, -60.0, 60.0)))
 
     def __call__(self, expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
@@ -176,8 +182,7 @@ class SensorModel:
 
     def bin_of(self, depth: np.ndarray) -> np.ndarray:
         """Depth bin (int64, same shape) of depths in metres (NaN -> bin 0)."""
-        d = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0)
-        return np.clip(np.searchsorted(self.depth_edges, d, side="right") - 1, 0, self.num_bins - 1)
+        return depth_bins(self.depth_edges, np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0))
 
     def label_distribution(self) -> np.ndarray:
         """(C, B, C) p(c | y, b): the confusion model, or the one-hot of y."""
@@ -344,6 +349,12 @@ def _array(value: Any, where: str, ndim: int) -> np.ndarray:
 def _short(a: np.ndarray) -> str:
     vals = ", ".join(f"{v:g}" for v in a[:6])
     return f"[{vals}{', ...' if a.size > 6 else ''}]"
+
+
+def depth_bins(edges: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Bin b (int64, ``depth``'s shape) with edges[b] <= depth < edges[b + 1] of increasing ``edges`` (B + 1,);
+    depths below edges[1] are in bin 0, beyond the last edge in bin B - 1 (the update kernels' rule too)."""
+    return np.clip(np.searchsorted(edges, depth, side="right") - 1, 0, edges.size - 2)
 
 
 def uniform_edges(max_depth: float, bin_width: float) -> np.ndarray:

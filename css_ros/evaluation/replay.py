@@ -70,14 +70,16 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     extra: dict[str, Any] = {} if cfg.unknown_threshold is None else {"unknown_threshold": cfg.unknown_threshold}
     sensor = None if cfg.sensor_model is None else SensorModel.load(cfg.sensor_model, classes.names)
     depth_scale = float(cfg.splat_to_map[0])
-    smap = SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
-                       ignore_label=cfg.ignore_label, backend=cfg.backend, sensor_model=sensor,
-                       depth_scale=depth_scale, **extra)
+
+    def new_map(sensor_model: SensorModel | None) -> SemanticMap:
+        return SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
+                           ignore_label=cfg.ignore_label, backend=cfg.backend, sensor_model=sensor_model,
+                           depth_scale=depth_scale, **extra)
+
+    smap = new_map(sensor)
     cfg.unknown_threshold = smap.unknown_threshold
     # the paper's update on the same frames, for the report's comparison (only with a sensor model)
-    paper = SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
-                        ignore_label=cfg.ignore_label, backend=cfg.backend, depth_scale=depth_scale,
-                        **extra) if sensor is not None and cfg.paper_baseline else None
+    paper = new_map(None) if sensor is not None and cfg.paper_baseline else None
     paper_online_cm = ConfusionMatrix(C, cfg.ignore_label)
     paper_fused_cm = ConfusionMatrix(C, cfg.ignore_label)
     online_pixels = PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed + 1)

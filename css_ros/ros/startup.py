@@ -108,15 +108,7 @@ def describe_sensor_model(model: SensorModel | None) -> str:
     """One line naming the update in use, for the start-up log and diagnostics."""
     if model is None:
         return "sensor model: none (paper update)"
-    # SensorModel.load's source already reads "sensor model <path>": name it once.
-    return model.describe().replace("sensor model sensor model ", "sensor model ", 1)
-
-
-def adopt_own_update(smap: SemanticMap) -> None:
-    """A map that holds no evidence yet counts as fused with its own sensor model (a prior-only checkpoint of
-    another update, which SemanticMap.load accepts, must not pass that update's fingerprint on to later saves)."""
-    if smap.fused_sensor_model != smap.sensor_fingerprint and bool(np.all(smap.concentrations == smap.prior)):
-        smap.fused_sensor_model = smap.sensor_fingerprint
+    return model.describe()
 
 
 def checkpoint_fingerprint(path: Path) -> str | None:
@@ -185,6 +177,7 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
     C = classes.num_classes
     sensor_model = load_sensor_model(p, classes)   # before the checkpoint: a bad file never renames it aside
     # sensor_model is always passed (None included): SemanticMap.load then refuses a checkpoint fused with another
+    # update, and a prior-only checkpoint takes this node's sensor model
     kwargs: dict[str, Any] = dict(ignore_label=p.ignore_label, unknown_threshold=p.unknown_threshold,
                                   backend=p.backend, sensor_model=sensor_model,
                                   depth_scale=Similarity.from_params(p.splat_to_map).scale)
@@ -200,7 +193,6 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
             smap = SemanticMap.load(ckpt, model, expected_classes=C, **kwargs)
             if smap.num_classes != C:
                 raise MapError(f"it has {smap.num_classes} classes, the class setup has {C}")
-            adopt_own_update(smap)
             status = f"resumed from {ckpt} ({smap.frames_observed} frames observed)"
             if (smap.prior, smap.background) != (p.prior, p.background):
                 log_warning(f"checkpoint prior/background ({smap.prior:g}, {smap.background:g}) override the "

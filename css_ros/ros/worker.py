@@ -298,7 +298,7 @@ class MapWorker:
             self.smap.frames_observed = loaded.frames_observed
             self.smap.evidence_origin, self.smap.received = loaded.evidence_origin, loaded.received
             # load refused other updates' evidence: what it accepted is this map's own (or the prior only)
-            self.smap.fused_sensor_model = self.smap.sensor_fingerprint
+            self.smap.fused_sensor_model = loaded.fused_sensor_model
             self.map_version += 1
             self.policy.saved(time.monotonic(), self.policy.dirty)  # the map now equals the file
             if self.on_map_replaced is not None:

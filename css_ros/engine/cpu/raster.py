@@ -231,6 +231,17 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
         trans[p] = t
 
 
+@njit(inline="always")
+def _depth_bin(depth, edges):  # pragma: no cover
+    """Bin b of ``depth`` with edges[b] <= depth < edges[b + 1]; below edges[1]: 0, beyond the last edge: B - 1
+    (the sensor model's rule, SensorModel.bin_of; B is small, a linear scan)."""
+    b = 0
+    last = edges.shape[0] - 2
+    while b < last and depth >= edges[b + 1]:
+        b += 1
+    return b
+
+
 @njit(parallel=True, cache=True, fastmath=_FAST)
 def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height, tile, tiles_x, acc,
                    store, st_k, st_v, pix_off, pix_cnt, pix_t, use_model, edges, base, resid, acc_base,
@@ -315,9 +326,7 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                             ksum += kv
                         b = 0
                         if ksum > 0.0:
-                            d = zsum / ksum
-                            while b < num_bins - 1 and d >= edges[b + 1]:
-                                b += 1
+                            b = _depth_bin(zsum / ksum, edges)
                         else:
                             no_depth[ch] += 1
                         row = lab * num_bins + b
@@ -427,11 +436,7 @@ def _add_mass(ks, vs, cnt, lists, start, label, depth, edges, weights, mass):  #
     """mass[lists[start + ks[i]]] += vs[i] * weights[label * B + b] (b: the depth bin of ``depth`` in ``edges``)."""
     if cnt == 0:
         return
-    nb = edges.shape[0] - 1
-    b = 0
-    while b < nb - 1 and depth >= edges[b + 1]:
-        b += 1
-    w = weights[label * nb + b]
+    w = weights[label * (edges.shape[0] - 1) + _depth_bin(depth, edges)]
     if w == 0.0:
         return
     for i in range(cnt):
@@ -617,7 +622,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarr
     acc_base = _NO_BASE if soft is None else np.zeros((nchunks, proj.count))
     _update_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, labels, weights, width, height,
                    bins.tile_size, bins.tiles_x, acc, store is not None, *arrays, soft is not None, edges, base,
-                   resid, acc_base if soft is not None else np.zeros((1, 1)), no_depth)
+                   resid, acc_base, no_depth)
     return acc, acc_base, int(no_depth.sum())
 
 

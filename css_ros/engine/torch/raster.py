@@ -244,10 +244,11 @@ class TorchBackend(RasterBackend):
 
     def _mass(self, frame: TorchFrame, buf: RenderBuffers, mass_weights: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """(M,) sum_i kappa_in * weight[label_i * B + bin_i] over the view's pixels."""
+        from ..sensor_model import depth_bins
+
         edges, weights = mass_weights
         nb = edges.size - 1
-        depth = np.nan_to_num(np.asarray(buf.depth), nan=0.0)
-        b = np.clip(np.searchsorted(edges, depth, side="right") - 1, 0, nb - 1)
+        b = depth_bins(edges, np.nan_to_num(np.asarray(buf.depth), nan=0.0))
         w_pix = torch.as_tensor(weights[buf.labels * nb + b], dtype=self.dtype, device=self.device)
         mass = torch.zeros(len(frame.ids), dtype=self.dtype, device=self.device)
         for vv, uu, lst, kappa, _ in self._tiles(frame):
