@@ -224,10 +224,11 @@ def test_resume_of_a_checkpoint_without_the_sensor_model_is_refused_and_kept_asi
     client = rh.RosClient(domain)
     try:
         assert client.wait_connected(60.0), node.log()
+        # the start-up summary is logged after the subscriptions exist: wait for it rather than race it
+        assert node.wait_log("~/confidence is not published", 30.0), node.log()   # logged after the summary line
         log = node.log()
         assert "starting fresh: checkpoint refused" in log and "fused with the paper's update" in log, log
         assert "vote rows, no confidence map" in log
-        assert "~/confidence is not published" in log
         (aside,) = tmp_path.glob("map.npz.rejected-*")
         assert aside.read_bytes() == original
         assert client.node.count_publishers("/css_node/confidence") == 0
