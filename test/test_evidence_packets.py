@@ -498,7 +498,7 @@ def test_a_killed_node_takes_back_its_unsaved_evidence_from_a_peer(tmp_path, che
 
 def test_forged_or_late_returns_are_refused(tmp_path):
     """Returns for another node, of an epoch before the checkpoint's or of the current one, holding no more frames,
-    above what their frames can add, or after the window change nothing."""
+    above what their frames can add, or after the window (30 s from the first peer packet) change nothing."""
     ev_ = np.zeros((N, C))
     ev_[[2, 7], 1] = [3.0, 4.0]
 
@@ -517,7 +517,15 @@ def test_forged_or_late_returns_are_refused(tmp_path):
     huge = ev_.copy()
     huge[2, 1] = 1000.0                                # above 10 per frame × 9 frames
     assert rec().offer(ret(values=huge), 1.0)[0] == ev.BOUND_REASON
-    assert rec().offer(ret(), 31.0)[0] == "return after the recovery window"
+    late = rec()                                       # the window runs from the first packet heard from a peer
+    assert late.open(1e6)                              # nobody heard yet (a peer discovered late): still open
+    late.heard(1000.0)
+    late.heard(1020.0)                                 # later packets do not move it
+    assert late.open(1029.9) and not late.open(1030.0)
+    assert late.offer(ret(), 1030.5)[0] == "return after the recovery window"
+    late = rec()
+    late.heard(1000.0)
+    assert late.offer(ret(), 1029.0)[0] is None
     r = rec()
     reason, got = r.offer(ret(), 1.0)
     assert reason is None and got is not None and got[:2] == (150, 9)

@@ -78,6 +78,14 @@ def _saved(client: rh.RosClient, path: Path) -> np.ndarray:
         return np.array(data["concentrations"]), [str(s) for s in data["sources"]]
 
 
+def _evidence_log(nodes: dict) -> str:
+    """The evidence exchange's log lines of each node (for a failure message: who sent, refused, took back what)."""
+    keys = ("evidence", "return", "resumed", "refused", "took back", "epoch")
+    return "\n".join(f"--- {name}\n" + "\n".join(line for line in node.log().splitlines()
+                                                   if any(k in line for k in keys))[-3000:]
+                     for name, node in nodes.items())
+
+
 def _converged(clients, paths, ref: np.ndarray, timeout: float = 20.0) -> list[np.ndarray]:
     end = time.monotonic() + timeout
     while True:
@@ -245,9 +253,10 @@ def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
         assert "resumed from" in nodes["b"].log()
         _feed(b, [5, 7, 9])
         _feed(a, [8])
-        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=30.0)
+        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=45.0)
         for name, m in zip("ab", maps):
-            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after B's restart")
+            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0,
+                                       err_msg=f"node {name} after B's restart\n{_evidence_log(nodes)}")
         assert not any(k.startswith("evidence_refused[replayed") for k in a.diagnostics()), a.diagnostics()
         load = b.node.create_client(Trigger, "/b/css_node/load_map")
         assert b.call(load).success                          # B reloads its checkpoint: still exactly once
@@ -297,9 +306,10 @@ def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp
         b = clients["b"]
         _feed(b, [5, 7, 9])
         _feed(a, [8])
-        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=30.0)
+        maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=45.0)
         for name, m in zip("ab", maps):
-            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after B's restart")
+            np.testing.assert_allclose(m, want, rtol=1e-9, atol=0,
+                                       err_msg=f"node {name} after B's restart\n{_evidence_log(nodes)}")
         assert "took back the own evidence" in nodes["b"].log(), nodes["b"].log()   # (diagnostics: one topic)
         assert "return packet(s)" in nodes["a"].log(), nodes["a"].log()
         time.sleep(2.5 * SNAPSHOT_PERIOD)                   # settled: nothing counted twice later either

@@ -113,9 +113,11 @@ def stream(client: SyncClient, fps: float, frames: int, pose_rate: float) -> Non
 @pytest.mark.slow
 def test_synchronised_cameras_keep_every_frame(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Two cameras, same stamps back to back: each keeps >= 99 % of its frames at 1 Hz (pose at the frame stamps)
-    and at 10 Hz (200 Hz poses between frames), counted from css_node's per-camera diagnostics, with the node
-    receiving over UDP (CSS_NODE_TRANSPORT=udp, the setting docs/reliability.md gives for synchronised rigs)."""
-    monkeypatch.setenv("CSS_NODE_TRANSPORT", "udp")
+    and at 10 Hz (200 Hz poses between frames), counted from css_node's per-camera diagnostics, with the node's
+    default transports (its inputs participant receives over UDP) and the publishers' Fast DDS defaults."""
+    for var in ("CSS_NODE_TRANSPORT", "FASTDDS_BUILTIN_TRANSPORTS", "FASTRTPS_DEFAULT_PROFILES_FILE",
+                "FASTDDS_DEFAULT_PROFILES_FILE", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
+        monkeypatch.delenv(var, raising=False)
     domain = rh.next_domain_id()
     model = rh.write_wall_model(tmp_path / "wall.ply")
     node = rh.NodeProcess(dict(model_path=str(model), class_file="", num_classes=rh.NUM_CLASSES, checkpoint_path="",
@@ -147,28 +149,71 @@ def test_synchronised_cameras_keep_every_frame(tmp_path: Path, monkeypatch: pyte
         assert node.stop() == 0, node.log()[-2000:]
 
 
+def test_inputs_participant_is_udp_with_large_buffers_unless_configured(tmp_path: Path) -> None:
+    """By default the inputs get a participant of their own receiving over UDPv4 with large socket buffers; a
+    user's Fast DDS settings, another rmw, localhost-only discovery (rmw_fastrtps's own transports) and
+    CSS_NODE_TRANSPORT=shm keep one participant; a small rmem_max and an unknown choice are warnings."""
+    from css_ros.ros.transport import NODE_TRANSPORT, SOCKETS_SIZE, builtin_transports, choose_input_transport
 
-def test_node_transport_is_udp_with_large_buffers_unless_configured(tmp_path: Path) -> None:
-    """css_node receives over UDPv4 with large socket buffers; a user's Fast DDS settings, another rmw and
-    localhost-only discovery (rmw_fastrtps's own transports) are left alone; a small rmem_max is a warning."""
-    from css_ros.ros.transport import NODE_TRANSPORT, SOCKETS_SIZE, configure_transport
-
-    env: dict[str, str] = {}
-    line, warn = configure_transport(env, tmp_path, cap=SOCKETS_SIZE)
-    assert env == {} and not warn and "CSS_NODE_TRANSPORT=udp" in line   # not the default (module docstring)
-    env = {"CSS_NODE_TRANSPORT": "udp"}
-    line, warn = configure_transport(env, tmp_path, cap=SOCKETS_SIZE)
-    assert env["FASTDDS_BUILTIN_TRANSPORTS"] == NODE_TRANSPORT and not warn and "UDPv4" in line
-    env = {"CSS_NODE_TRANSPORT": "udp", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
-    line, warn = configure_transport(env, tmp_path, cap=212992)
-    assert env["FASTDDS_BUILTIN_TRANSPORTS"] == NODE_TRANSPORT and warn and "rmem_max=212992" in line
+    t = choose_input_transport({}, tmp_path, cap=SOCKETS_SIZE)
+    assert t.builtin == NODE_TRANSPORT and not t.warn and "inputs over UDPv4" in t.line and "capped" not in t.line
+    assert choose_input_transport({"CSS_NODE_TRANSPORT": "UDP"}, tmp_path, cap=SOCKETS_SIZE).builtin == NODE_TRANSPORT
+    t = choose_input_transport({"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}, tmp_path, cap=212992)
+    assert t.builtin == NODE_TRANSPORT and t.warn and "rmem_max=212992" in t.line
+    t = choose_input_transport({}, tmp_path, cap=4 * 1024 * 1024)
+    assert not t.warn and "capped by net.core.rmem_max=4194304" in t.line
     for given in ({"FASTDDS_BUILTIN_TRANSPORTS": "DEFAULT"}, {"FASTRTPS_DEFAULT_PROFILES_FILE": "/p.xml"},
-                  {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}, {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}):
-        given = {"CSS_NODE_TRANSPORT": "udp", **given}
-        env = dict(given)
-        configure_transport(env, tmp_path, cap=SOCKETS_SIZE)
-        assert env == given
+                  {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}, {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"},
+                  {"ROS_LOCALHOST_ONLY": "1"}, {"CSS_NODE_TRANSPORT": "shm"}):
+        assert choose_input_transport(given, tmp_path, cap=SOCKETS_SIZE).builtin is None, given
+    t = choose_input_transport({"CSS_NODE_TRANSPORT": "tcp"}, tmp_path, cap=SOCKETS_SIZE)
+    assert t.builtin is None and t.warn and "'tcp' is not one of udp, shm" in t.line
     (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text("<profiles/>")
-    env = {"CSS_NODE_TRANSPORT": "udp"}
-    line, _ = configure_transport(env, tmp_path, cap=SOCKETS_SIZE)
-    assert env == {"CSS_NODE_TRANSPORT": "udp"} and "DEFAULT_FASTRTPS_PROFILES.xml" in line
+    t = choose_input_transport({}, tmp_path, cap=SOCKETS_SIZE)
+    assert t.builtin is None and "DEFAULT_FASTRTPS_PROFILES.xml" in t.line
+    env = {"FASTDDS_BUILTIN_TRANSPORTS": "SHM"}          # set while the participant is created, then restored
+    with builtin_transports(NODE_TRANSPORT, env):
+        assert env == {"FASTDDS_BUILTIN_TRANSPORTS": NODE_TRANSPORT}
+    assert env == {"FASTDDS_BUILTIN_TRANSPORTS": "SHM"}
+    env = {}
+    with builtin_transports(NODE_TRANSPORT, env):
+        assert env == {"FASTDDS_BUILTIN_TRANSPORTS": NODE_TRANSPORT}
+    assert env == {}
+
+
+@pytest.mark.slow
+def test_inputs_participant_follows_namespace_and_remappings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The inputs node subscribes to the names css_node resolves (namespace /robot, -r remappings to absolute and
+    relative names): a frame sent on the remapped topics is mapped, and the graph shows the subscriptions held by
+    css_node_inputs, a node of another participant (its GID prefix differs from css_node's publishers')."""
+    for var in ("CSS_NODE_TRANSPORT", "FASTDDS_BUILTIN_TRANSPORTS", "ROS_AUTOMATIC_DISCOVERY_RANGE",
+                "ROS_LOCALHOST_ONLY"):
+        monkeypatch.delenv(var, raising=False)
+    domain = rh.next_domain_id()
+    model = rh.write_wall_model(tmp_path / "wall.ply")
+    remaps = {"__ns": "/robot", "segmentation": "/net/labels", "image": "front/rgb", "pose": "/odom_pose"}
+    node = rh.NodeProcess(dict(model_path=str(model), class_file="", num_classes=rh.NUM_CLASSES, checkpoint_path="",
+                               resume=False, log_period=0.5, warmup=False), domain, tmp_path / "node.log",
+                          remaps=remaps)
+    client = rh.RosClient(domain, node_ns="/robot/css_node",
+                          topics={"segmentation": "/net/labels", "image": "/robot/front/rgb", "pose": "/odom_pose",
+                                  "camera_info": "/robot/camera_info",
+                                  "segmentation_confidence": "/robot/segmentation_confidence",
+                                  "candidates": "/robot/candidates"})
+    try:
+        assert node.wait_log("inputs (", 60.0), node.log()
+        assert "inputs over UDPv4" in node.log()
+        labels = rh.wall_labels()
+        assert client.send_frame_until_processed(10**9, labels) is not None, node.log()[-3000:]
+        graph = client.node
+        subs = {t: graph.get_subscriptions_info_by_topic(t) for t in ("/net/labels", "/robot/front/rgb",
+                                                                      "/odom_pose", "/robot/camera_info")}
+        for topic, infos in subs.items():
+            assert [(i.node_namespace, i.node_name) for i in infos] == [("/robot", "css_node_inputs")], topic
+        outs = graph.get_publishers_info_by_topic("/robot/css_node/semantic")
+        assert [(i.node_namespace, i.node_name) for i in outs] == [("/robot", "css_node")]
+        # a GID's first 12 bytes are its participant's GUID prefix: inputs and outputs on two participants
+        assert bytes(subs["/net/labels"][0].endpoint_gid[:12]) != bytes(outs[0].endpoint_gid[:12])
+    finally:
+        client.close()
+        assert node.stop() == 0, node.log()[-2000:]

@@ -51,6 +51,7 @@ epoch F grows at most at ``max_frame_rate`` frames/s (plus a burst of FRAME_BURS
 """
 from __future__ import annotations
 
+import math
 import struct
 import time
 from dataclasses import dataclass
@@ -76,7 +77,8 @@ DELTA = 0
 SNAPSHOT = 1
 RETURN = 2
 FLAG_RESUMED = 1
-#: Seconds after a resumed start during which a node flags its snapshots "resumed" and accepts returns.
+#: Seconds a resumed node flags its snapshots "resumed" and accepts returns, counted from the first packet it hears
+#: from a peer (the start of the exchange: a peer discovered late, on a loaded host, still gets the whole window).
 RETURN_WINDOW_S = 30.0
 ORIGIN_BYTES = 32
 _HEADER = struct.Struct("<4sHBB32s32sQQIIIIIIdQQ")
@@ -441,7 +443,8 @@ class EvidenceRecovery:
     """A node restarted with ``resume``: takes back, from a peer's return, its own evidence of the epoch it ran
     before (the frames fused and published after its last checkpoint, which a ``kill -9`` lost).
 
-    Accepted only within ``window`` seconds of the start, for the subject = this node's origin, an epoch at or
+    Accepted only until ``window`` seconds after the first packet heard from a peer (:meth:`heard`; open until
+    then), for the subject = this node's origin, an epoch at or
     after its checkpoint's (``checkpoint_epoch``; 0: no checkpoint, any earlier epoch) and before its current one,
     and more (epoch, frames) than it holds (the checkpoint's, then the best return adopted); the parts must tile
     [0, N) and keep the ledger's bounds (P per frame and row, P·F in total). Several peers: the best one wins
@@ -456,8 +459,13 @@ class EvidenceRecovery:
         self.first_epoch, self.current_epoch = checkpoint_epoch, current_epoch
         self.best = (checkpoint_epoch, checkpoint_frames)
         self.max_frame_evidence, self.max_sources = float(max_frame_evidence), max_sources
-        self.until = now + window
+        self.window, self.until = window, math.inf
         self._pending: dict[str, tuple[int, int, int, int, np.ndarray]] = {}   # sender -> epoch, frames, part, start
+
+    def heard(self, now: float) -> None:
+        """A packet from a peer arrived at ``now`` (time.monotonic()): the window runs from the first one."""
+        if self.until == math.inf:
+            self.until = now + self.window
 
     def open(self, now: float) -> bool:
         return now < self.until

@@ -86,8 +86,9 @@ class EvidenceLink:
                 smap.evidence_epoch = self.outbox.epoch
 
     def _start_recovery(self, checkpoint_epoch: int) -> None:
-        """A resumed start: for a while, flag the snapshots "resumed" and take back from a peer's return the own
-        evidence of the previous epoch that the checkpoint lacks (see :class:`~css_ros.io.evidence.EvidenceRecovery`).
+        """A resumed start: until the return window (from the first peer packet heard) ends, flag the snapshots
+        "resumed" and take back from a peer's return the own evidence of the previous epoch that the checkpoint
+        lacks (see :class:`~css_ros.io.evidence.EvidenceRecovery`).
         ``_own_base`` / ``_frames_base``: the own evidence and frames the map holds of before this start."""
         assert self.outbox is not None
         with self.worker.map_lock:
@@ -215,6 +216,9 @@ class EvidenceLink:
         if not self._allow(pkt.origin):
             self._refuse("flood: more than evidence_max_rate packets/s from one source")
             return
+        rec = self.recovery
+        if rec is not None:
+            rec.heard(time.monotonic())   # the return window runs from the first packet of a peer
         if pkt.kind == RETURN:
             self._on_return(pkt)
             return

@@ -4,11 +4,14 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from typing import Sequence
+from typing import Any, Sequence
 
 from ..errors import CssError
 from ..io.topics import NODE_NAME
 from .params import format_default, param_table
+
+#: Seconds css_node waits at shutdown for the inputs thread to return from its executor (it polls every 0.1 s).
+INPUTS_JOIN_TIMEOUT_S = 2.0
 
 USAGE = f"""usage: css_node [-h] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ... --params-file FILE]
 
@@ -51,9 +54,9 @@ def main(args: Sequence[str] | None = None) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from .transport import configure_transport
+    from .transport import choose_input_transport
 
-    transport_line, transport_warn = configure_transport()  # before init: Fast DDS reads it then
+    transport = choose_input_transport()
     try:
         rclpy.init(args=[sys.argv[0], *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
@@ -63,29 +66,60 @@ def main(args: Sequence[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     node = None
+    inputs_thread: threading.Thread | None = None
+    failed: list[BaseException] = []   # an exception of the inputs thread, raised here after the clean stop
     try:
         from .node import CssNode
 
         log = rclpy.logging.get_logger(NODE_NAME)
-        (log.warning if transport_warn else log.info)(transport_line)
+        (log.warning if transport.warn else log.info)(transport.line)
         try:
-            node = CssNode()
+            node = CssNode(inputs_transport=transport.builtin)
         except CssError as exc:  # ModelError, MapError, ConfigError, class file
             rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
             return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        if node.inputs is not node:   # the inputs participant: its own context, executor and thread
+            inputs_thread = threading.Thread(target=_spin_inputs, args=(node, stop, failed), name="css_inputs",
+                                             daemon=True)
+            inputs_thread.start()
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        stop.set()
+        if inputs_thread is not None:
+            inputs_thread.join(INPUTS_JOIN_TIMEOUT_S)
         if node is not None:
             node.get_logger().info("shutting down")
             node.shutdown()
+            node.close_inputs()
             node.destroy_node()
         rclpy.try_shutdown()
+    if failed:
+        raise failed[0]
     return 0
+
+
+def _spin_inputs(node: Any, stop: threading.Event, failed: list[BaseException]) -> None:
+    """Thread: run the callbacks of the inputs participant (every call of the input gate) until ``stop``; an
+    exception in a callback is kept in ``failed`` and stops the node as it would on the one executor thread."""
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=node.inputs.context)
+    executor.add_node(node.inputs)
+    try:
+        while not stop.is_set() and node.inputs.context.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
+        pass
+    except Exception as exc:  # noqa: BLE001 - re-raised by main after the clean stop
+        failed.append(exc)
+        stop.set()
+    finally:
+        executor.shutdown(timeout_sec=0.0)
 
 
 if __name__ == "__main__":

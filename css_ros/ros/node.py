@@ -29,6 +29,7 @@ from .gate import InputGate, NanAnswer
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
 from .startup import describe_sensor_model, load_engine, warm_up
+from .transport import open_inputs_node
 from .work import WarnLimiter, WorkQueue
 from .worker import MapWorker
 from .view_publisher import ViewPublisher
@@ -72,7 +73,10 @@ def undeclared_params(node: Node) -> list[str]:
 class CssNode(Node):
     """Continuous Semantic Splatting mapping node (see the module docstring and SPEC §7-8)."""
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, inputs_transport: str | None = None, **kwargs: Any) -> None:
+        """``inputs_transport``: FASTDDS_BUILTIN_TRANSPORTS of a separate inputs participant (see
+        :mod:`css_ros.ros.transport`; the caller spins ``self.inputs`` in its context); None: the inputs are
+        subscribed on this node."""
         super().__init__(NODE_NAME, **kwargs)
         log = self.get_logger()
         self.p = p = declare_params(self)
@@ -115,29 +119,36 @@ class CssNode(Node):
         # Deep enough for a burst of request_queue_size requests: none is lost before its callback runs.
         qos_req = QoSProfile(depth=p.request_queue_size, reliability=ReliabilityPolicy.RELIABLE,
                              history=HistoryPolicy.KEEP_LAST)
+        # Every call of the gate comes from the inputs node's executor (one thread): the gate keeps no lock.
+        self.inputs: Node = self
+        self.inputs_context: Any = None
+        if inputs_transport is not None:
+            self.inputs, self.inputs_context = open_inputs_node(NODE_NAME, self.get_namespace(), inputs_transport)
+
+        def sub(msg_type: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
+            """Subscribe the inputs node to ``topic`` as this node resolves it (namespace, remappings)."""
+            self.inputs.create_subscription(msg_type, self.resolve_topic_name(topic), callback, qos)
+
         # camera_info first: when several messages are ready the executor takes them in this order.
         t = INPUT_TOPICS
         pose_msg = POSE_MESSAGES[p.pose_type]
         for i in range(len(p.cameras)):
-            self.create_subscription(CameraInfo, frames.topic(i, "camera_info"),
-                                     lambda m, i=i: self.gate.on_camera_info(m, i), qos_in)
+            sub(CameraInfo, frames.topic(i, "camera_info"), lambda m, i=i: self.gate.on_camera_info(m, i), qos_in)
         if p.pose_per_camera:
             for i in range(len(p.cameras)):
-                self.create_subscription(pose_msg, frames.topic(i, "pose"),
-                                         self._enqueue(lambda m, i=i: self.gate.on_pose(m, i)), qos_in)
+                sub(pose_msg, frames.topic(i, "pose"), self._enqueue(lambda m, i=i: self.gate.on_pose(m, i)), qos_in)
         else:
-            self.create_subscription(pose_msg, t["pose"], self._enqueue(self.gate.on_pose), qos_in)
+            sub(pose_msg, t["pose"], self._enqueue(self.gate.on_pose), qos_in)
         for i in range(len(p.cameras)):
-            self.create_subscription(Image, frames.topic(i, "image"),
-                                     self._enqueue(lambda m, i=i: self.gate.on_image(m, i)), qos_in)
-            self.create_subscription(Image, frames.topic(i, "confidence"),
-                                     self._enqueue(lambda m, i=i: self.gate.on_confidence(m, i)), qos_in)
-            self.create_subscription(Image, frames.topic(i, "segmentation"),
-                                     self._enqueue(lambda m, i=i: self.gate.on_segmentation(m, i)), qos_in)
-        self.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)),
-                          lambda: self._enqueue(lambda _m: self.gate.poll())(None))
-        self.create_subscription(PoseArray, t["candidates"], self._on_candidates, qos_req)
-        self.create_subscription(PointCloud2, t["point_queries"], self._on_point_query, qos_req)
+            sub(Image, frames.topic(i, "image"), self._enqueue(lambda m, i=i: self.gate.on_image(m, i)), qos_in)
+            sub(Image, frames.topic(i, "confidence"), self._enqueue(lambda m, i=i: self.gate.on_confidence(m, i)),
+                qos_in)
+            sub(Image, frames.topic(i, "segmentation"),
+                self._enqueue(lambda m, i=i: self.gate.on_segmentation(m, i)), qos_in)
+        self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)),
+                                 lambda: self._enqueue(lambda _m: self.gate.poll())(None))
+        sub(PoseArray, t["candidates"], self._on_candidates, qos_req)
+        sub(PointCloud2, t["point_queries"], self._on_point_query, qos_req)
 
         qos_srv = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.create_service(Trigger, "~/save_map", self._on_save_map, qos_profile=qos_srv)
@@ -279,6 +290,17 @@ class CssNode(Node):
                  f"{self.resolve_topic_name('~/reset_map')}, {self.resolve_topic_name('~/load_map')}; checkpoint "
                  + (f"{self.checkpoint_path} every {p.checkpoint_period:g} s" if self.checkpoint_path else "disabled")
                  + f"; sync slop {p.sync_slop * 1e3:g} ms")
+
+    def close_inputs(self) -> None:
+        """Destroy the inputs node and shut its context down (after its executor stopped; nothing when the
+        inputs are subscribed on this node)."""
+        if self.inputs is self:
+            return
+        import rclpy
+
+        self.inputs.destroy_node()
+        rclpy.try_shutdown(context=self.inputs_context)
+        self.inputs = self
 
     def shutdown(self) -> bool:
         """Stop the worker (it finishes at most one frame or candidate slice) and write a final checkpoint.
