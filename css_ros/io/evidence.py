@@ -79,7 +79,7 @@ RETURN = 2
 FLAG_RESUMED = 1
 #: Seconds a resumed node flags its snapshots "resumed" and accepts returns, counted from the first packet it hears
 #: from a peer (the start of the exchange: a peer discovered late, on a loaded host, still gets the whole window).
-RETURN_WINDOW_S = 30.0
+RETURN_WINDOW_S = 60.0
 ORIGIN_BYTES = 32
 _HEADER = struct.Struct("<4sHBB32s32sQQIIIIIIdQQ")
 HEADER_SIZE = _HEADER.size
