@@ -86,6 +86,22 @@ def _evidence_log(nodes: dict) -> str:
                      for name, node in nodes.items())
 
 
+def _wait_holds(client: rh.RosClient, path: Path, origin: str | None, frames: int, timeout: float = 30.0) -> None:
+    """Wait until the node of ``client`` holds ``frames`` frames of ``origin``'s evidence (None: of its one
+    source), in step (its saved map's received_state: epoch, last sequence, frames, in step)."""
+    end = time.monotonic() + timeout
+    while True:
+        assert client.call(client.save_client).success
+        with np.load(path, allow_pickle=False) as data:
+            names = [str(s) for s in data["received_sources"]] if "received_sources" in data else []
+            state = np.array(data["received_state"]) if names else np.zeros((0, 4))
+        held = {n: (int(st[2]), bool(st[3])) for n, st in zip(names, state)}
+        if (held.get(origin) if origin is not None else next(iter(held.values()), None)) == (frames, True):
+            return
+        assert time.monotonic() < end, f"{path.stem} holds {held}, not {frames} frames of {origin!r}"
+        time.sleep(0.2)
+
+
 def _converged(clients, paths, ref: np.ndarray, timeout: float = 20.0) -> list[np.ndarray]:
     end = time.monotonic() + timeout
     while True:
@@ -243,7 +259,8 @@ def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
         want = _saved(ref, paths["ref"])[0]
         _feed(a, [0, 2])
         _feed(clients["b"], [1, 3])
-        time.sleep(1.5 * SNAPSHOT_PERIOD)                   # B holds A's evidence and A B's
+        _wait_holds(a, paths["a"], None, 2)                 # A holds B's frames, B A's
+        _wait_holds(clients["b"], paths["b"], "robot_a", 2)
         assert clients["b"].call(clients["b"].save_client).success
         clients["b"].close()
         nodes["b"].kill9()                                   # mid-run: A keeps mapping meanwhile
