@@ -175,9 +175,10 @@ class RosClient:
         self._conf_pub = None
         self._qos_in = qos_in
         qos_out = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.subs: dict[str, Any] = {}
         for name in self.OUTPUTS:
             typ = PointCloud2 if name in ("view_uncertainty", "candidate_scores") else Image
-            self.node.create_subscription(typ, f"{node_ns}/{name}", self._recorder(name), qos_out)
+            self.subs[name] = self.node.create_subscription(typ, f"{node_ns}/{name}", self._recorder(name), qos_out)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._recorder("diagnostics"), qos_out)
         self.save_client = self.node.create_client(Trigger, f"{node_ns}/save_map")
         self.reset_client = self.node.create_client(Trigger, f"{node_ns}/reset_map")
@@ -238,8 +239,9 @@ class RosClient:
         """Wait until the node subscribes to our inputs and publishes the outputs we listen to."""
         def ok() -> bool:
             subs = all(p.get_subscription_count() > 0 for p in self.pub.values())
-            pubs = self.node.count_publishers(f"{self.node_ns}/view_uncertainty") > 0 and \
-                self.node.count_publishers(f"{self.node_ns}/candidate_scores") > 0
+            # matched (not only discovered): css_node's outputs come from another participant than its inputs
+            pubs = all(self.subs[n].get_publisher_count() > 0 for n in ("semantic", "view_uncertainty",
+                                                                         "candidate_scores"))
             return subs and pubs and self.save_client.service_is_ready()
         return bool(self.wait_until(ok, timeout, 0.05))
 

@@ -42,12 +42,12 @@ def test_bursts_of_200_point_queries_and_candidates_are_all_answered(tmp_path):
             with lock:
                 points.append(msg)
 
-        client.node.create_subscription(PointCloud2, "/css_node/point_query_results", on_points, deep)
+        sub_points = client.node.create_subscription(PointCloud2, "/css_node/point_query_results", on_points, deep)
         pub_q = client.node.create_publisher(PointCloud2, "point_queries", deep)
         pub_c = client.node.create_publisher(PoseArray, "candidates", deep)
         assert client.wait_until(lambda: pub_q.get_subscription_count() > 0 and pub_c.get_subscription_count() > 0
-                                 and client.node.count_publishers("/css_node/point_query_results") > 0, 20.0)
-        time.sleep(0.5)  # discovery of the answer subscription by the node's publisher
+                                 and sub_points.get_publisher_count() > 0, 20.0)   # matched, both participants
+        time.sleep(0.5)  # the node's answer writer matches our reader too
         xyz = np.array([[0.0, 0.0, 3.0], [100.0, 0.0, 0.0]])
         pose = (np.zeros((1, 3)), np.array([[0.0, 0.0, 0.0, 1.0]]))
         for i in range(1, BURST + 1):  # back to back, no pause

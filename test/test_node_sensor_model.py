@@ -88,10 +88,10 @@ def test_node_fuses_with_the_sensor_model_and_publishes_confidence(tmp_path: Pat
                           domain, tmp_path / "node.log")
     client = rh.RosClient(domain)
     client.received["confidence"] = []
-    client.node.create_subscription(Image, "/css_node/confidence", client._recorder("confidence"), 100)
+    sub_conf = client.node.create_subscription(Image, "/css_node/confidence", client._recorder("confidence"), 100)
     try:
         assert client.wait_connected(60.0), node.log()
-        assert client.wait_until(lambda: client.node.count_publishers("/css_node/confidence") > 0, 20.0)
+        assert client.wait_until(lambda: sub_conf.get_publisher_count() > 0, 20.0)
         time.sleep(0.5)
         log = node.log()
         assert f"fingerprint {sm.fingerprint[:12]}" in log and "calibrated confidence" in log, log

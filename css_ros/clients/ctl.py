@@ -100,15 +100,16 @@ def _request(link: NodeLink, node: str, topic: str, msg_type: type, answer_topic
 
     answers: dict[tuple[int, int], Any] = {}
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    link.node.create_subscription(PointCloud2, f"{node.rstrip('/')}/{answer_topic}",
-                                  lambda m: answers.__setitem__((m.header.stamp.sec, m.header.stamp.nanosec), m),
-                                  qos)
+    sub = link.node.create_subscription(PointCloud2, f"{node.rstrip('/')}/{answer_topic}",
+                                        lambda m: answers.__setitem__((m.header.stamp.sec, m.header.stamp.nanosec), m),
+                                        qos)
     pub = link.node.create_publisher(msg_type, topic, qos)
     if not link.wait(lambda: pub.get_subscription_count() > 0, timeout):
         raise CssError(f"nobody subscribes to {pub.topic_name} within {timeout:g} s (is css_node running?)")
     key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
-    # the answer subscription must be matched too before the request goes out
-    link.wait(lambda: link.node.count_publishers(f"{node.rstrip('/')}/{answer_topic}") > 0, timeout)
+    # the answer subscription must be matched too before the request goes out (css_node answers from another DDS
+    # participant than the one its requests arrive on: the two discover this client independently)
+    link.wait(lambda: sub.get_publisher_count() > 0, timeout)
     pub.publish(msg)
     if not link.wait(lambda: key in answers, timeout):
         raise CssError(f"no answer on {node}/{answer_topic} within {timeout:g} s")

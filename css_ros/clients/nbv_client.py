@@ -105,8 +105,9 @@ class NbvClient:
         pose_msg = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                     "odometry": Odometry}[args.pose_type]
         self.node.create_subscription(pose_msg, "pose", self._on_pose, qos_profile_sensor_data)
-        self.node.create_subscription(PointCloud2, f"{args.node.rstrip('/')}/candidate_scores", self._on_scores,
-                                      QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.sub_scores = self.node.create_subscription(PointCloud2, f"{args.node.rstrip('/')}/candidate_scores",
+                                                        self._on_scores,
+                                                        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.pub_candidates = self.node.create_publisher(PoseArray, "candidates", 10)
         self.pub_nbv = self.node.create_publisher(PoseStamped, "next_best_view", 10)
         self._stamp_last = 0
@@ -217,8 +218,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.once:
             end = time.monotonic() + args.timeout
-            while (client.pose is None or client.pub_candidates.get_subscription_count() == 0) \
-                    and time.monotonic() < end:
+            # css_node answers from another DDS participant than the one its requests arrive on: both must have
+            # matched this client before the one request goes out
+            while (client.pose is None or client.pub_candidates.get_subscription_count() == 0
+                   or client.sub_scores.get_publisher_count() == 0) and time.monotonic() < end:
                 rclpy.spin_once(client.node, timeout_sec=0.1)
             time.sleep(0.3)  # let both ends of the candidates / scores pairs finish matching
             code = 0 if client.request() is not None else 1
