@@ -315,7 +315,7 @@ def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp
         if saved == "early":
             assert clients["b"].call(clients["b"].save_client).success   # B's only checkpoint: one frame
         _feed(clients["b"], [3])
-        time.sleep(1.5 * SNAPSHOT_PERIOD)                   # A holds B's frames 1 and 3 (published), B A's
+        _wait_holds(a, paths["a"], "robot_b", 2)            # A holds B's frames 1 and 3 (published)
         clients["b"].close()
         nodes["b"].kill9()
         _feed(a, [4, 6])
