@@ -260,7 +260,7 @@ class RosClient:
         """Key/values of the latest diagnostics status of css_node (empty if none yet)."""
         for arr in reversed(self.messages("diagnostics")):
             for st in arr.status:
-                if st.name.startswith("css_node"):
+                if st.name.startswith(f"{self.node_ns}: "):   # this node's (several may share the domain)
                     return {kv.key: kv.value for kv in st.values}
         return {}
 
@@ -327,11 +327,36 @@ class RosClient:
         dropped by the node as out of order, so the map never takes a frame twice. The first wait allows a
         kernel compile (nodes started with ``warmup: false``). Returns the output message (None if none came)."""
         for k in range(attempts):
+            seen, before = len(self.messages("diagnostics")), self._segmentations_received()
             self.send_frame(stamp_ns, labels, position, quat)
+            if self._lost(seen, before, output, stamp_ns):
+                continue
             msg = self.wait_stamp(output, stamp_ns, first_timeout if k == 0 else retry_timeout)
             if msg is not None:
                 return msg
         return None
+
+    def _segmentations_received(self) -> float:
+        return float(self.diagnostics().get("segmentations_received", 0))
+
+    def _lost(self, seen: int, before: float, output: str, stamp_ns: int, statuses: int = 3,
+              no_diagnostics_s: float = 10.0) -> bool:
+        """True when ``statuses`` diagnostics of the node published after the send still count no new segmentation
+        (the frame went out before the node's reader had matched this writer: send it again now); False when the
+        output came, the count grew, or no diagnostics of the node came within ``no_diagnostics_s`` (then only
+        the long wait can tell). ``seen``: diagnostics messages received before the send."""
+        def mine() -> int:
+            return sum(1 for arr in self.messages("diagnostics")[seen:] for st in arr.status
+                       if st.name.startswith(f"{self.node_ns}: "))
+        end = time.monotonic() + no_diagnostics_s
+        while True:
+            if self.wait_stamp(output, stamp_ns, 0.05) is not None or self._segmentations_received() > before:
+                return False
+            n = mine()
+            if n >= statuses:
+                return True
+            if n == 0 and time.monotonic() > end:
+                return False
 
     def send_candidates(self, stamp_ns: int, positions: np.ndarray, quats: np.ndarray,
                         frame_id: str = "map") -> None:

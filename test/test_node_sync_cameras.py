@@ -58,7 +58,7 @@ class SyncClient:
 
     def _on_diag(self, msg: Any) -> None:
         for st in msg.status:
-            if st.name.startswith("css_node"):
+            if st.name.startswith("/css_node:"):
                 with self.lock:
                     self.diag = {kv.key: kv.value for kv in st.values}
 

@@ -157,7 +157,7 @@ class CssNode(Node):
         diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10) if p.publish_diagnostics else None
         self.reporter = StatusReporter(self.stats, self.warn, self.queue.sizes,
                                        lambda: (*self.worker.last_u, self.worker.last_psnr), log.info, diag_pub,
-                                       self.get_name(), str(self.model_path),
+                                       self.get_fully_qualified_name(), str(self.model_path),
                                        lambda: self.get_clock().now().to_msg(), self._sensor_info)
         if p.log_period > 0:
             self.create_timer(p.log_period, self.reporter.report)
