@@ -227,3 +227,63 @@ def test_css_map_refuses_a_map_merged_with_itself_and_says_what_is_wrong(tmp_pat
     assert css_map(["transfer", str(tmp_path / "a.npz"), "--from", m, "--to", m, "--out", str(tmp_path / "t.npz"),
                     "--tolerance", "1e308"]) == 1
     assert "--tolerance must be within 0..100 metres" in capsys.readouterr().err
+
+
+def _two_robot_map(model: GaussianModel, c: int) -> tuple[SemanticMap, np.ndarray]:
+    """A map holding its own frames and those received from robot_b (kept apart in ``received``, as css_node's
+    evidence exchange keeps them); returns it and robot_b's evidence."""
+    from css_ros.engine.semantic_map import SourceEvidence
+
+    own, peer = _fused(model, c, 0), _fused(model, c, 1, frames=2)
+    both = merge_maps([own, peer])
+    b_ev = peer.concentrations - PRIOR
+    both.evidence_origin, both.evidence_epoch = "robot_a", 7
+    both.received = {"robot_b": SourceEvidence(b_ev.copy(), epoch=3, last_seq=9, frames=2, in_step=True)}
+    return both, b_ev
+
+
+def test_transfer_moves_each_received_source_with_the_map(tmp_path):
+    """A swap moves the evidence exchange's bookkeeping: under a reordering (the same splat) every Gaussian keeps
+    each source's share of its evidence; on a retrained splat the moved sources add up to the moved evidence (own part >= 0), a
+    source split in two moves to the two moved halves (linear), the origin and epoch are kept, the source is out of
+    step (its next snapshot re-states it), and the moved map saves and loads with its sources."""
+    from css_ros.engine.semantic_map import SourceEvidence
+    from css_ros.io.evidence import received_sources
+
+    model = random_scene(7, n=200)
+    smap, b_ev = _two_robot_map(model, 5)
+    perm = np.random.default_rng(1).permutation(model.num_gaussians)
+    moved, _ = transfer_map(smap, model.select(perm), tolerance=0.0)
+    # each Gaussian is its own nearest old one: every row keeps robot_b's share of its evidence (the row's total is
+    # redistributed among overlapping neighbours, as in the test above)
+    old_total = (smap.concentrations - PRIOR)[perm].sum(1)
+    new_total = (moved.concentrations - PRIOR).sum(1)
+    seen = old_total > 0
+    want = b_ev[perm][seen] * (new_total[seen] / old_total[seen])[:, None]
+    np.testing.assert_allclose(moved.received["robot_b"].evidence[seen], want, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(moved.received["robot_b"].evidence[~seen], 0.0)
+    src = moved.received["robot_b"]
+    assert (src.epoch, src.last_seq, src.frames, src.in_step) == (3, 9, 2, False)
+    assert (moved.evidence_origin, moved.evidence_epoch) == ("robot_a", 7)
+
+    new = retrained_variant(model, seed=2)
+    moved, report = transfer_map(smap, new)
+    assert report.ratio > 0.5
+    total = moved.concentrations - PRIOR
+    part = moved.received["robot_b"].evidence
+    assert part.shape == total.shape and np.all(part >= 0) and part.sum() > 0
+    assert np.all(part <= total + 1e-12 * moved.concentrations)     # the own part stays >= 0
+    half = b_ev * np.random.default_rng(3).uniform(0, 1, b_ev.shape)
+    split = SemanticMap(model, 5)
+    split.concentrations[...] = smap.concentrations
+    split.received = {"b1": SourceEvidence(half), "b2": SourceEvidence(b_ev - half)}
+    halves, _ = transfer_map(split, new)
+    np.testing.assert_allclose(halves.received["b1"].evidence + halves.received["b2"].evidence, part,
+                               rtol=1e-12, atol=1e-15)
+    # the node's ledger after the swap: robot_b's moved evidence is received, the rest is robot_a's own
+    got = received_sources(moved, "robot_a")
+    assert list(got) == ["robot_b"]
+    np.testing.assert_array_equal(got["robot_b"].evidence, part)
+    moved.save(tmp_path / "moved.npz")
+    back = SemanticMap.load(tmp_path / "moved.npz", new)
+    np.testing.assert_allclose(back.received["robot_b"].evidence, part, rtol=1e-15)

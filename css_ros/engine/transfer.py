@@ -17,7 +17,7 @@ two compiled passes (denominators, then gathering).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numba
 import numpy as np
@@ -89,6 +89,13 @@ def _widened(model: GaussianModel, tolerance: float) -> GaussianModel:
 def transfer_concentrations(old_model: GaussianModel, old_concentrations: np.ndarray, prior: float,
                             new_model: GaussianModel,
                             tolerance: float = DEFAULT_TRANSFER_TOLERANCE) -> tuple[np.ndarray, TransferReport]:
+    """See :func:`_transfer` (without parts)."""
+    out, report, _ = _transfer(old_model, old_concentrations, prior, new_model, tolerance, ())
+    return out, report
+
+
+def _transfer(old_model: GaussianModel, old_concentrations: np.ndarray, prior: float, new_model: GaussianModel,
+              tolerance: float, parts: Sequence[np.ndarray]) -> tuple[np.ndarray, TransferReport, list[np.ndarray]]:
     """α of ``new_model``'s Gaussians from the map ``old_concentrations`` on ``old_model`` (both in one frame).
 
     Args:
@@ -97,8 +104,11 @@ def transfer_concentrations(old_model: GaussianModel, old_concentrations: np.nda
         prior: α_0 of the map (kept for the new one).
         new_model: the other splat of the same scene (N_new Gaussians, same frame).
         tolerance: τ [m] ≥ 0, how far a retrained Gaussian may have moved.
+        parts: (N_old, C) non-negative parts of the evidence α − α_0 (e.g. what each peer of the evidence exchange
+            contributed). Each is moved with the map's own factors: new Gaussian j takes part[best_j] · m_j /
+            |ε_best_j|, so the moved parts add up to the moved evidence exactly as the parts did.
     Returns:
-        ((N_new, C) float64 α, :class:`TransferReport`).
+        ((N_new, C) float64 α, :class:`TransferReport`, the moved parts (N_new, C) float64).
     Raises:
         MapError: shapes that do not match, a bad tolerance.
     """
@@ -115,8 +125,9 @@ def transfer_concentrations(old_model: GaussianModel, old_concentrations: np.nda
     n_new = new_model.num_gaussians
     out = np.full((n_new, c), float(prior))
     total_old = float(per_old.sum())
+    moved = [np.zeros((n_new, c)) for _ in parts]
     if observed.size == 0:
-        return out, TransferReport(0.0, 0.0, 0.0, 1.0, 0, 0, 0, n_new, float(tolerance))
+        return out, TransferReport(0.0, 0.0, 0.0, 1.0, 0, 0, 0, n_new, float(tolerance)), moved
 
     from .transfer_kernels import gather_mass, nearest_old, overlap_denominators  # numba: compiled on first use
 
@@ -140,7 +151,10 @@ def transfer_concentrations(old_model: GaussianModel, old_concentrations: np.nda
     for a in range(0, n_new, _CHUNK):  # α_j = α_0 + m_j ε_best / |ε_best|, in blocks (bounded temporaries)
         sel = np.flatnonzero(eligible[a:a + _CHUNK]) + a
         g = best[sel]
-        out[sel] += evidence[g] * (mass[sel] / per_old[g])[:, None]
+        factor = (mass[sel] / per_old[g])[:, None]
+        out[sel] += evidence[g] * factor
+        for part, dst in zip(parts, moved):
+            dst[sel] = np.asarray(part)[g] * factor
     dropped = (per_old > 0) & (denominator <= 0)
     lost = float(per_old[dropped].sum())
     total_new = float(mass.sum())
@@ -149,16 +163,22 @@ def transfer_concentrations(old_model: GaussianModel, old_concentrations: np.nda
                             old_dropped=int(np.count_nonzero(dropped)),
                             new_observed=int(np.count_nonzero(mass > 0)),
                             new_at_prior=int(n_new - np.count_nonzero(mass > 0)), tolerance=float(tolerance))
-    return out, report
+    return out, report, moved
 
 
 def transfer_map(smap: "SemanticMap", new_model: GaussianModel,
                  tolerance: float = DEFAULT_TRANSFER_TOLERANCE) -> tuple["SemanticMap", TransferReport]:
     """A new :class:`SemanticMap` on ``new_model`` carrying ``smap``'s evidence (same classes, prior,
-    background, rendering options and backend; frames and sources kept). See :func:`transfer_concentrations`."""
-    from .semantic_map import SemanticMap
+    background, rendering options and backend; frames and sources kept). See :func:`transfer_concentrations`.
 
-    conc, report = transfer_concentrations(smap.model, smap.concentrations, smap.prior, new_model, tolerance)
+    The evidence-exchange bookkeeping moves too: each received source's evidence is moved with the same factors
+    (so what is the node's own stays its own, and a peer's evidence is never re-published as this node's), out of
+    step (its next snapshot re-states it); the origin id and epoch are kept."""
+    from .semantic_map import SemanticMap, SourceEvidence
+
+    names = sorted(smap.received)
+    conc, report, moved = _transfer(smap.model, smap.concentrations, smap.prior, new_model, tolerance,
+                                    [smap.received[n].evidence for n in names])
     out = SemanticMap(new_model, smap.num_classes, prior=smap.prior, background=smap.background,
                       ignore_label=smap.ignore_label, unknown_threshold=smap.unknown_threshold,
                       backend=smap.backend_name, background_rgb=tuple(smap.background_rgb))
@@ -166,4 +186,8 @@ def transfer_map(smap: "SemanticMap", new_model: GaussianModel,
     out.frames_observed = smap.frames_observed
     out.sources = list(smap.sources)
     out.fused_sensor_model = smap.fused_sensor_model
+    out.evidence_origin, out.evidence_epoch = smap.evidence_origin, smap.evidence_epoch
+    out.received = {n: SourceEvidence(ev, epoch=int(smap.received[n].epoch), last_seq=int(smap.received[n].last_seq),
+                                      frames=int(smap.received[n].frames), in_step=False)
+                    for n, ev in zip(names, moved)}
     return out, report
