@@ -338,3 +338,53 @@ def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp
             c.close()
         for n in nodes.values():
             n.stop()
+
+
+def test_peers_that_swap_to_a_retrained_splat_count_nothing_twice(tmp_path):
+    """A and B exchange evidence (A frames 0 and 2, B frames 1 and 3), then both swap to a retrained splat dropped
+    into their watch folders. Each moves its peer's evidence as received (not as its own); each peer's first
+    snapshot on the new splat replaces the moved copy. Both end with equal maps holding the evidence once: its
+    total is the pre-swap total times the transfer's ratio, not twice it (what re-publishing the peer's evidence
+    as one's own gave)."""
+    from retrain import retrained_variant
+
+    from css_ros.ros.params import checkpoint_file
+
+    domain = rh.next_domain_id()
+    model_path = rh.write_wall_model(tmp_path / "wall.ply")
+    old = GaussianModel.from_ply(model_path)
+    new = retrained_variant(old, seed=3, jitter=0.005)
+    peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
+    watch = {n: tmp_path / f"watch_{n}" for n in "ab"}
+    template = {n: str(tmp_path / f"maps_{n}" / "{fingerprint}.npz") for n in "ab"}
+    nodes, clients = {}, {}
+    try:
+        for n in "ab":
+            watch[n].mkdir()
+            nodes[n], clients[n] = _start_peer(tmp_path, domain, model_path, {n: Path(template[n])}, n, peer,
+                                               {"a": "robot_a", "b": "robot_b"}, checkpoint_path=template[n],
+                                               model_watch_dir=str(watch[n]), model_watch_period=0.3)
+        a, b = clients["a"], clients["b"]
+        _feed(a, [0, 2])
+        _feed(b, [1, 3])
+        old_path = {n: Path(checkpoint_file(template[n], old.fingerprint)) for n in "ab"}
+        _wait_holds(a, old_path["a"], "robot_b", 2)
+        _wait_holds(b, old_path["b"], "robot_a", 2)
+        before = _saved(a, old_path["a"])[0]
+        for n in "ab":
+            new.to_ply(watch[n] / "retrained.ply")
+        for n in "ab":
+            assert nodes[n].wait_log("model swapped to", 30.0), nodes[n].log()
+        fp = GaussianModel.from_ply(watch["a"] / "retrained.ply").fingerprint
+        new_path = {n: Path(checkpoint_file(template[n], fp)) for n in "ab"}
+        _wait_holds(a, new_path["a"], "robot_b", 2)         # B's snapshot on the new splat replaced the moved copy
+        _wait_holds(b, new_path["b"], "robot_a", 2)
+        maps = _converged([a, b], [new_path["a"], new_path["b"]], _saved(a, new_path["a"])[0], timeout=20.0)
+        np.testing.assert_allclose(maps[1], maps[0], rtol=1e-9, atol=0, err_msg=_evidence_log(nodes))
+        ratio = (maps[0] - PRIOR).sum() / (before - PRIOR).sum()
+        assert 0.85 < ratio < 1.15, f"evidence after both swaps / before: {ratio:.3f}\n{_evidence_log(nodes)}"
+    finally:
+        for n in clients:
+            clients[n].close()
+        for n in nodes:
+            nodes[n].stop()
