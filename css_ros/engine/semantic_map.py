@@ -553,15 +553,24 @@ class SemanticMap:
         scale = self._check_pixel_scale(pixel_scale)
         masses = [(ids, scale * mass) for ids, mass in self._view_masses(cams, self._mass_weights(), "select_views")]
         moments = MomentSums.of(self.concentrations_readonly)
+        scores = np.array([view_gain(moments, ids, mass, imp) for ids, mass in masses])
+        touched = np.zeros(self.model.num_gaussians, dtype=bool)
         chosen: list[int] = []
         gains: list[float] = []
         for _ in range(min(int(k), len(cams))):
-            scores = np.array([-np.inf if i in chosen else view_gain(moments, ids, mass, imp)
-                               for i, (ids, mass) in enumerate(masses)])
             best = int(np.argmax(scores))
             chosen.append(best)
             gains.append(float(scores[best]))
-            moments.observe_expected(*masses[best])
+            scores[best] = -np.inf
+            ids_best, mass_best = masses[best]
+            moments.observe_expected(ids_best, mass_best)
+            # a view's gain depends only on the moments of its own Gaussians: re-score the views sharing one with
+            # the pick (the others keep their gains exactly)
+            touched[ids_best] = True
+            for i, (ids, mass) in enumerate(masses):
+                if scores[i] != -np.inf and touched[ids].any():
+                    scores[i] = view_gain(moments, ids, mass, imp)
+            touched[ids_best] = False
         return SelectedViews(np.array(chosen, dtype=np.int64), np.array(gains))
 
     def task_importance(self, task_cameras: Sequence["Camera"]) -> np.ndarray:
