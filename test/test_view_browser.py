@@ -7,6 +7,7 @@ Set CSS_WRITE_SCREENSHOTS=1 to refresh the README screenshots in docs/img/.
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -109,9 +110,7 @@ def page():
         browser.goto(view.url)
         browser.wait_for(lambda: clients, 20, "the page to connect")
         cam = clients[0].camera
-        cam.up_direction = (0.0, 0.0, 1.0)
-        cam.position = (3.6, 2.6, 2.3)
-        cam.look_at = (-0.5, -0.5, 0.3)
+        aim(cam)
         # close the "software WebGL" notice (it would cover part of the canvas)
         browser.evaluate("document.querySelectorAll('.mantine-Notification-closeButton, "
                          "button[class*=CloseButton]').forEach(b => b.click())")
@@ -119,6 +118,26 @@ def page():
     finally:
         browser.close()
         view.stop()
+
+
+POSITION, LOOK_AT = (3.6, 2.6, 2.3), (-0.5, -0.5, 0.3)
+
+
+def aim(cam, timeout: float = 20.0) -> None:
+    """Point the page's camera at the test view and wait until the page reports that pose back, unchanged for
+    0.6 s (on a loaded host the page's report of its start view can arrive after our setting and override it)."""
+    end = time.monotonic() + timeout
+    while True:
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.position = POSITION
+        cam.look_at = LOOK_AT
+        steady = 0
+        while steady < 3 and np.allclose(cam.position, POSITION, atol=1e-3):
+            time.sleep(0.2)
+            steady += 1
+        if steady == 3:
+            return
+        assert time.monotonic() < end, f"the page keeps its camera at {cam.position}, not {POSITION}"
 
 
 def canvas_box(browser: Browser) -> tuple[int, int]:
