@@ -326,15 +326,19 @@ class RosClient:
         before the node's reader has matched this writer). A copy that arrives after the first was processed is
         dropped by the node as out of order, so the map never takes a frame twice. The first wait allows a
         kernel compile (nodes started with ``warmup: false``). Returns the output message (None if none came)."""
-        for k in range(attempts):
+        deadline = time.monotonic() + first_timeout   # resends of frames never received, until then
+        k = 0
+        while True:
             seen, before = len(self.messages("diagnostics")), self._segmentations_received()
             self.send_frame(stamp_ns, labels, position, quat)
-            if self._lost(seen, before, output, stamp_ns):
+            if time.monotonic() < deadline and self._lost(seen, before, output, stamp_ns):
                 continue
             msg = self.wait_stamp(output, stamp_ns, first_timeout if k == 0 else retry_timeout)
             if msg is not None:
                 return msg
-        return None
+            k += 1
+            if k >= attempts:
+                return None
 
     def _segmentations_received(self) -> float:
         return float(self.diagnostics().get("segmentations_received", 0))
