@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +101,33 @@ def _wait_holds(client: rh.RosClient, path: Path, origin: str | None, frames: in
             return
         assert time.monotonic() < end, f"{path.stem} holds {held}, not {frames} frames of {origin!r}"
         time.sleep(0.2)
+
+
+@contextmanager
+def _peer_group(tmp_path, origin: dict):
+    """Peers a and b (evidence exchange under ``origin``) and ref (no exchange) on a domain of their own, ref fed
+    every frame (0..9). Yields (start, nodes, clients, paths, want): ``start(name, log, **kw)`` (re)starts one node
+    (put it back in ``nodes`` / ``clients``), ``want`` is ref's map; every node in ``nodes`` is stopped at the end."""
+    domain = rh.next_domain_id()
+    model = rh.write_wall_model(tmp_path / "wall.ply")
+    paths = {n: tmp_path / f"{n}.npz" for n in ("a", "b", "ref")}
+    peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
+
+    def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
+        return _start_peer(tmp_path, domain, model, paths, name, peer, origin, log, **kw)
+
+    nodes: dict = {}
+    clients: dict = {}
+    try:
+        for name in ("a", "b", "ref"):
+            nodes[name], clients[name] = start(name)
+        _feed(clients["ref"], list(range(10)))
+        yield start, nodes, clients, paths, _saved(clients["ref"], paths["ref"])[0]
+    finally:
+        for c in clients.values():
+            c.close()
+        for n in nodes.values():
+            n.stop()
 
 
 def _converged(clients, paths, ref: np.ndarray, timeout: float = 20.0) -> list[np.ndarray]:
@@ -240,23 +268,9 @@ def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
     at once (no "replayed" lock-out), and a ~/load_map of B's checkpoint counts nothing twice either."""
     from std_srvs.srv import Trigger
 
-    domain = rh.next_domain_id()
-    model = rh.write_wall_model(tmp_path / "wall.ply")
-    frames = list(range(10))
-    paths = {n: tmp_path / f"{n}.npz" for n in ("a", "b", "ref")}
-    peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
     origin = {"a": "robot_a", "b": ""}                      # B: the default origin (host name and pid)
-
-    def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
-        return _start_peer(tmp_path, domain, model, paths, name, peer, origin, log, **kw)
-
-    nodes, clients = {}, {}
-    try:
-        for name in ("a", "b", "ref"):
-            nodes[name], clients[name] = start(name)
-        a, ref = clients["a"], clients["ref"]
-        _feed(ref, frames)
-        want = _saved(ref, paths["ref"])[0]
+    with _peer_group(tmp_path, origin) as (start, nodes, clients, paths, want):
+        a = clients["a"]
         _feed(a, [0, 2])
         _feed(clients["b"], [1, 3])
         _wait_holds(a, paths["a"], None, 2)                 # A holds B's frames, B A's
@@ -281,11 +295,6 @@ def test_a_peer_killed_and_resumed_keeps_the_group_exactly_once(tmp_path):
         maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=20.0)
         for name, m in zip("ab", maps):
             np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after B's load_map")
-    finally:
-        for c in clients.values():
-            c.close()
-        for n in nodes.values():
-            n.stop()
 
 
 @pytest.mark.parametrize("saved", ["early", "never"])
@@ -294,22 +303,8 @@ def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp
     or with none at all (a fresh map under its fixed origin id). Resumed, B flags its first snapshots "resumed"; A,
     holding more frames of B's previous epoch, sends them back (a return), B adopts them as its own and re-states
     them: A and B both end equal to one node fed every frame (1e-9 relative)."""
-    domain = rh.next_domain_id()
-    model = rh.write_wall_model(tmp_path / "wall.ply")
-    frames = list(range(10))
-    paths = {n: tmp_path / f"{n}.npz" for n in ("a", "b", "ref")}
-    peer = {"a": "/b/css_node/evidence", "b": "/a/css_node/evidence"}
-
-    def start(name: str, log: str = "", **kw) -> tuple[rh.NodeProcess, rh.RosClient]:
-        return _start_peer(tmp_path, domain, model, paths, name, peer, {"a": "robot_a", "b": "robot_b"}, log, **kw)
-
-    nodes, clients = {}, {}
-    try:
-        for name in ("a", "b", "ref"):
-            nodes[name], clients[name] = start(name)
-        a, ref = clients["a"], clients["ref"]
-        _feed(ref, frames)
-        want = _saved(ref, paths["ref"])[0]
+    with _peer_group(tmp_path, {"a": "robot_a", "b": "robot_b"}) as (start, nodes, clients, paths, want):
+        a = clients["a"]
         _feed(a, [0, 2])
         _feed(clients["b"], [1])
         if saved == "early":
@@ -333,11 +328,6 @@ def test_a_peer_killed_without_saving_takes_back_its_evidence_from_the_group(tmp
         maps = _converged([a, b], [paths["a"], paths["b"]], want, timeout=10.0)
         for name, m in zip("ab", maps):
             np.testing.assert_allclose(m, want, rtol=1e-9, atol=0, err_msg=f"node {name} after settling")
-    finally:
-        for c in clients.values():
-            c.close()
-        for n in nodes.values():
-            n.stop()
 
 
 def test_peers_that_swap_to_a_retrained_splat_count_nothing_twice(tmp_path):
