@@ -347,6 +347,20 @@ def _observe(node, rng):
     return add
 
 
+def _four_exchanged_frames(model, rng, ckpt, save_after):
+    """Nodes robot_a and robot_b each observe four frames, exchanging evidence after each; B saves its map to
+    ``ckpt`` after frame ``save_after`` (0..3; None: never). Returns (a, b, A's own evidences, B's own evidences)."""
+    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
+    own_a, own_b = [], []
+    for k in range(4):
+        own_a.append(_observe(a, rng))
+        own_b.append(_observe(b, rng))
+        _exchange(a, b)
+        if k == save_after:
+            b.smap.save(ckpt)
+    return a, b, own_a, own_b
+
+
 def _exchange(a, b, rounds=2):
     for _ in range(rounds):
         a.receive(b.publish())
@@ -362,14 +376,8 @@ def test_a_crashed_and_resumed_node_keeps_the_group_exactly_once(tmp_path):
 
     model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
     rng = np.random.default_rng(7)
-    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
-    own_a, own_b = [], []
-    for _ in range(4):
-        own_a.append(_observe(a, rng))
-        own_b.append(_observe(b, rng))
-        _exchange(a, b)
     ckpt = tmp_path / "b.npz"
-    b.smap.save(ckpt)
+    a, b, own_a, own_b = _four_exchanged_frames(model, rng, ckpt, save_after=3)
     saved_b = sum(own_b)
     _observe(b, rng)                                   # fused after the checkpoint, sent, then B is killed
     a.receive(b.publish())
@@ -455,15 +463,9 @@ def test_a_killed_node_takes_back_its_unsaved_evidence_from_a_peer(tmp_path, che
 
     model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
     rng = np.random.default_rng(11)
-    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
-    own_a, own_b = [], []
     ckpt = tmp_path / "b.npz"
-    for k in range(4):
-        own_a.append(_observe(a, rng))
-        own_b.append(_observe(b, rng))
-        _exchange(a, b)
-        if k == 1 and checkpoint == "older" or k == 3 and checkpoint == "latest":
-            b.smap.save(ckpt)                         # "older": two of B's four frames
+    save_after = {"older": 1, "latest": 3}.get(checkpoint)   # "older": two of B's four frames
+    a, b, own_a, own_b = _four_exchanged_frames(model, rng, ckpt, save_after)
     published_frames = b.smap.frames_observed
     _observe(b, rng)                                  # fused, never published: lost with the kill
     own_a.append(_observe(a, rng))
@@ -547,15 +549,8 @@ def test_a_node_killed_again_before_it_took_its_evidence_back_still_gets_it(tmp_
 
     model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
     rng = np.random.default_rng(5)
-    a, b = _Node(model, "robot_a"), _Node(model, "robot_b")
-    own_a, own_b = [], []
     ckpt = tmp_path / "b.npz"
-    for k in range(4):
-        own_a.append(_observe(a, rng))
-        own_b.append(_observe(b, rng))
-        _exchange(a, b)
-        if k == 0:
-            b.smap.save(ckpt)
+    a, b, own_a, own_b = _four_exchanged_frames(model, rng, ckpt, save_after=0)
     published_frames = b.smap.frames_observed
     b = _Node(model, "robot_b", SemanticMap.load(ckpt, model), resume=True)   # killed; resumed
     assert a.receive(b.publish()) == [None]
