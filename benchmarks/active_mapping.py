@@ -373,38 +373,37 @@ def _cell(s: dict[str, Any]) -> str:
     return f"{100 * s['mean']:.1f} ± {100 * s['std']:.1f}"
 
 
+def _setting_label(s: str) -> str:
+    """A setting's column label: its error model, ``+SM`` with the sensor model."""
+    return f"{SETTINGS[s][0]}{'+SM' if SETTINGS[s][1] else ''}"
+
+
+def _table(head: list[str], rows: list[list[str]]) -> list[str]:
+    """Markdown lines of a table with header ``head``."""
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+
+
 def markdown_tables(summary: dict[str, Any], settings: Sequence[str], strategies: Sequence[str],
                     views: Sequence[int], chosen_views: dict[str, Any]) -> str:
     lines = ["mIoU [%] at the 40 held-out poses, mean ± std over seeds, by fused views "
              f"({START_VIEWS} start views + one per step):", ""]
-    head = ["strategy"] + [f"{SETTINGS[s][0]}{'+SM' if SETTINGS[s][1] else ''} {n}" for s in settings for n in views]
-    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for st in strategies:
-        row = [st] + [_cell(summary[s][st]["miou"][str(n)]) for s in settings for n in views]
-        lines.append("| " + " | ".join(row) + " |")
+    lines += _table(["strategy"] + [f"{_setting_label(s)} {n}" for s in settings for n in views],
+                    [[st] + [_cell(summary[s][st]["miou"][str(n)]) for s in settings for n in views]
+                     for st in strategies])
     last = str(views[-1])
     lines += ["", f"At {last} views: pixel accuracy [%] (held-out poses) and mIoU [%] at the 10 task poses:", ""]
-    head = ["strategy"] + [f"{SETTINGS[s][0]}{'+SM' if SETTINGS[s][1] else ''} {m}" for s in settings
-                           for m in ("acc", "task mIoU")]
-    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for st in strategies:
-        row = [st]
-        for s in settings:
-            row += [_cell(summary[s][st]["accuracy"][last]), _cell(summary[s][st]["task_miou"][last])]
-        lines.append("| " + " | ".join(row) + " |")
+    lines += _table(["strategy"] + [f"{_setting_label(s)} {m}" for s in settings for m in ("acc", "task mIoU")],
+                    [[st] + [c for s in settings for c in (_cell(summary[s][st]["accuracy"][last]),
+                                                          _cell(summary[s][st]["task_miou"][last]))]
+                     for st in strategies])
     lines += ["", "The views each strategy chose (steps after the start views, mean over seeds): input accuracy [%] of "
               "their noisy segmentation, median surface depth [m]:", ""]
-    head = ["strategy"] + [f"{SETTINGS[s][0]}{'+SM' if SETTINGS[s][1] else ''} {m}" for s in settings
-                           for m in ("input acc", "depth")]
-    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for st in strategies:
-        row = [st]
-        for s in settings:
-            cv = chosen_views[s][st]
-            row += [f"{100 * cv['input_accuracy']['mean']:.1f}", f"{cv['median_depth_m']['mean']:.2f}"]
-        lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "Settings: " + "; ".join(f"`{SETTINGS[s][0]}{'+SM' if SETTINGS[s][1] else ''}` = {SETTINGS[s][2]}"
-                                            for s in settings) + "."]
+    lines += _table(["strategy"] + [f"{_setting_label(s)} {m}" for s in settings for m in ("input acc", "depth")],
+                    [[st] + [c for s in settings for c in (
+                        f"{100 * chosen_views[s][st]['input_accuracy']['mean']:.1f}",
+                        f"{chosen_views[s][st]['median_depth_m']['mean']:.2f}")]
+                     for st in strategies])
+    lines += ["", "Settings: " + "; ".join(f"`{_setting_label(s)}` = {SETTINGS[s][2]}" for s in settings) + "."]
     return "\n".join(lines) + "\n"
 
 
