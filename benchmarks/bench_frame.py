@@ -156,7 +156,7 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
     from css_ros.engine.cpu.projection import project
     from css_ros.engine.cpu.raster import (ContributionStore, accumulate_update, add_increments, bin_tiles,
                                 dirichlet_attributes, render_semantic)
-    from css_ros.engine.semantic_map import image_uncertainty
+    from css_ros.engine.final_form import image_uncertainty
 
     t0 = time.perf_counter()
     model, gt, cams = build_scene(cfg, frames + warmup + 1)
@@ -363,7 +363,7 @@ def paper_estimate(model, num_classes: int, cam, labels, candidates) -> dict:
 
 
 def image_uncertainty_(buf) -> None:
-    from css_ros.engine.semantic_map import image_uncertainty
+    from css_ros.engine.final_form import image_uncertainty
 
     image_uncertainty(buf.expectation, buf.variance)
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 from .engine.camera import Camera, body_to_optical_rotation, intrinsics_from_fov
 from .engine.classes import ClassSet
 from .engine.gaussians import GaussianModel
-from .engine.semantic_map import RenderedView, SemanticMap, UpdateStats, image_uncertainty
+from .engine.final_form import image_uncertainty
+from .engine.semantic_map import RenderedView, SemanticMap, UpdateStats
 from .errors import BagError, CameraError, ConfigError, CssError, InputError, MapError, ModelError
 
 __all__ = [

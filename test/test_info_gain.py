@@ -190,7 +190,8 @@ def test_greedy_batch_equals_rescoring_every_view_each_round():
     yaws = np.radians([-50.0, -25.0, -8.0, 0.0, 8.0, 25.0, 50.0])
     cams = [camera(position=(0.0, y, 0.0), quat=(0.0, np.sin(a / 2), 0.0, np.cos(a / 2)), width=32, height=24)
             for a in yaws for y in (-0.3, 0.3)]
-    masses = list(smap._view_masses(cams, smap._mass_weights(), "test"))
+    masses = list(smap._backend.view_masses(cams, smap._concentrations, *smap._background_moments(),
+                                            smap._mass_weights()))
     shared = [[np.intersect1d(a, b).size > 0 for b, _ in masses] for a, _ in masses]
     assert not all(map(all, shared)) and sum(map(sum, shared)) > 2 * len(cams)   # disjoint and overlapping pairs
     for imp in (None, rng.uniform(0.0, 1.0, model.num_gaussians)):

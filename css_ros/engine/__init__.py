@@ -9,7 +9,8 @@ from .camera import Camera, body_to_optical_rotation, intrinsics_from_fov
 from .classes import ClassSet
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics
 from .gaussians import GaussianModel
-from .semantic_map import RenderedView, SemanticMap, UpdateStats, image_uncertainty
+from .final_form import image_uncertainty
+from .semantic_map import RenderedView, SemanticMap, UpdateStats
 
 __all__ = ["Camera", "ClassSet", "FieldIndex", "FieldQuery", "GaussianModel", "GaussianSemantics", "RenderedView",
            "SemanticMap", "UpdateStats",

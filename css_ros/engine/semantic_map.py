@@ -7,17 +7,18 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Literal, Mapping, Sequence
 
 import numpy as np
 
 from ..errors import InputError, MapError, SensorModelError
 from .atomic import atomic_file
 from .backends import make_backend
+from .final_form import RenderSettings, check_outputs
 from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
-                   DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD, VAR_FLOOR)
+                   DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -205,6 +206,11 @@ BackendName = Literal["numba", "torch", "cuda"]
 class RenderedView:
     """Everything rendered for one camera view (H, W = the camera's image size).
 
+    The image fields hold numpy arrays in their final dtypes, made by the backend (on the GPU for backend cuda)
+    and copied to the host once per view. An image not asked for (``outputs`` of :meth:`SemanticMap.observe` /
+    :meth:`SemanticMap.render`) is None and costs no copy; u_var and u_exp are always there. The arrays belong
+    to the view: later frames never change them.
+
     Attributes:
         labels: (H, W) int32 argmax class per pixel; ``ignore_label`` where the background weight
             kappa_b exceeds ``unknown_threshold``.
@@ -263,14 +269,6 @@ class UpdateStats:
     ignored: int
     out_of_range: int
     no_depth: int = 0
-
-
-def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
-    """(U_var, U_exp) of SPEC §6 over all pixels of a view (float64 accumulation)."""
-    var = np.maximum(np.asarray(variance, dtype=np.float64), VAR_FLOOR)
-    u_var = float(np.exp(np.mean(np.log(var))))
-    u_exp = float(1.0 - np.mean(np.asarray(expectation, dtype=np.float64)))
-    return u_var, u_exp
 
 
 class SemanticMap:
@@ -438,32 +436,24 @@ class SemanticMap:
         self.last_update = stats
         return stats
 
-    def _render_frame(self, frame: Any, probabilities: bool) -> RenderedView:
+    def render_settings(self, outputs: Iterable[str] | None = None, probabilities: bool = False) -> RenderSettings:
+        """What a backend needs to deliver a view's outputs in final form (:mod:`css_ros.engine.final_form`).
+
+        Raises:
+            InputError: an unknown output name."""
         e_b, v_b, s_b = self._background_moments()
-        buf = self._backend.render(frame, self._concentrations, e_b, v_b, s_b, self.background_rgb, probabilities)
-        labels = buf.labels
-        labels[buf.background > self.unknown_threshold] = self.ignore_label
-        u_var, u_exp = image_uncertainty(buf.expectation, buf.variance)
-        rgb = np.clip(np.rint(buf.rgb * 255.0), 0, 255).astype(np.uint8)
-        depth = None if buf.depth is None else (buf.depth * self.depth_scale).astype(np.float32)
-        confidence = None
-        cmap = None if self._sensor_model is None else self._sensor_model.confidence
-        if cmap is not None:
-            confidence = cmap(buf.expectation, buf.evidence)
-            confidence[labels == self.ignore_label] = 0.0
-        return RenderedView(
-            labels=labels,
-            expectation=buf.expectation.astype(np.float32),
-            variance=buf.variance.astype(np.float32),
-            background=buf.background.astype(np.float32),
-            evidence=buf.evidence.astype(np.float32),
-            rgb=rgb,
-            u_var=u_var,
-            u_exp=u_exp,
-            probabilities=None if buf.probabilities is None else buf.probabilities.astype(np.float32),
-            depth=depth,
-            confidence=confidence,
-        )
+        bg = self.background_rgb
+        return RenderSettings(e_b, v_b, s_b, (float(bg[0]), float(bg[1]), float(bg[2])), self.unknown_threshold,
+                              self.ignore_label, self.depth_scale,
+                              None if self._sensor_model is None else self._sensor_model.confidence,
+                              check_outputs(outputs), bool(probabilities))
+
+    def _render_frame(self, frame: Any, settings: RenderSettings) -> RenderedView:
+        img = self._backend.render_view(frame, self._concentrations, settings)
+        return RenderedView(labels=img.labels, expectation=img.expectation, variance=img.variance,  # type: ignore[arg-type]
+                            background=img.background, evidence=img.evidence, rgb=img.rgb,  # type: ignore[arg-type]
+                            u_var=img.u_var, u_exp=img.u_exp, probabilities=img.probabilities, depth=img.depth,
+                            confidence=img.confidence)
 
     # ------------------------------------------------------------------ public API
     def update(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None) -> UpdateStats:
@@ -480,15 +470,22 @@ class SemanticMap:
         return self._update_frame(frame, camera, labels, confidence)
 
     def observe(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None,
-                probabilities: bool = False) -> RenderedView:
-        """SPEC §7 per observed frame: rasterise once, update, then render at the same pose."""
+                probabilities: bool = False, outputs: Iterable[str] | None = None) -> RenderedView:
+        """SPEC §7 per observed frame: rasterise once, update, then render at the same pose.
+
+        ``outputs``: the images to deliver (names of :data:`css_ros.engine.final_form.IMAGE_OUTPUTS`; None = all);
+        the others are None in the view and cost no copy from the device."""
+        settings = self.render_settings(outputs, probabilities)
         frame = self._backend.prepare(camera)
         self._update_frame(frame, camera, labels, confidence)
-        return self._render_frame(frame, probabilities)
+        return self._render_frame(frame, settings)
 
-    def render(self, camera: "Camera", probabilities: bool = False) -> RenderedView:
-        """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view)."""
-        return self._render_frame(self._backend.prepare(camera), probabilities)
+    def render(self, camera: "Camera", probabilities: bool = False,
+               outputs: Iterable[str] | None = None) -> RenderedView:
+        """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view); ``outputs`` as
+        in :meth:`observe`."""
+        settings = self.render_settings(outputs, probabilities)
+        return self._render_frame(self._backend.prepare(camera), settings)
 
     def score_views(self, cameras: Sequence["Camera"], importance: np.ndarray | None = None,
                     pixel_scale: float = 1.0) -> np.ndarray:
@@ -502,29 +499,17 @@ class SemanticMap:
         :mod:`css_ros.engine.info_gain`, weighted by ``importance`` ((N,) >= 0 per Gaussian; None = 1, see
         :meth:`task_importance`, :meth:`class_importance`). ``pixel_scale``: pixels of the image that would be
         observed per scored pixel (1 / f**2 for candidates rendered at ``cam.scaled(f)``): the evidence counts as the
-        full-resolution observation would add it. The cuda backend gives NaN gains (not computed there yet).
+        full-resolution observation would add it. Every backend computes the gain (cuda on the device).
 
         Returns:
             (len(cameras), 3) float64, columns (U_var, U_exp, info_gain), in the order of ``cameras`` (columns 0 and
             1 are what earlier versions returned).
         """
-        from .info_gain import MomentSums, view_gain
-
         imp = self._check_importance(importance)
-        cams = list(cameras)
-        e_b, v_b, s_b = self._background_moments()
-        out = np.full((len(cams), 3), np.nan)
-        if not self._backend.scores_mass:
-            out[:, :2] = self._backend.score_views(cams, self._concentrations, e_b, v_b, s_b)
-            return out
-        moments = MomentSums.of(self.concentrations_readonly)
         scale = self._check_pixel_scale(pixel_scale)
-        for i, (expectation, variance, mass) in enumerate(self._backend.score_images(
-                cams, self._concentrations, e_b, v_b, s_b, self._mass_weights())):
-            out[i, :2] = image_uncertainty(expectation, variance)
-            if mass is not None:
-                out[i, 2] = view_gain(moments, mass[0], scale * mass[1], imp)
-        return out
+        e_b, v_b, s_b = self._background_moments()
+        return self._backend.score_views(list(cameras), self._concentrations, e_b, v_b, s_b, self._mass_weights(),
+                                         imp, scale)
 
     @staticmethod
     def _check_pixel_scale(pixel_scale: float) -> float:
@@ -543,59 +528,22 @@ class SemanticMap:
         Returns:
             :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
             one's gain when chosen). Fewer than ``k`` when there are fewer cameras.
-        Raises:
-            MapError: on a backend without the evidence mass (cuda).
         """
-        from .info_gain import MomentSums, SelectedViews, view_gain
-
         imp = self._check_importance(importance)
-        cams = list(cameras)
         scale = self._check_pixel_scale(pixel_scale)
-        masses = [(ids, scale * mass) for ids, mass in self._view_masses(cams, self._mass_weights(), "select_views")]
-        moments = MomentSums.of(self.concentrations_readonly)
-        scores = np.array([view_gain(moments, ids, mass, imp) for ids, mass in masses])
-        touched = np.zeros(self.model.num_gaussians, dtype=bool)
-        chosen: list[int] = []
-        gains: list[float] = []
-        for _ in range(min(int(k), len(cams))):
-            best = int(np.argmax(scores))
-            chosen.append(best)
-            gains.append(float(scores[best]))
-            scores[best] = -np.inf
-            ids_best, mass_best = masses[best]
-            moments.observe_expected(ids_best, mass_best)
-            # a view's gain depends only on the moments of its own Gaussians: re-score the views sharing one with
-            # the pick (the others keep their gains exactly)
-            touched[ids_best] = True
-            for i, (ids, mass) in enumerate(masses):
-                if scores[i] != -np.inf and touched[ids].any():
-                    scores[i] = view_gain(moments, ids, mass, imp)
-            touched[ids_best] = False
-        return SelectedViews(np.array(chosen, dtype=np.int64), np.array(gains))
+        e_b, v_b, s_b = self._background_moments()
+        return self._backend.select_views(list(cameras), self._concentrations, e_b, v_b, s_b, self._mass_weights(),
+                                          imp, scale, int(k))
 
     def task_importance(self, task_cameras: Sequence["Camera"]) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = its kappa mass summed over ``task_cameras`` (the views a robot
         will later take or act from), for ``score_views`` / ``select_views``: surfaces no task view sees count 0."""
         imp = np.zeros(self.model.num_gaussians)
         unit = (np.array([0.0, 1.0]), np.ones(self.num_classes))
-        for ids, mass in self._view_masses(list(task_cameras), unit, "task_importance"):
+        e_b, v_b, s_b = self._background_moments()
+        for ids, mass in self._backend.view_masses(list(task_cameras), self._concentrations, e_b, v_b, s_b, unit):
             np.add.at(imp, ids, mass)
         return imp
-
-    def _view_masses(self, cameras: list["Camera"], mass_weights: tuple[np.ndarray, np.ndarray],
-                     what: str) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """Per view, (model ids (M,), evidence mass (M,)) of its visible Gaussians (RasterBackend.score_images).
-
-        Raises:
-            MapError: the backend does not compute the mass (cuda).
-        """
-        if not self._backend.scores_mass:
-            raise MapError(f"{what} needs the evidence mass, which the {self.backend_name} backend does not compute "
-                           "yet; use backend numba or torch")
-        e_b, v_b, s_b = self._background_moments()
-        for _, _, mass in self._backend.score_images(cameras, self._concentrations, e_b, v_b, s_b, mass_weights):
-            assert mass is not None  # scores_mass backends always return it when asked
-            yield mass
 
     def class_importance(self, class_id: int) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = E[theta_n^c], the map's probability that Gaussian n is of class

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..errors import SensorModelError
 from .atomic import atomic_file
+from .pixel_math import E_CLIP, Z_CLIP
 
 SENSOR_MODEL_FORMAT = "css_ros.sensor_model"
 SENSOR_MODEL_VERSION = 1
@@ -64,14 +65,14 @@ class ConfidenceMap:
     def features(expectation: np.ndarray, evidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(logit E with E clipped to [1e-6, 1 - 1e-6], log(1 + evidence)), float64, the inputs' shape: the two
         features of the logistic score (css_calibrate fits its coefficients on these)."""
-        e = np.clip(np.asarray(expectation, dtype=np.float64), 1e-6, 1.0 - 1e-6)
+        e = np.clip(np.asarray(expectation, dtype=np.float64), E_CLIP, 1.0 - E_CLIP)
         return np.log(e / (1.0 - e)), np.log1p(np.maximum(np.asarray(evidence, dtype=np.float64), 0.0))
 
     def score(self, expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
         """The logistic score before the isotonic correction (same shape as the inputs, float64)."""
         logit_e, log_ev = self.features(expectation, evidence)
         z = self.coef[0] * logit_e + self.coef[1] * log_ev + self.coef[2]
-        return 0.5 * (1.0 + np.tanh(0.5 * np.clip(z, -60.0, 60.0)))
+        return 0.5 * (1.0 + np.tanh(0.5 * np.clip(z, -Z_CLIP, Z_CLIP)))
 
     def __call__(self, expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
         """Probability that the label is right (float32, same shape as ``expectation``)."""

@@ -1,5 +1,5 @@
 """The compiled CPU backend: numba projection, tile binning and per-pixel kernels behind the
-:class:`~css_ros.engine.backends.RasterBackend` protocol."""
+:class:`~css_ros.engine.raster_backend.RasterBackend` protocol."""
 from __future__ import annotations
 
 import queue
@@ -7,13 +7,15 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from ..backends import RasterBackend
+from ..raster_backend import RasterBackend
+from .finalize import finalize
 from .projection import GaussianGeometry, ProjectionScratch, project
 from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
     from ..camera import Camera
+    from ..final_form import FrameImages, RenderSettings
     from ..gaussians import GaussianModel
     from ..sensor_model import SoftLabels
 
@@ -52,6 +54,12 @@ class NumbaBackend(RasterBackend):
         store = self._store if self._store.owner is frame else None
         return render_semantic(proj, bins, camera.width, camera.height, attrs,
                                e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
+
+    def render_view(self, frame: Any, concentrations: np.ndarray, settings: "RenderSettings") -> "FrameImages":
+        """The final outputs in one compiled pass after the render (:mod:`.finalize`)."""
+        buf = self.render(frame, concentrations, settings.e_bg, settings.v_bg, settings.s_bg,
+                          np.asarray(settings.bg_rgb, dtype=np.float64), settings.probabilities)
+        return finalize(buf, settings)
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None

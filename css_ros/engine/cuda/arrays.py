@@ -9,6 +9,7 @@ numba kernels read and write in place through ``__cuda_array_interface__`` (no c
 from __future__ import annotations
 
 import os
+import weakref
 from typing import Any
 
 import numpy as np
@@ -83,6 +84,25 @@ class NumpyOps:
         get = getattr(dev, "get", None)
         return np.asarray(get() if get is not None and self.xp is not np else dev)
 
+    def view_as(self, dev: Any, dtype: Any) -> Any:
+        """The same memory as another dtype (1-D), as a kernel argument. Under the simulator a host array passed
+        to a kernel is copied in and written back after it, so views of one buffer passed together would
+        overwrite each other's writes: they go in as the simulator's device arrays instead (no copies)."""
+        view = dev.view(dtype)
+        if self.xp is np and simulator_enabled():
+            from numba.cuda.simulator.cudadrv.devicearray import FakeCUDAArray
+
+            return FakeCUDAArray(view)
+        return view
+
+    def zero_words(self, dev: Any, n: int) -> None:
+        """dev[:n] = 0 (the output buffer's header)."""
+        dev[:n] = 0
+
+    def download_words(self, dev: Any, n: int) -> np.ndarray:
+        """A fresh host copy of dev[:n] (the frame's one copy): the caller's images are views into it."""
+        return np.array(self.download(dev[:n]))
+
     def argsort_stable(self, x: Any) -> Any:
         return self.xp.argsort(x, kind="stable")
 
@@ -124,6 +144,15 @@ class NumpyOps:
             self.xp.cuda.Device().synchronize()
 
 
+class _HostWords:
+    """Owner of a frame's host copy: every numpy view of it refers to this object (its ``base``), so the copy's
+    pinned buffer is free for reuse exactly when this object is garbage."""
+
+    def __init__(self, storage: Any, words: np.ndarray) -> None:
+        self.storage = storage  # keeps the page-locked memory alive as long as a view of it exists
+        self.__array_interface__ = dict(words.__array_interface__)
+
+
 class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
     """Array operations over torch CUDA tensors (device-wide radix sort and scan)."""
 
@@ -137,6 +166,9 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         self.name = "torch"
         self.device = torch.device("cuda", 0 if device is None else int(device))
         self._pinned_cache: dict[tuple, Any] = {}
+        self._word_pool: list[list[Any]] = []  # [pinned int32 buffer, weakref to the array handed out or None]
+        #: page-locked buffers allocated for frame outputs so far (constant once warm unless views are kept)
+        self.pinned_allocations = 0
 
     def _dt(self, dtype: Any) -> Any:
         return getattr(self.torch, self._DTYPES[np.dtype(dtype)])
@@ -182,6 +214,33 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
 
     def copy_into(self, dst: Any, host: np.ndarray) -> None:
         dst.copy_(self.torch.from_numpy(np.ascontiguousarray(host)).to(dst.dtype))
+
+    def view_as(self, dev: Any, dtype: Any) -> Any:
+        return dev.view(self._dt(dtype))
+
+    def zero_words(self, dev: Any, n: int) -> None:
+        dev[:n].zero_()
+
+    def download_words(self, dev: Any, n: int) -> np.ndarray:
+        """dev[:n] into a page-locked host buffer in one asynchronous copy and one synchronisation; the returned
+        array (the caller's images are views into it) owns that buffer until it is garbage: the pool hands a
+        buffer out again only when no array of an earlier frame still refers to it, so a view stays valid after
+        later frames and a caller that drops its views causes no allocation once warm."""
+        buf = None
+        for entry in self._word_pool:
+            if entry[1] is None or entry[1]() is None:
+                if int(entry[0].shape[0]) >= n:
+                    buf = entry
+                    break
+        if buf is None:
+            buf = [self.torch.empty(max(n, 1), dtype=self.torch.int32).pin_memory(), None]
+            self._word_pool.append(buf)
+            self.pinned_allocations += 1
+        buf[0][:n].copy_(dev[:n], non_blocking=True)
+        self.torch.cuda.current_stream(self.device).synchronize()
+        owner = _HostWords(buf[0], buf[0].numpy()[:n])
+        buf[1] = weakref.ref(owner)
+        return np.asarray(owner)
 
     def download(self, dev: Any) -> np.ndarray:
         return dev.cpu().numpy()

@@ -18,11 +18,15 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 import numpy as np
 
 from ...errors import CssError
-from ..backends import RasterBackend
+from ..raster_backend import RasterBackend
 from ..buffers import RenderBuffers
+from ..final_form import IMAGE_OUTPUTS, FrameImages, RenderSettings, uncertainty_from_sums
+from ..info_gain import SelectedViews
+from ..spec import INFO_GAIN_PRIOR
 from ..spec import TILE_SIZE
 from ..splat_math import CAM_COLS, camera_row
 from .arrays import import_cuda, make_ops, simulator_enabled
+from .layout import HEADER_WORDS, NUM_PLANES, plane_layout
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -56,6 +60,7 @@ class CudaFrame:
     packed: Any
     colors: Any
     ids: Any
+    views: Any
     pair_row: Any
     rows: Any
 
@@ -99,6 +104,13 @@ class CudaBackend(RasterBackend):
         self._host_dirty = True
         self._device_newer = False
         self._soft: tuple[Any, Any, Any] | None = None  # (SoftLabels, edges, table on the device)
+        self._out: Any = None                                 # the reused output buffer (int32 words)
+        self._params_key: tuple[bytes, bytes] | None = None
+        self._params_dev: tuple[Any, Any] = (None, None)
+        self._planes_dev: dict[bytes, Any] = {}
+        self._empty_f64 = ops.zeros(0, np.float64)
+        self._empty_words = ops.zeros(HEADER_WORDS, np.int32)
+        self._empty_scores = ops.zeros((1, 2), np.float64)
 
     def _probe(self) -> None:
         """Compile and run the smallest kernel once, so that a broken stack (numba-cuda vs numpy,
@@ -234,7 +246,7 @@ class CudaBackend(RasterBackend):
         if m == 0:
             rows = rows[:0]
         return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, order, packed, colors,
-                         ids, pair_row, rows)
+                         ids, views, pair_row, rows)
 
     # ------------------------------------------------------------------ update
     def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
@@ -288,43 +300,87 @@ class CudaBackend(RasterBackend):
             self.k.moments_kernel[blocks, threads](conc, frame.rows, mom)
         return mom
 
-    def _render(self, frame: CudaFrame, conc: Any, e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-                score: bool, want_probs: bool) -> tuple[Any, Any, Any]:
+    def _params(self, settings: "RenderSettings") -> tuple[Any, Any]:
+        """(params (RENDER_PARAMS,) f64, knots (2, K) f64) on the device, uploaded again only when they change."""
+        k = self.k
+        cmap = settings.confidence
+        host = np.zeros(k.RENDER_PARAMS)
+        host[k.P_EBG], host[k.P_VBG], host[k.P_SBG] = settings.e_bg, settings.v_bg, settings.s_bg
+        host[k.P_RGB:k.P_RGB + 3] = settings.bg_rgb
+        host[k.P_THRESHOLD], host[k.P_DEPTH_SCALE] = settings.unknown_threshold, settings.depth_scale
+        host[k.P_IGNORE] = settings.ignore_label
+        knots = np.zeros((2, 1))
+        if cmap is not None:
+            host[k.P_COEF:k.P_COEF + 3] = cmap.coef
+            knots = np.stack([np.asarray(cmap.knots_x, dtype=np.float64), np.asarray(cmap.knots_y, dtype=np.float64)])
+        key = (host.tobytes(), knots.tobytes())
+        if self._params_key != key:
+            self._params_dev = (self.ops.upload(host, np.float64), self.ops.upload(knots, np.float64))
+            self._params_key = key
+        return self._params_dev
+
+    def _planes(self, planes: np.ndarray) -> Any:
+        """The plane offsets on the device, uploaded once per layout (a frame of the same size and outputs reuses
+        them)."""
+        key = planes.tobytes()
+        dev = self._planes_dev.get(key)
+        if dev is None:
+            if len(self._planes_dev) > 64:  # sizes and output sets of a long-lived process: bounded
+                self._planes_dev.clear()
+            dev = self._planes_dev[key] = self.ops.upload(planes, np.int64)
+        return dev
+
+    def _output_buffer(self, words: int) -> Any:
+        """The device output buffer (int32 words), grown when a frame needs more, kept between frames."""
+        if self._out is None or int(self._out.shape[0]) < words:
+            self._out = self.ops.empty(words + (words % 2), np.int32)  # even: the header is read as float64
+        return self._out
+
+    def _launch_render(self, frame: CudaFrame, conc: Any, settings: "RenderSettings", planes: np.ndarray,
+                       out: Any, scores: Any, score: bool, mass: tuple[Any, Any, Any] | None = None) -> None:
+        """One launch of the render kernel over all views x tiles of ``frame``."""
         self._bind()
-        ops = self.ops
+        ops, k = self.ops, self.k
         num_classes = int(conc.shape[1])
-        n_views = len(frame.cameras)
         mom = self._moments(frame, conc)
-        cols = self.k.RENDER_OUT_COLS
-        if score:
-            out = ops.empty((1, 1, 1, cols), np.float32)
-            scores = ops.zeros((n_views, 2), np.float64)
-        else:
-            out = ops.empty((n_views, frame.height, frame.width, cols), np.float32)
-            scores = ops.zeros((1, 2), np.float64)
-        probs = ops.empty((n_views, frame.height, frame.width, num_classes) if want_probs else (1, 1, 1, 1),
-                          np.float32)
-        kernel = self.k.make_render_kernel(num_classes, self.tile, bool(score), bool(want_probs),
-                                           self.k.RENDER_CLASS_CHUNK)
-        kernel[n_views * frame.tiles_per_view, self.tile * self.tile](
-            frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom,
-            float(e_bg), float(v_bg), float(s_bg), ops.upload(np.asarray(bg_rgb, dtype=np.float64)),
-            frame.width, frame.height, frame.tiles_x, frame.tiles_per_view, out, probs, scores)
-        return out, probs, scores
+        params, knots = self._params(settings)
+        kernel = k.make_render_kernel(num_classes, self.tile, bool(score), bool(settings.probabilities and not score),
+                                      k.RENDER_CLASS_CHUNK, mass is not None)
+        mass_w, mass_edges, mass_out = mass if mass is not None else (self._empty_f64, self._empty_f64,
+                                                                     self._empty_f64)
+        kernel[len(frame.cameras) * frame.tiles_per_view, self.tile * self.tile](
+            frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom, params, knots,
+            self._planes(planes), frame.width, frame.height, frame.tiles_x, frame.tiles_per_view,
+            ops.view_as(out, np.int32), ops.view_as(out, np.float32), ops.view_as(out, np.uint8), ops.view_as(out, np.float64), scores,
+            mass_w, mass_edges, mass_out)
+
+    def render_view(self, frame: CudaFrame, concentrations: np.ndarray, settings: "RenderSettings") -> FrameImages:
+        """The view's requested outputs made on the device in final form (:mod:`css_ros.engine.final_form`): the
+        render kernel writes each requested plane, packed, into one reused device buffer and reduces U_var / U_exp
+        there; one copy brings exactly those bytes to the host, and the images are views into that copy."""
+        conc = self._device_concentrations_for_read(concentrations)
+        num_classes = int(conc.shape[1])
+        layout = plane_layout(frame.height, frame.width, num_classes, settings)
+        out = self._output_buffer(layout.words)
+        self.ops.zero_words(out, HEADER_WORDS)
+        self._launch_render(frame, conc, settings, layout.planes, out, self._empty_scores, False)
+        host = self.ops.download_words(out, layout.words)  # the frame's one copy (and synchronisation)
+        return layout.images(host, frame.height, frame.width, num_classes)
 
     def render(self, frame: CudaFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
-        """Composite colour, E, Var (argmax class), kappa_b, evidence and the expected depth (splat units, NaN
-        where nothing is rendered); one transfer of (H, W, 9) f32."""
-        conc = self._device_concentrations_for_read(concentrations)
-        out, probs, _ = self._render(frame, conc, e_bg, v_bg, s_bg, bg_rgb, False, want_probs)
-        host = self.ops.download_frame("render", out)[0]
-        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-        return RenderBuffers(
-            labels=np.ascontiguousarray(host[..., 0], dtype=np.int32),
-            expectation=f64(host[..., 1]), variance=f64(host[..., 2]), background=f64(host[..., 3]),
-            evidence=f64(host[..., 4]), rgb=f64(host[..., 5:8]),
-            probabilities=f64(self.ops.download(probs)[0]) if want_probs else None, depth=f64(host[..., 8]))
+        """The contract's raw buffers, from :meth:`render_view` (float32 precision; labels without the unknown
+        threshold; colour quantised to 1/255): for callers of the raw form only, the map renders through
+        ``render_view``."""
+        settings = RenderSettings(e_bg, v_bg, s_bg, (float(bg_rgb[0]), float(bg_rgb[1]), float(bg_rgb[2])),
+                                  float("inf"), -1, 1.0, None, frozenset(IMAGE_OUTPUTS), bool(want_probs))
+        img = self.render_view(frame, concentrations, settings)
+        f64 = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
+        assert img.labels is not None and img.rgb is not None
+        return RenderBuffers(labels=img.labels, expectation=f64(img.expectation), variance=f64(img.variance),
+                             background=f64(img.background), evidence=f64(img.evidence), rgb=img.rgb / 255.0,
+                             probabilities=None if img.probabilities is None else f64(img.probabilities),
+                             depth=f64(img.depth))
 
     def _device_concentrations_for_read(self, host: np.ndarray) -> Any:
         """Like _device_concentrations, but keeps a newer device state (a render after an update)."""
@@ -339,41 +395,132 @@ class CudaBackend(RasterBackend):
             groups.setdefault((int(cam.width), int(cam.height)), []).append(i)
         return groups
 
-    #: the info gain's evidence mass is not computed on the GPU yet (score_views gives NaN gains)
-    scores_mass = False
+    def _score_settings(self, e_bg: float, v_bg: float, s_bg: float) -> "RenderSettings":
+        return RenderSettings(e_bg, v_bg, s_bg, (0.0, 0.0, 0.0), float("inf"), -1, 1.0, None, frozenset(), False)
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None
-                     ) -> Iterator[tuple[np.ndarray, np.ndarray, None]]:
-        """(expectation, variance, None) of the views, rendered in one batch per image size (no evidence mass)."""
+                     ) -> Iterator[tuple[np.ndarray, np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]]:
+        """(expectation, variance, mass) of the views one by one (the contract's image form; the batched device
+        paths are :meth:`score_views`, :meth:`view_masses` and :meth:`select_views`)."""
+        settings = RenderSettings(e_bg, v_bg, s_bg, (0.0, 0.0, 0.0), float("inf"), -1, 1.0, None,
+                                  frozenset({"expectation", "variance"}), False)
         cams = list(cameras)
-        if not cams:
-            return
+        masses = list(self.view_masses(cams, concentrations, e_bg, v_bg, s_bg, mass_weights)) \
+            if mass_weights is not None else [None] * len(cams)
+        for cam, mass in zip(cams, masses):
+            img = self.render_view(self.prepare_views([cam], want_color=False), concentrations, settings)
+            assert img.expectation is not None and img.variance is not None
+            yield img.expectation.astype(np.float64), img.variance.astype(np.float64), mass
+
+    def _scored_groups(self, cameras: list["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                       s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None"
+                       ) -> Iterator[tuple[list[int], CudaFrame, Any, Any]]:
+        """Per image size: (indices into ``cameras``, the batch's frame, its (V, 2) f64 score sums on the device,
+        the (M,) f64 evidence mass per pair on the device or None), every stage one launch for the batch."""
         conc = self._device_concentrations_for_read(concentrations)
-        images: list[Any] = [None] * len(cams)
-        for idx in self._groups(cams).values():
-            frame = self.prepare_views([cams[i] for i in idx], want_color=False)
-            out, _, _ = self._render(frame, conc, e_bg, v_bg, s_bg, np.zeros(3), False, False)
-            host = self.ops.download(out)
-            for row, i in enumerate(idx):
-                images[i] = (host[row, ..., 1].astype(np.float64), host[row, ..., 2].astype(np.float64), None)
-        yield from images
+        settings = self._score_settings(e_bg, v_bg, s_bg)
+        no_planes = np.full(NUM_PLANES, -1, dtype=np.int64)
+        for idx in self._groups(cameras).values():
+            frame = self.prepare_views([cameras[i] for i in idx], want_color=False)
+            scores = self.ops.zeros((len(idx), 2), np.float64)
+            mass = None
+            if mass_weights is not None:
+                mass = self.ops.zeros(max(frame.num_pairs, 1), np.float64)
+                edges, weights = mass_weights
+                self._launch_render(frame, conc, settings, no_planes, self._empty_words, scores, True,
+                                    (self.ops.upload(weights, np.float64), self.ops.upload(edges, np.float64), mass))
+            else:
+                self._launch_render(frame, conc, settings, no_planes, self._empty_words, scores, True)
+            yield idx, frame, scores, mass
+
+    def _moment_sums(self, concentrations: np.ndarray) -> Any:
+        """(N, 2) f64 (S, Q) of every Gaussian with the scoring prior (info_gain.MomentSums.of), on the device."""
+        conc = self._device_concentrations_for_read(concentrations)
+        sq = self.ops.empty((max(self.num_gaussians, 1), 2), np.float64)
+        if self.num_gaussians:
+            blocks, threads = self._launch_1d(self.num_gaussians)
+            self.k.moment_sums_kernel[blocks, threads](conc, float(INFO_GAIN_PRIOR), sq)
+        return sq
+
+    def _gains(self, groups: list[tuple[list[int], CudaFrame, Any, Any]], sq: Any, importance: Any, scale: float,
+               num_views: int) -> Any:
+        """(V,) f64 info gain of every view on the device: one launch per image size over its pairs."""
+        gains = self.ops.zeros(max(num_views, 1), np.float64)
+        for idx, frame, _, mass in groups:
+            if frame.num_pairs == 0 or mass is None:
+                continue
+            slot = self.ops.upload(np.asarray(idx, dtype=np.int32))[frame.views[:frame.num_pairs]]
+            blocks, threads = self._launch_1d(frame.num_pairs)
+            self.k.view_gain_kernel[blocks, threads](mass, slot, frame.ids[:frame.num_pairs], sq, importance,
+                                                     float(scale), gains)
+        return gains
 
     def score_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
-                    s_bg: float) -> np.ndarray:
-        """(V, 2) float64 (U_var, U_exp) of SPEC §6 per view: all views of one size projected, sorted
-        and rendered in one launch per stage; the per-view sums are reduced on the device, so only
-        2 V numbers come back."""
+                    s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None",
+                    importance: np.ndarray | None, pixel_scale: float) -> np.ndarray:
+        """(V, 3) float64 (U_var, U_exp, info_gain) per view: all views of one size projected, sorted and rendered
+        in one launch per stage; the U sums and each pair's evidence mass are reduced on the device, the gains by
+        one more launch; 3 V numbers come back."""
         cams = list(cameras)
-        result = np.empty((len(cams), 2))
+        result = np.full((len(cams), 3), np.nan)
         if not cams:
             return result
-        conc = self._device_concentrations_for_read(concentrations)
-        for (width, height), idx in self._groups(cams).items():
-            frame = self.prepare_views([cams[i] for i in idx], want_color=False)
-            _, _, scores = self._render(frame, conc, e_bg, v_bg, s_bg, np.zeros(3), True, False)
+        groups = list(self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights))
+        gains = None
+        if mass_weights is not None:
+            imp = self._empty_f64 if importance is None else self.ops.upload(importance, np.float64)
+            gains = self._gains(groups, self._moment_sums(concentrations), imp, pixel_scale, len(cams))
+        for idx, frame, scores, _ in groups:
             sums = self.ops.download(scores)
-            npix = float(width * height)
-            result[idx, 0] = np.exp(sums[:, 0] / npix)
-            result[idx, 1] = 1.0 - sums[:, 1] / npix
+            for row, i in enumerate(idx):
+                result[i, :2] = uncertainty_from_sums(float(sums[row, 0]), float(sums[row, 1]),
+                                                      frame.width * frame.height)
+        if gains is not None:
+            result[:, 2] = self.ops.download(gains)[:len(cams)]
         return result
+
+    def view_masses(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                    s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray]"
+                    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Per view, (model ids, evidence mass) of its visible Gaussians, from the batched device walk."""
+        cams = list(cameras)
+        out: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0, np.int64), np.zeros(0))] * len(cams)
+        for idx, frame, _, mass in self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights):
+            m = frame.num_pairs
+            if m == 0 or mass is None:
+                continue
+            views = self.ops.download(frame.views[:m])
+            ids = self.ops.download(frame.ids[:m]).astype(np.int64)
+            values = self.ops.download(mass[:m])
+            for row, i in enumerate(idx):
+                sel = views == row
+                order = np.argsort(ids[sel], kind="stable")
+                out[i] = (ids[sel][order], values[sel][order])
+        yield from out
+
+    def select_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
+                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray]", importance: np.ndarray | None,
+                     pixel_scale: float, k: int) -> SelectedViews:
+        """The greedy batch on the device: the pairs' evidence mass once, then per pick one gain launch per image
+        size, V gains back, and one launch moving the chosen view's Gaussians' (S, Q) as its expected observation
+        would (the numba path's result within float32 rounding of the mass)."""
+        cams = list(cameras)
+        groups = list(self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights))
+        sq = self._moment_sums(concentrations)
+        imp = self._empty_f64 if importance is None else self.ops.upload(importance, np.float64)
+        chosen: list[int] = []
+        gains: list[float] = []
+        for _ in range(min(int(k), len(cams))):
+            scores = self.ops.download(self._gains(groups, sq, imp, pixel_scale, len(cams)))[:len(cams)]
+            scores[chosen] = -np.inf
+            best = int(np.argmax(scores))
+            chosen.append(best)
+            gains.append(float(scores[best]))
+            for idx, frame, _, mass in groups:
+                if best in idx and frame.num_pairs and mass is not None:
+                    blocks, threads = self._launch_1d(frame.num_pairs)
+                    self.k.observe_expected_kernel[blocks, threads](mass, frame.views[:frame.num_pairs],
+                                                                    frame.ids[:frame.num_pairs], idx.index(best),
+                                                                    float(pixel_scale), sq)
+        return SelectedViews(np.array(chosen, dtype=np.int64), np.array(gains))

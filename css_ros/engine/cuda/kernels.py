@@ -33,8 +33,11 @@ from typing import Any
 
 from numba import cuda, float32, float64, int32
 
+from ..pixel_math import confidence_score, interp, to_byte
 from ..sh import sh_polynomial
 from .arrays import simulator_enabled
+from .layout import (PL_BG, PL_CONFIDENCE, PL_DEPTH, PL_E, PL_EVIDENCE, PL_LABELS, PL_PROBS, PL_RGB,  # noqa: F401
+                     PL_VAR, NUM_PLANES, HEADER_WORDS)
 from ..spec import ALPHA_MAX, ALPHA_MIN, RENDER_CLASS_CHUNK, T_MIN, VAR_FLOOR
 from ..splat_math import ewa_splat, fov_limits, store_splat, view_direction
 
@@ -54,6 +57,9 @@ _ewa_splat = cuda.jit(device=True, inline=True)(ewa_splat)
 _store_splat = cuda.jit(device=True, inline=True)(store_splat)
 _view_direction = cuda.jit(device=True, inline=True)(view_direction)
 _sh_polynomial = cuda.jit(device=True, inline=True)(sh_polynomial)
+_to_byte = cuda.jit(device=True, inline=True)(to_byte)
+_interp = cuda.jit(device=True, inline=True)(interp)
+_confidence_score = cuda.jit(device=True, inline=True)(confidence_score)
 
 
 @cuda.jit
@@ -474,21 +480,32 @@ def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK,
     return nt, per_pass, acc + nt * row
 
 
+# The render's scalar parameters (one float64 array): background moments, background colour, the unknown threshold,
+# metres per splat unit, the ignore label and the confidence map's logistic coefficients.
+P_EBG, P_VBG, P_SBG, P_RGB, P_THRESHOLD, P_DEPTH_SCALE, P_IGNORE, P_COEF = 0, 1, 2, 3, 6, 7, 8, 9
+RENDER_PARAMS = 12
+
+
 @lru_cache(maxsize=None)
 def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
-                       chunk: int = RENDER_CLASS_CHUNK) -> Any:
+                       chunk: int = RENDER_CLASS_CHUNK, with_mass: bool = False) -> Any:
     """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode, classes per pass).
 
     Launch: grid = views * tiles, block = tile * tile threads (a multiple of 32). Kernel arguments:
     offsets (V T + 1,) i64; order (P,) i32 pair of each sorted key; packed (M, 8) f64; colors (M, 3) f32;
-    pair_row (M,) i32 row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; e_bg, v_bg, s_bg
-    background moments; bg_rgb (3,) f64; width, height [px]; tiles_x, tiles_per_view; outputs:
+    pair_row (M,) i32 row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; params (RENDER_PARAMS,) f64
+    (``P_*``); knots (2, K) f64 the confidence map's isotonic knots; planes (NUM_PLANES,) i64 (``PL_*``);
+    width, height [px]; tiles_x, tiles_per_view; out_i32, out_f32, out_u8, out_f64: views of one output buffer;
+    scores (V, 2) f64; mass_w (C B,) f64, mass_edges (B + 1,) f64, mass (M,) f64. Modes:
 
-    - ``score`` False: out (V, H, W, 9) f32 per pixel (label, E, Var of the argmax class, kappa_b,
-      evidence, r, g, b, depth), depth = sum kappa z / sum kappa (camera z, splat units; NaN without any
-      contribution); with ``probs`` also probs (V, H, W, C) f32 = E_i^c.
-    - ``score`` True: scores (V, 2) f64 += (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i) per view,
-      reduced per warp with shuffles, one float64 atomic per warp and view.
+    - ``score`` False (one view): the view's outputs in final form, each requested plane written at its offset
+      (labels int32 with ``ignore`` where kappa_b > threshold; E, Var, kappa_b, evidence float32; depth
+      sum kappa z / sum kappa times the depth scale (NaN without any contribution); the calibrated confidence
+      (0 on unknown pixels); colour uint8; with ``probs`` the (H, W, C) float32 E_i^c) and out_f64[0:2] +=
+      (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i), reduced per warp, one float64 atomic per warp.
+    - ``score`` True: scores (V, 2) f64 += the same two sums per view. With ``with_mass`` also mass[j] +=
+      sum_i kappa_ij mass_w[label_i B + b_i] per pair j (label_i the pixel's argmax class, b_i the bin of its
+      expected depth in ``mass_edges``, splat units): a second walk of the pixel's list, summed per warp.
 
     The pixel walk is float32; each pixel's E and Var sums of the classes of one pass live in shared
     memory (column ``tid`` of a (2 chunk, tile^2) array: no runtime-indexed local arrays, no bank
@@ -499,15 +516,19 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
     nt = tile * tile
     if nt % WARP:
         raise ValueError(f"tile {tile}: the render kernel needs tile * tile to be a multiple of {WARP}")
+    if with_mass and not score:
+        raise ValueError("the evidence mass is a scoring output (score=True)")
     C = num_classes
-    batch, per_pass, _ = render_layout(C, tile, chunk)
+    batch, per_pass, _ = render_layout(C, tile, chunk, score and not with_mass)
     n_acc = 2 * per_pass  # shared array shapes must be compile-time constants
     n_pass = -(-C // per_pass)
-    attr_cols = 4 if score else RENDER_ATTR_COLS  # the views' scores need no depth
+    with_depth = with_mass or not score
+    attr_cols = RENDER_ATTR_COLS if with_depth else 4  # the views' plain scores need no depth
 
     @cuda.jit
-    def render_kernel(offsets, order, packed, colors, pair_row, mom, e_bg, v_bg, s_bg, bg_rgb,
-                      width, height, tiles_x, tiles_per_view, out, probs_out, scores):  # pragma: no cover
+    def render_kernel(offsets, order, packed, colors, pair_row, mom, params, knots, planes, width, height,
+                      tiles_x, tiles_per_view, out_i32, out_f32, out_u8, out_f64, scores, mass_w, mass_edges,
+                      mass):  # pragma: no cover
         b = cuda.blockIdx.x
         tid = cuda.threadIdx.x
         view = b // tiles_per_view
@@ -517,6 +538,8 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
         inside = u < width and v < height
+        pix = v * width + u
+        e_bg = params[P_EBG]
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
         s_a = cuda.shared.array((batch, attr_cols), float32)  # r, g, b, S (, z)
         s_row = cuda.shared.array(batch, int32)
@@ -556,7 +579,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                     s_a[tid, 1] = colors[j, 1]
                     s_a[tid, 2] = colors[j, 2]
                     s_a[tid, 3] = mom[row, 2 * C]
-                    if not score:
+                    if with_depth:
                         s_a[tid, 4] = float32(packed[j, 7])
                 cuda.syncthreads()
                 if not done:
@@ -576,7 +599,7 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                             cg += w1 * s_a[k, 1]
                             cb += w1 * s_a[k, 2]
                             ev += w1 * s_a[k, 3]
-                            if not score:  # (a compile-time constant: the views' scores stage no depth)
+                            if with_depth:  # (a compile-time constant)
                                 dz += w1 * s_a[k, 4]
                                 ks += w1
             for c in range(nc):
@@ -585,39 +608,156 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                     best = c0 + c
                     best_e = e
                     best_v = acc[per_pass + c, tid]
-            if probs and not score and inside:
+            if probs and not score and inside and planes[PL_PROBS] >= 0:
                 tr_p = float64(trans)
+                base = planes[PL_PROBS] + pix * C
                 for c in range(nc):
-                    probs_out[view, v, u, c0 + c] = float64(acc[c, tid]) + tr_p * e_bg
+                    out_f32[base + c0 + c] = float32(float64(acc[c, tid]) + tr_p * e_bg)
             if n_pass > 1:
                 # Not needed for correctness (the next pass stages its rows only after its syncthreads_count);
                 # it bounds live ranges: without it ptxas gives the C = 150 kernels 64-80 registers, not 37-72.
                 cuda.syncthreads()
         tr = float64(trans)
         e_hat = float64(best_e) + tr * e_bg
-        v_hat = float64(best_v) + tr * tr * v_bg
+        v_hat = float64(best_v) + tr * tr * params[P_VBG]
+        lv = 0.0
+        le = 0.0
+        if inside:
+            lv = math.log(max(v_hat, VAR_FLOOR))
+            le = e_hat
+        lv = warp_sum(lv)
+        le = warp_sum(le)
         if score:
-            lv = 0.0
-            le = 0.0
-            if inside:
-                lv = math.log(max(v_hat, VAR_FLOOR))
-                le = e_hat
-            lv = warp_sum(lv)
-            le = warp_sum(le)
             if tid % WARP == 0:
                 cuda.atomic.add(scores, (view, 0), lv)
                 cuda.atomic.add(scores, (view, 1), le)
-        elif inside:
-            out[view, v, u, 0] = best
-            out[view, v, u, 1] = e_hat
-            out[view, v, u, 2] = v_hat
-            out[view, v, u, 3] = tr
-            out[view, v, u, 4] = float64(ev) + tr * s_bg
-            out[view, v, u, 5] = float64(cr) + tr * bg_rgb[0]
-            out[view, v, u, 6] = float64(cg) + tr * bg_rgb[1]
-            out[view, v, u, 7] = float64(cb) + tr * bg_rgb[2]
-            out[view, v, u, 8] = float64(dz) / float64(ks) if ks > float32(0.0) else math.nan
+        else:
+            if tid % WARP == 0:
+                cuda.atomic.add(out_f64, 0, lv)
+                cuda.atomic.add(out_f64, 1, le)
+            if inside:
+                label = best
+                if tr > params[P_THRESHOLD]:
+                    label = int32(params[P_IGNORE])
+                evidence = float64(ev) + tr * params[P_SBG]
+                if planes[PL_LABELS] >= 0:
+                    out_i32[planes[PL_LABELS] + pix] = label
+                if planes[PL_E] >= 0:
+                    out_f32[planes[PL_E] + pix] = float32(e_hat)
+                if planes[PL_VAR] >= 0:
+                    out_f32[planes[PL_VAR] + pix] = float32(v_hat)
+                if planes[PL_BG] >= 0:
+                    out_f32[planes[PL_BG] + pix] = float32(tr)
+                if planes[PL_EVIDENCE] >= 0:
+                    out_f32[planes[PL_EVIDENCE] + pix] = float32(evidence)
+                if planes[PL_DEPTH] >= 0:
+                    depth = math.nan
+                    if ks > float32(0.0):
+                        depth = float64(dz) / float64(ks) * params[P_DEPTH_SCALE]
+                    out_f32[planes[PL_DEPTH] + pix] = float32(depth)
+                if planes[PL_CONFIDENCE] >= 0:
+                    conf = 0.0
+                    if label != int32(params[P_IGNORE]):
+                        conf = _interp(_confidence_score(e_hat, evidence, params[P_COEF], params[P_COEF + 1],
+                                                         params[P_COEF + 2]), knots[0], knots[1])
+                    out_f32[planes[PL_CONFIDENCE] + pix] = float32(conf)
+                if planes[PL_RGB] >= 0:
+                    base = planes[PL_RGB] + 3 * pix
+                    out_u8[base] = _to_byte(float64(cr) + tr * params[P_RGB])
+                    out_u8[base + 1] = _to_byte(float64(cg) + tr * params[P_RGB + 1])
+                    out_u8[base + 2] = _to_byte(float64(cb) + tr * params[P_RGB + 2])
+        if with_mass:
+            # second walk: each contribution's kappa times the pixel's net vote weight, summed per warp and pair
+            w = float32(0.0)
+            if inside and ks > float32(0.0):
+                d = float64(dz) / float64(ks)
+                bins = mass_edges.shape[0] - 1
+                bn = 0
+                while bn < bins - 1 and d >= mass_edges[bn + 1]:
+                    bn += 1
+                w = float32(mass_w[best * bins + bn])
+            done = not (w != float32(0.0))
+            trans = float32(1.0)
+            lane = tid % WARP
+            for b0 in range(start, end, batch):
+                if cuda.syncthreads_count(0 if done else 1) == 0:
+                    break
+                n = min(batch, end - b0)
+                if tid < n:
+                    j = order[b0 + tid]
+                    stage_geometry(s_g, tid, packed, j)
+                    s_row[tid] = j
+                cuda.syncthreads()
+                for k in range(n):  # every lane walks every Gaussian: the warp sums need all 32
+                    contrib = float32(0.0)
+                    if not done:
+                        kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
+                        contrib = kappa * w
+                    total = warp_sum(contrib)
+                    if lane == 0 and total != float32(0.0):
+                        cuda.atomic.add(mass, s_row[k], float64(total))
     return render_kernel
+
+
+@cuda.jit
+def view_gain_kernel(mass, views, ids, sq, importance, scale, gains):  # pragma: no cover
+    """gains[views[j]] += importance[ids[j]] * (V(S, Q) - E[V after m]) over the pairs j with mass m = scale *
+    mass[j] > 0 (the closed form of :mod:`css_ros.engine.info_gain`; sq (N, 2) f64 the (S, Q) of each Gaussian
+    with the scoring prior; importance (N,) f64, or empty for 1)."""
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    use_imp = importance.shape[0] > 0
+    for j in range(start, mass.shape[0], stride):
+        m = scale * mass[j]
+        if not (m > 0.0):
+            continue
+        n = ids[j]
+        s = sq[n, 0]
+        q = sq[n, 1]
+        before = (1.0 - q / (s * s)) / (s + 1.0)
+        t = s + m
+        q2 = q + 2.0 * m * q / s + m * m
+        drop = max(before - (1.0 - q2 / (t * t)) / (t + 1.0), 0.0)
+        if use_imp:
+            drop *= importance[n]
+        cuda.atomic.add(gains, views[j], drop)
+
+
+@cuda.jit
+def moment_sums_kernel(concentrations, prior_total, sq):  # pragma: no cover
+    """sq[n] = (S, Q) of alpha_n + prior_total / C per class (info_gain.MomentSums.of), float64."""
+    num_classes = concentrations.shape[1]
+    extra = prior_total / num_classes
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for n in range(start, concentrations.shape[0], stride):
+        total = 0.0
+        squares = 0.0
+        for c in range(num_classes):
+            a = concentrations[n, c]
+            total += a
+            squares += a * a
+        sq[n, 0] = total + prior_total
+        sq[n, 1] = squares + 2.0 * extra * total + num_classes * extra * extra
+
+
+@cuda.jit
+def observe_expected_kernel(mass, views, ids, chosen, scale, sq):  # pragma: no cover
+    """alpha_n += m_n E[theta_n] for the pairs of view ``chosen`` (info_gain.MomentSums.observe_expected): S += m,
+    Q += 2 m Q / S + m^2 Q / S^2 (a Gaussian has one pair per view: no two threads write one row)."""
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for j in range(start, mass.shape[0], stride):
+        if views[j] != chosen:
+            continue
+        m = scale * mass[j]
+        if not (m > 0.0):
+            continue
+        n = ids[j]
+        s = sq[n, 0]
+        q = sq[n, 1]
+        sq[n, 1] = q + 2.0 * m * q / s + m * m * q / (s * s)
+        sq[n, 0] = s + m
 
 
 def launch_1d(total: int, simulated: bool) -> tuple[int, int]:

@@ -89,13 +89,12 @@ def _use_toolkit_libdevice(home: Path) -> None:
 def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple, int]]:
     """(name, python function, numba argument types, block size) of every kernel, with the types the
     backend launches them with (C-contiguous device arrays; Python ints int64, floats float64)."""
-    from numba import boolean, float32, float64, int32, int64
+    from numba import boolean, float32, float64, int32, int64, uint8
 
     from . import kernels as k
 
     f64_2, f32_2, i32_2 = float64[:, ::1], float32[:, ::1], int32[:, ::1]
     i32_1, i64_1, f64_1 = int32[::1], int64[::1], float64[::1]
-    f32_4 = float32[:, :, :, ::1]
     nt = tile * tile
     out = [
         ("project", k.project_kernel.py_func,
@@ -109,11 +108,15 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
         (f"update_model_C{num_classes}", k.make_update_kernel(num_classes, tile, True, MODEL_BINS).py_func,
          (i64_1, i32_1, f64_2, i32_1, i32_2, f32_2, int64, f64_2, f64_1, f64_2, i64_1), nt),
     ]
-    render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, float64, float64, float64, f64_1, int64, int64,
-                  int64, int64, f32_4, f32_4, f64_2)
-    for score, probs, label in ((False, False, "render"), (False, True, "render_probs"), (True, False, "score")):
-        out.append((f"{label}_C{num_classes}", k.make_render_kernel(num_classes, tile, score, probs).py_func,
-                    render_sig, nt))
+    render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, f64_1, f64_2, i64_1, int64, int64, int64, int64,
+                  i32_1, float32[::1], uint8[::1], f64_1, f64_2, f64_1, f64_1, f64_1)
+    for score, probs, mass, label in ((False, False, False, "render"), (False, True, False, "render_probs"),
+                                      (True, False, False, "score"), (True, False, True, "score_gain")):
+        out.append((f"{label}_C{num_classes}",
+                    k.make_render_kernel(num_classes, tile, score, probs, with_mass=mass).py_func, render_sig, nt))
+    out += [("view_gain", k.view_gain_kernel.py_func, (f64_1, i32_1, i32_1, f64_2, f64_1, float64, f64_1), 256),
+            ("observe_expected", k.observe_expected_kernel.py_func, (f64_1, i32_1, i32_1, int64, float64, f64_2),
+             256)]
     return out
 
 

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Iterator, Sequence
 import numpy as np
 import torch
 
-from ..backends import RasterBackend
+from ..raster_backend import RasterBackend
 from ..buffers import RenderBuffers
 from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, TILE_SIZE
 from ..sh import eval_sh

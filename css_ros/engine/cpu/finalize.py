@@ -1,0 +1,95 @@
+"""The numba backend's final-form pass: one compiled, parallel sweep turns the raw float64 render buffers into a
+view's final outputs (:mod:`css_ros.engine.final_form`) and reduces U_var / U_exp, instead of a dozen numpy passes."""
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numba import njit, prange
+
+from ..final_form import FrameImages, RenderSettings, uncertainty_from_sums
+from ..pixel_math import confidence_score, interp, to_byte
+from ..spec import VAR_FLOOR
+
+if TYPE_CHECKING:
+    from ..buffers import RenderBuffers
+
+_to_byte = njit(inline="always")(to_byte)
+_interp = njit(inline="always")(interp)
+_confidence_score = njit(inline="always")(confidence_score)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _finalize_kernel(lab, exp, var, bg, ev, rgb, depth, thr, ignore, depth_scale, coef, knots_x, knots_y,
+                     want_conf, out_lab, out_exp, out_var, out_bg, out_ev, out_rgb, out_depth,
+                     out_conf):  # pragma: no cover
+    """Per pixel: the thresholded label and the float32 / uint8 forms of the raw buffers, written where the output
+    array is not empty; returns (sum log max(Var, floor), sum E) over all pixels (float64)."""
+    height, width = lab.shape
+    s_lv = 0.0
+    s_e = 0.0
+    for v in prange(height):
+        for u in range(width):
+            label = lab[v, u]
+            if bg[v, u] > thr:
+                label = ignore
+            e = exp[v, u]
+            s_lv += math.log(max(var[v, u], VAR_FLOOR))
+            s_e += e
+            if out_lab.shape[0]:
+                out_lab[v, u] = label
+            if out_exp.shape[0]:
+                out_exp[v, u] = e
+            if out_var.shape[0]:
+                out_var[v, u] = var[v, u]
+            if out_bg.shape[0]:
+                out_bg[v, u] = bg[v, u]
+            if out_ev.shape[0]:
+                out_ev[v, u] = ev[v, u]
+            if out_rgb.shape[0]:
+                for ch in range(3):
+                    out_rgb[v, u, ch] = _to_byte(rgb[v, u, ch])
+            if out_depth.shape[0]:
+                out_depth[v, u] = depth[v, u] * depth_scale
+            if want_conf:
+                conf = 0.0
+                if label != ignore:
+                    conf = _interp(_confidence_score(e, ev[v, u], coef[0], coef[1], coef[2]), knots_x, knots_y)
+                out_conf[v, u] = conf
+    return s_lv, s_e
+
+
+def finalize(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
+    """The view's requested outputs from the numba render's raw buffers (same values as
+    :func:`css_ros.engine.final_form.finalize_host`; confidence within float32 rounding)."""
+    s = settings
+    h, w = buf.labels.shape
+
+    def plane(name: str, dtype: type, *extra: int) -> np.ndarray:
+        if s.wants(name):
+            return np.empty((h, w, *extra), dtype=dtype)
+        return np.zeros((0,) * (2 + len(extra)), dtype=dtype)
+
+    out = {"labels": plane("labels", np.int32), "expectation": plane("expectation", np.float32),
+           "variance": plane("variance", np.float32), "background": plane("background", np.float32),
+           "evidence": plane("evidence", np.float32), "rgb": plane("rgb", np.uint8, 3),
+           "depth": plane("depth", np.float32), "confidence": plane("confidence", np.float32)}
+    cmap = s.confidence
+    want_conf = cmap is not None and s.wants("confidence")
+    coef = np.zeros(3) if cmap is None else np.asarray(cmap.coef, dtype=np.float64)
+    kx = np.zeros(1) if cmap is None else np.asarray(cmap.knots_x, dtype=np.float64)
+    ky = np.zeros(1) if cmap is None else np.asarray(cmap.knots_y, dtype=np.float64)
+    depth = buf.depth if buf.depth is not None else np.full((h, w), np.nan)
+    s_lv, s_e = _finalize_kernel(buf.labels, buf.expectation, buf.variance, buf.background, buf.evidence, buf.rgb,
+                                 depth, float(s.unknown_threshold), int(s.ignore_label), float(s.depth_scale), coef,
+                                 kx, ky, want_conf, out["labels"], out["expectation"], out["variance"],
+                                 out["background"], out["evidence"], out["rgb"], out["depth"], out["confidence"])
+    u_var, u_exp = uncertainty_from_sums(s_lv, s_e, h * w)
+    images = FrameImages(u_var=u_var, u_exp=u_exp,
+                         probabilities=None if not s.probabilities or buf.probabilities is None
+                         else buf.probabilities.astype(np.float32))
+    for name, arr in out.items():
+        if arr.shape[0] or (h == 0 and s.wants(name)):
+            setattr(images, name, arr)
+    return images

@@ -1,0 +1,140 @@
+"""A view's outputs in their final form: what a caller asks for, and how every backend delivers it.
+
+A backend's ``render_view`` returns :class:`FrameImages`: the requested images already in their final dtypes
+(labels with the unknown threshold applied, float32 moments, uint8 colour, depth in metres, the calibrated
+confidence) and U_var / U_exp reduced. The CUDA backend makes them on the device and copies only the requested
+planes, once; the numba backend in one compiled pass; :func:`finalize_host` is the plain numpy form (the torch
+backend's, and the reference the tests hold the others to).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable
+
+import numpy as np
+
+from ..errors import InputError
+from .spec import VAR_FLOOR
+
+if TYPE_CHECKING:
+    from .buffers import RenderBuffers
+    from .sensor_model import ConfidenceMap
+
+#: The per-pixel images of a rendered view (RenderedView's fields); ``probabilities`` is asked for separately.
+IMAGE_OUTPUTS: tuple[str, ...] = ("labels", "expectation", "variance", "background", "evidence", "rgb", "depth",
+                                  "confidence")
+
+
+def check_outputs(outputs: Iterable[str] | None) -> frozenset[str]:
+    """The set of requested image names (None: all of :data:`IMAGE_OUTPUTS`).
+
+    Raises:
+        InputError: an unknown name, or a plain string (a common slip for a one-element list).
+    """
+    if outputs is None:
+        return frozenset(IMAGE_OUTPUTS)
+    if isinstance(outputs, str):
+        raise InputError(f"outputs must be a collection of names, not the string {outputs!r} "
+                         f"(e.g. outputs=({outputs!r},))")
+    names = frozenset(outputs)
+    unknown = sorted(str(n) for n in names - set(IMAGE_OUTPUTS))
+    if unknown:
+        raise InputError(f"unknown output(s) {', '.join(unknown)} (choose from {', '.join(IMAGE_OUTPUTS)})")
+    return names
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Everything a backend needs to turn a render into final outputs.
+
+    Attributes:
+        e_bg, v_bg, s_bg: background Dirichlet's E and Var per class and its total S_b.
+        bg_rgb: colour behind all Gaussians, RGB in [0, 1].
+        unknown_threshold: pixels whose kappa_b exceeds this get ``ignore_label``.
+        ignore_label: the "unknown" label value.
+        depth_scale: metres per splat unit (depth is returned in metres).
+        confidence: the sensor model's calibrated confidence map, or None (no ``confidence`` image).
+        outputs: the image names to deliver (:data:`IMAGE_OUTPUTS`); the others are None.
+        probabilities: also deliver the (H, W, C) float32 E of every class.
+    """
+
+    e_bg: float
+    v_bg: float
+    s_bg: float
+    bg_rgb: tuple[float, float, float]
+    unknown_threshold: float
+    ignore_label: int
+    depth_scale: float
+    confidence: "ConfidenceMap | None"
+    outputs: frozenset[str]
+    probabilities: bool
+
+    def wants(self, name: str) -> bool:
+        """Whether image ``name`` is delivered (``confidence`` only with a confidence map)."""
+        return name in self.outputs and (name != "confidence" or self.confidence is not None)
+
+
+@dataclass
+class FrameImages:
+    """A view's outputs in final form (H, W = the camera's image size); None where not requested.
+
+    labels (H, W) int32 (``ignore_label`` where kappa_b > threshold); expectation, variance, background, evidence,
+    depth [m], confidence (H, W) float32; rgb (H, W, 3) uint8; probabilities (H, W, C) float32; u_var, u_exp the
+    SPEC §6 image uncertainties (float64 sums over all pixels)."""
+
+    u_var: float
+    u_exp: float
+    labels: np.ndarray | None = None
+    expectation: np.ndarray | None = None
+    variance: np.ndarray | None = None
+    background: np.ndarray | None = None
+    evidence: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    probabilities: np.ndarray | None = None
+
+
+def uncertainty_from_sums(sum_log_var: float, sum_e: float, num_pixels: int) -> tuple[float, float]:
+    """(U_var, U_exp) of SPEC §6 from sum_i log max(Var_i, VAR_FLOOR) and sum_i E_i over ``num_pixels`` pixels."""
+    if num_pixels <= 0:
+        return float("nan"), float("nan")
+    return float(np.exp(sum_log_var / num_pixels)), float(1.0 - sum_e / num_pixels)
+
+
+def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
+    """(U_var, U_exp) of SPEC §6 over all pixels of a view (float64 accumulation)."""
+    var = np.maximum(np.asarray(variance, dtype=np.float64), VAR_FLOOR)
+    u_var = float(np.exp(np.mean(np.log(var))))
+    u_exp = float(1.0 - np.mean(np.asarray(expectation, dtype=np.float64)))
+    return u_var, u_exp
+
+
+def to_bytes(rgb: np.ndarray) -> np.ndarray:
+    """Colour in [0, 1] -> uint8 (round half to even, clipped): :func:`css_ros.engine.pixel_math.to_byte`."""
+    return np.clip(np.rint(np.asarray(rgb) * 255.0), 0, 255).astype(np.uint8)
+
+
+def finalize_host(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
+    """The final outputs from a backend's raw float64 buffers, in numpy (the reference form)."""
+    s = settings
+    unknown = buf.background > s.unknown_threshold
+    labels = np.where(unknown, s.ignore_label, buf.labels).astype(np.int32)
+    u_var, u_exp = image_uncertainty(buf.expectation, buf.variance)
+    out = FrameImages(u_var=u_var, u_exp=u_exp)
+    if s.wants("labels"):
+        out.labels = labels
+    for name in ("expectation", "variance", "background", "evidence"):
+        if s.wants(name):
+            setattr(out, name, getattr(buf, name).astype(np.float32))
+    if s.wants("rgb"):
+        out.rgb = to_bytes(buf.rgb)
+    if s.wants("depth") and buf.depth is not None:
+        out.depth = (buf.depth * s.depth_scale).astype(np.float32)
+    if s.wants("confidence") and s.confidence is not None:
+        conf = s.confidence(buf.expectation, buf.evidence)
+        conf[labels == s.ignore_label] = 0.0
+        out.confidence = conf
+    if s.probabilities and buf.probabilities is not None:
+        out.probabilities = buf.probabilities.astype(np.float32)
+    return out

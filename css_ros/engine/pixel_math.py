@@ -1,0 +1,57 @@
+"""Per-pixel final-form maths, written once for both compiled targets (like :mod:`.splat_math`).
+
+Plain scalar Python functions: ``engine/cpu/finalize.py`` compiles them with ``numba.njit(inline="always")``
+and ``engine/cuda/kernels.py`` with ``numba.cuda.jit(device=True, inline=True)``; numpy callers use the
+vectorised forms in :mod:`.final_form`, which the tests hold equal to these.
+"""
+from __future__ import annotations
+
+import math
+
+#: logit(E) is taken with E clipped to [E_CLIP, 1 - E_CLIP] (sensor_model.ConfidenceMap.features)
+E_CLIP = 1e-6
+#: the logistic score's argument is clipped to +-Z_CLIP (ConfidenceMap.score)
+Z_CLIP = 60.0
+
+
+def to_byte(x):  # type: ignore[no-untyped-def]
+    """numpy's ``clip(rint(x * 255), 0, 255)`` as an int (round half to even; NaN and x <= 0 give 0)."""
+    y = x * 255.0
+    if not (y > 0.0):
+        return 0
+    if y >= 255.0:
+        return 255
+    r = math.floor(y)
+    d = y - r  # exact: y and floor(y) share their exponent or r is 0
+    if d > 0.5 or (d == 0.5 and r % 2.0 == 1.0):
+        r += 1.0
+    return int(r)
+
+
+def interp(x, xp, fp):  # type: ignore[no-untyped-def]
+    """numpy's ``interp(x, xp, fp)`` for one x (xp strictly increasing; flat beyond the ends)."""
+    n = xp.shape[0]
+    if not (x > xp[0]):
+        return fp[0]
+    if x >= xp[n - 1]:
+        return fp[n - 1]
+    lo = 0
+    hi = n - 1
+    while hi - lo > 1:  # xp[lo] < x < xp[hi]
+        mid = (lo + hi) // 2
+        if xp[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    slope = (fp[lo + 1] - fp[lo]) / (xp[lo + 1] - xp[lo])
+    return slope * (x - xp[lo]) + fp[lo]
+
+
+def confidence_score(expectation, evidence, c0, c1, c2):  # type: ignore[no-untyped-def]
+    """The logistic score of sensor_model.ConfidenceMap for one pixel, before its isotonic correction
+    (:func:`interp` through the knots): sigmoid(c0 logit(E) + c1 log(1 + evidence) + c2), E clipped to
+    [E_CLIP, 1 - E_CLIP], the argument to +-Z_CLIP."""
+    e = min(max(expectation, E_CLIP), 1.0 - E_CLIP)
+    z = c0 * math.log(e / (1.0 - e)) + c1 * math.log1p(max(evidence, 0.0)) + c2
+    z = min(max(z, -Z_CLIP), Z_CLIP)
+    return 0.5 * (1.0 + math.tanh(0.5 * z))
