@@ -73,10 +73,14 @@ class RasterBackend(ABC):
         moments = MomentSums.of(self.host_read(concentrations)) if mass_weights is not None else None
         for i, (expectation, variance, mass) in enumerate(self.score_images(cameras, concentrations, e_bg, v_bg,
                                                                             s_bg, mass_weights)):
-            out[i, :2] = image_uncertainty(expectation, variance)
+            out[i, :2] = self.uncertainty(expectation, variance)
             if mass is not None and moments is not None:
                 out[i, 2] = view_gain(moments, mass[0], pixel_scale * mass[1], importance)
         return out
+
+    def uncertainty(self, expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
+        """(U_var, U_exp) of a scored view's (H, W) float64 E and Var, the same reduction :meth:`render_view` uses."""
+        return image_uncertainty(expectation, variance)
 
     def view_masses(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray]"

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 import numpy as np
 
 from ..raster_backend import RasterBackend
-from .finalize import finalize
+from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
 from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
 
@@ -60,6 +60,9 @@ class NumbaBackend(RasterBackend):
         buf = self.render(frame, concentrations, settings.e_bg, settings.v_bg, settings.s_bg,
                           np.asarray(settings.bg_rgb, dtype=np.float64), settings.probabilities)
         return finalize(buf, settings)
+
+    def uncertainty(self, expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
+        return uncertainty(expectation, variance)
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None

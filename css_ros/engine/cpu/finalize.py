@@ -25,18 +25,14 @@ def _finalize_kernel(lab, exp, var, bg, ev, rgb, depth, thr, ignore, depth_scale
                      want_conf, out_lab, out_exp, out_var, out_bg, out_ev, out_rgb, out_depth,
                      out_conf):  # pragma: no cover
     """Per pixel: the thresholded label and the float32 / uint8 forms of the raw buffers, written where the output
-    array is not empty; returns (sum log max(Var, floor), sum E) over all pixels (float64)."""
+    array is not empty."""
     height, width = lab.shape
-    s_lv = 0.0
-    s_e = 0.0
     for v in prange(height):
         for u in range(width):
             label = lab[v, u]
             if bg[v, u] > thr:
                 label = ignore
             e = exp[v, u]
-            s_lv += math.log(max(var[v, u], VAR_FLOOR))
-            s_e += e
             if out_lab.shape[0]:
                 out_lab[v, u] = label
             if out_exp.shape[0]:
@@ -57,7 +53,31 @@ def _finalize_kernel(lab, exp, var, bg, ev, rgb, depth, thr, ignore, depth_scale
                 if label != ignore:
                     conf = _interp(_confidence_score(e, ev[v, u], coef[0], coef[1], coef[2]), knots_x, knots_y)
                 out_conf[v, u] = conf
-    return s_lv, s_e
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _row_sums(exp, var):  # pragma: no cover
+    """Per image row: (sum log max(Var, VAR_FLOOR), sum E), float64."""
+    height, width = exp.shape
+    out = np.zeros((height, 2))
+    for v in prange(height):
+        s_lv = 0.0
+        s_e = 0.0
+        for u in range(width):
+            s_lv += math.log(max(var[v, u], VAR_FLOOR))
+            s_e += exp[v, u]
+        out[v, 0] = s_lv
+        out[v, 1] = s_e
+    return out
+
+
+def uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
+    """(U_var, U_exp) of SPEC §6 from (H, W) float64 E and Var: per-row sums in parallel, then the rows in order,
+    so the result does not depend on the number of threads (a render and a score of one view give the same
+    numbers)."""
+    sums = _row_sums(expectation, variance)
+    h, w = expectation.shape
+    return uncertainty_from_sums(float(sums[:, 0].sum()), float(sums[:, 1].sum()), h * w)
 
 
 def finalize(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
@@ -81,11 +101,11 @@ def finalize(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
     kx = np.zeros(1) if cmap is None else np.asarray(cmap.knots_x, dtype=np.float64)
     ky = np.zeros(1) if cmap is None else np.asarray(cmap.knots_y, dtype=np.float64)
     depth = buf.depth if buf.depth is not None else np.full((h, w), np.nan)
-    s_lv, s_e = _finalize_kernel(buf.labels, buf.expectation, buf.variance, buf.background, buf.evidence, buf.rgb,
+    _finalize_kernel(buf.labels, buf.expectation, buf.variance, buf.background, buf.evidence, buf.rgb,
                                  depth, float(s.unknown_threshold), int(s.ignore_label), float(s.depth_scale), coef,
                                  kx, ky, want_conf, out["labels"], out["expectation"], out["variance"],
                                  out["background"], out["evidence"], out["rgb"], out["depth"], out["confidence"])
-    u_var, u_exp = uncertainty_from_sums(s_lv, s_e, h * w)
+    u_var, u_exp = uncertainty(buf.expectation, buf.variance)
     images = FrameImages(u_var=u_var, u_exp=u_exp,
                          probabilities=None if not s.probabilities or buf.probabilities is None
                          else buf.probabilities.astype(np.float32))

@@ -351,7 +351,8 @@ class CudaBackend(RasterBackend):
         kernel[len(frame.cameras) * frame.tiles_per_view, self.tile * self.tile](
             frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom, params, knots,
             self._planes(planes), frame.width, frame.height, frame.tiles_x, frame.tiles_per_view,
-            ops.view_as(out, np.int32), ops.view_as(out, np.float32), ops.view_as(out, np.uint8), ops.view_as(out, np.float64), scores,
+            ops.view_as(out, np.int32), ops.view_as(out, np.float32), ops.view_as(out, np.uint8),
+            ops.view_as(out, np.float64), scores,
             mass_w, mass_edges, mass_out)
 
     def render_view(self, frame: CudaFrame, concentrations: np.ndarray, settings: "RenderSettings") -> FrameImages:
