@@ -155,9 +155,12 @@ def test_score_views_batched_matches_numba_and_render():
     gpu.concentrations[...] = alpha
     cpu.concentrations[...] = alpha
     got = gpu.score_views(views)
-    assert got.shape == (len(views), 3) and np.all(np.isnan(got[:, 2]))   # no info gain on the GPU yet (NaN)
+    want = cpu.score_views(views)
+    assert got.shape == (len(views), 3) and np.all(np.isfinite(got))
+    np.testing.assert_allclose(got[:, 2], want[:, 2], rtol=1e-4, atol=1e-9)     # the info gain, on the device
+    assert got[4, 2] == 0.0 and np.all(got[:4, 2] > 0)
     got = got[:, :2]
-    np.testing.assert_allclose(got, cpu.score_views(views)[:, :2], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(got, want[:, :2], rtol=1e-5, atol=1e-7)
     for i in (0, 1):
         r = gpu.render(views[i])
         np.testing.assert_allclose(got[i], [r.u_var, r.u_exp], rtol=1e-5, atol=1e-7)
@@ -188,7 +191,10 @@ def test_view_dependent_colour_matches_reference():
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     colours = np.maximum(eval_sh(sh.astype(np.float64), dirs) + 0.5, 0.0)
     ref = kap @ colours + bg[:, None] * np.array([0.2, 0.4, 0.6])
-    np.testing.assert_allclose(out.rgb.reshape(-1, 3), ref, atol=1e-5)
+    # the device delivers uint8 colour (raw form: byte / 255): each byte is the rounding of a value within 1e-5 of
+    # the float64 reference, i.e. within half a step (plus that tolerance) of ref * 255
+    assert np.all(np.abs(out.rgb.reshape(-1, 3) * 255.0 - np.clip(ref, 0.0, 1.0) * 255.0) <= 0.5 + 255e-5)
+    assert 0.05 < ref.max() < 1.0
 
 
 def test_projection_capacity_grows_for_large_batches():
@@ -347,3 +353,89 @@ def test_sensor_model_update_matches_numba_and_reference(case):
         stats = gpu.update(away, lab, conf)
         assert stats.no_depth == stats.used == cpu.update(away, lab, conf).no_depth > 0
         np.testing.assert_array_equal(gpu.concentrations, before)
+
+
+def test_final_outputs_with_a_confidence_map_match_numba():
+    """The device's final form (thresholded labels, float32 planes, uint8 colour, depth in metres, the calibrated
+    confidence, U reduced on the device) against the numba path on the same map, with a sensor model and a
+    confidence map; a subset of outputs; views that stay valid after later frames."""
+    from css_ros.engine.sensor_model import ConfidenceMap
+
+    model = random_scene(5, n=120)
+    cam = camera(**CAMS[1])
+    sensor = random_sensor_model(C, 2, 1.0, 4.0, seed=9)
+    sensor = SensorModel(sensor.class_names, sensor.depth_edges, sensor.weight, sensor.confusion,
+                         ConfidenceMap(np.array([1.4, 0.5, -0.8]), np.array([0.0, 0.35, 0.7, 1.0]),
+                                       np.array([0.02, 0.3, 0.8, 0.98])))
+    kw = dict(sensor_model=sensor, unknown_threshold=0.6, depth_scale=2.5, background_rgb=(0.1, 0.2, 0.3))
+    gpu, cpu = SemanticMap(model, C, backend="cuda", **kw), SemanticMap(model, C, **kw)
+    lab, conf = labels_and_confidence(cam, 5)
+    a, b = gpu.observe(cam, lab, conf), cpu.observe(cam, lab, conf)
+    assert 0 < np.count_nonzero(b.labels == 255) < b.labels.size             # the threshold is exercised
+    np.testing.assert_array_equal(a.labels, b.labels)
+    assert a.labels.dtype == np.int32 and a.rgb.dtype == np.uint8 and a.confidence.dtype == np.float32
+    for f in ("expectation", "variance", "background", "evidence"):
+        assert getattr(a, f).dtype == np.float32
+        np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-5, atol=1e-6, err_msg=f)
+    assert_depth(a.depth, b.depth)
+    assert np.nanmax(a.depth) > 1.0                                           # metres: depth_scale applied
+    np.testing.assert_allclose(a.confidence, b.confidence, atol=2e-5)
+    assert np.all(a.confidence[a.labels == 255] == 0) and a.confidence.max() > 0.1
+    assert np.abs(a.rgb.astype(int) - b.rgb).max() <= 1
+    assert a.u_var == pytest.approx(b.u_var, rel=1e-5) and a.u_exp == pytest.approx(b.u_exp, rel=1e-6)
+    part = gpu.render(cam, outputs=("confidence",), probabilities=True)
+    assert part.labels is None and part.rgb is None and part.expectation is None
+    np.testing.assert_array_equal(part.confidence, a.confidence)
+    np.testing.assert_allclose(part.probabilities, cpu.render(cam, probabilities=True).probabilities, atol=2e-6)
+    kept = a.expectation.copy()
+    gpu.observe(cam, np.zeros_like(lab))                                      # reuses the device buffer
+    np.testing.assert_array_equal(a.expectation, kept)
+    assert not np.array_equal(gpu.render(cam).expectation, kept)
+
+
+def test_one_copy_of_only_the_requested_bytes():
+    """A frame copies its outputs to the host once, and only the requested planes (plus the 16-byte header)."""
+    model = random_scene(6, n=80)
+    cam = camera(**CAMS[0])
+    gpu = SemanticMap(model, C, backend="cuda")
+    ops = gpu._backend.ops
+    copies = []
+    original = ops.download_words
+    ops.download_words = lambda dev, n: (copies.append(4 * n), original(dev, n))[1]
+    gpu.render(cam, outputs=("labels", "rgb"))
+    hw = cam.width * cam.height
+    assert copies == [16 + 4 * hw + -(-3 * hw // 4) * 4]
+    copies.clear()
+    gpu.observe(cam, np.zeros((cam.height, cam.width), dtype=np.int64), outputs=())
+    assert copies == [16]
+
+
+def test_info_gain_and_greedy_batch_match_numba_with_a_sensor_model():
+    """score_views' info gain (evidence mass by a second walk, the closed form per pair) and select_views on the
+    device against the numba path, with a sensor model (per-bin net vote weights), importance and pixel_scale;
+    view_masses against numba's per-view masses."""
+    model = random_scene(8, n=150)
+    sensor = random_sensor_model(C, 3, 1.0, 4.0, seed=4)
+    gpu = SemanticMap(model, C, backend="cuda", sensor_model=sensor)
+    cpu = SemanticMap(model, C, sensor_model=sensor)
+    rng = np.random.default_rng(8)
+    alpha = rng.gamma(0.5, 2.0, (model.num_gaussians, C)) + 1e-3
+    gpu.concentrations[...] = alpha
+    cpu.concentrations[...] = alpha
+    views = [camera(width=W, height=H, f=12.0, position=(0.15 * i, 0.05 * i, 0.0)) for i in range(4)]
+    views.insert(2, camera(width=10, height=8, f=8.0, quat=(0.0, 0.1, 0.0, 0.995)))
+    imp = rng.uniform(0.0, 2.0, model.num_gaussians)
+    got, want = gpu.score_views(views, imp, pixel_scale=4.0), cpu.score_views(views, imp, pixel_scale=4.0)
+    assert np.all(want[:, 2] > 0)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-9)
+    a, b = gpu.select_views(views, 4, imp, 4.0), cpu.select_views(views, 4, imp, 4.0)
+    np.testing.assert_array_equal(a.indices, b.indices)
+    np.testing.assert_allclose(a.gains, b.gains, rtol=1e-4)
+    args = (views, gpu._concentrations, *gpu._background_moments(), gpu._mass_weights())
+    for (ids_g, m_g), (ids_c, m_c) in zip(gpu._backend.view_masses(*args),
+                                          cpu._backend.view_masses(views, cpu._concentrations,
+                                                                   *cpu._background_moments(), cpu._mass_weights())):
+        order = np.argsort(ids_c, kind="stable")
+        np.testing.assert_array_equal(ids_g, ids_c[order])
+        np.testing.assert_allclose(m_g, m_c[order], rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(gpu.task_importance(views[:2]), cpu.task_importance(views[:2]), rtol=1e-4, atol=1e-7)

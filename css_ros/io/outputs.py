@@ -20,19 +20,30 @@ def mono_to_rgb(image: np.ndarray) -> np.ndarray:
     return np.repeat(image[:, :, None], 3, axis=2) if image.ndim == 2 else image
 
 
+#: frame output topic -> the RenderedView images it is made from (what css_node asks the engine for)
+TOPIC_IMAGES: dict[str, tuple[str, ...]] = {
+    "semantic": ("labels",), "semantic_color": ("labels",), "expectation": ("expectation",),
+    "variance": ("variance",), "rendered_image": ("rgb",), "confidence": ("confidence",),
+}
+
+
 def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label: int) -> dict[str, tuple[np.ndarray, str]]:
     """Output name -> (array, encoding) of one rendered frame, in publishing order (SPEC §8):
     ``semantic`` (label ids), ``semantic_color`` (class colours, rgb8), ``expectation`` and ``variance``
     (32FC1, of the argmax class), ``rendered_image`` (rgb8) and, when the map's sensor model holds a calibrated
-    confidence map, ``confidence`` (32FC1: probability that ``semantic`` is right; 0 where it is the ignore label)."""
+    confidence map, ``confidence`` (32FC1: probability that ``semantic`` is right; 0 where it is the ignore label).
+    Images the view does not hold (not requested from the engine) give no entry."""
     labels = view.labels
-    out = {
-        "semantic": (labels, label_encoding(classes.num_classes, ignore_label)),
-        "semantic_color": (classes.colorize(labels, ignore_label=ignore_label), "rgb8"),
-        "expectation": (view.expectation, "32FC1"),
-        "variance": (view.variance, "32FC1"),
-        "rendered_image": (view.rgb, "rgb8"),
-    }
+    out: dict[str, tuple[np.ndarray, str]] = {}
+    if labels is not None:  # images the caller did not ask the engine for are None (RenderedView)
+        out["semantic"] = (labels, label_encoding(classes.num_classes, ignore_label))
+        out["semantic_color"] = (classes.colorize(labels, ignore_label=ignore_label), "rgb8")
+    if view.expectation is not None:
+        out["expectation"] = (view.expectation, "32FC1")
+    if view.variance is not None:
+        out["variance"] = (view.variance, "32FC1")
+    if view.rgb is not None:
+        out["rendered_image"] = (view.rgb, "rgb8")
     if view.confidence is not None:
         out["confidence"] = (view.confidence, "32FC1")
     return out

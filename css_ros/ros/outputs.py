@@ -13,7 +13,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ..engine.classes import ClassSet
 from ..engine.similarity import Similarity
 from ..io.clouds import pack_cloud
-from ..io.outputs import frame_output_images
+from ..io.outputs import TOPIC_IMAGES, frame_output_images
 from ..io.point_queries import answer_columns
 from ..io.semantic_cloud import semantic_cloud_columns
 from ..io.topics import FRAME_OUTPUTS, OUTPUT_TOPICS, POINTCLOUD2_TYPE
@@ -75,6 +75,16 @@ class OutputPublisher:
             ns = ns.strip("/")
             names += [f"~/{ns}/{n}" if ns else f"~/{n}" for n in pubs]
         return names
+
+    def frame_outputs(self, camera_index: int) -> frozenset[str]:
+        """The images camera ``camera_index``'s next frame must render (SemanticMap.observe's ``outputs``): those
+        of its enabled image topics that have a subscriber now. A topic without one would deliver to no one, so
+        its images are neither made final nor copied from the GPU."""
+        names: set[str] = set()
+        for name, pub in self.camera_pubs[camera_index].items():
+            if name in TOPIC_IMAGES and pub.get_subscription_count() > 0:
+                names.update(TOPIC_IMAGES[name])
+        return frozenset(names)
 
     def publish_frame(self, job: FrameJob, view: Any) -> None:
         frame = job.frame

@@ -42,6 +42,9 @@ class OutputSink(Protocol):
 
     def publish_cloud(self, smap: Any, min_evidence: float) -> int: ...
 
+    # optional: ``frame_outputs(camera_index) -> frozenset[str]``, the images a frame of that camera must render
+    # (OutputPublisher: those of subscribed topics); a sink without it gets every image
+
 
 class CheckpointPolicy:
     """When to write the next automatic checkpoint.
@@ -178,14 +181,18 @@ class MapWorker:
             self.warn("segmentation", "class ids >= num_classes",
                       f"{out_of_range} pixels with ids >= {self.C} (max {int(labels.max())}) treated as no label",
                       dropped=False)
+        needed = getattr(self.sink, "frame_outputs", None)
+        outputs = None if needed is None else set(needed(frame.camera_index))
+        if outputs is not None and frame.image is not None:
+            outputs.add("rgb")  # the rendered colour's PSNR against the input image (diagnostics)
         with self.map_lock:
             smap = self.smap
             if p.output_scale == 1.0:
-                view = smap.observe(cam, labels, confidence=frame.confidence)
+                view = smap.observe(cam, labels, confidence=frame.confidence, outputs=outputs)
                 stats = smap.last_update   # observe returns the view; the update's pixel counts stay here
             else:
                 stats = smap.update(cam, labels, confidence=frame.confidence)
-                view = smap.render(cam.scaled(p.output_scale))
+                view = smap.render(cam.scaled(p.output_scale), outputs=outputs)
             self.policy.changed()
             self.map_version += 1
         self.stats.count("label_pixels_used", stats.used)
@@ -194,9 +201,9 @@ class MapWorker:
             self.stats.count("label_pixels_no_depth", stats.no_depth)
         self.sink.publish_frame(job, view)
         image = frame.image
-        if image is not None and image.shape[:2] != view.rgb.shape[:2]:
+        if image is not None and view.rgb is not None and image.shape[:2] != view.rgb.shape[:2]:
             image = resample_to(image, view.rgb.shape[:2])
-        if image is not None and view.rgb.shape == image.shape:
+        if image is not None and view.rgb is not None and view.rgb.shape == image.shape:
             self.last_psnr = psnr(view.rgb, image)
         self.last_u = (float(view.u_var), float(view.u_exp))
         self.stats.count("frames_processed")
