@@ -38,7 +38,7 @@ from ..sh import sh_polynomial
 from .arrays import simulator_enabled
 from .layout import (PL_BG, PL_CONFIDENCE, PL_DEPTH, PL_E, PL_EVIDENCE, PL_LABELS, PL_PROBS, PL_RGB,  # noqa: F401
                      PL_VAR, NUM_PLANES, HEADER_WORDS)
-from ..spec import ALPHA_MAX, ALPHA_MIN, RENDER_CLASS_CHUNK, T_MIN, VAR_FLOOR
+from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, NEAR_PLANE, RENDER_CLASS_CHUNK, T_MIN, VAR_FLOOR
 from ..splat_math import ewa_splat, fov_limits, store_splat, view_direction
 
 if simulator_enabled():  # the simulator has no warp intrinsics; add exact block-barrier versions
@@ -60,6 +60,45 @@ _sh_polynomial = cuda.jit(device=True, inline=True)(sh_polynomial)
 _to_byte = cuda.jit(device=True, inline=True)(to_byte)
 _interp = cuda.jit(device=True, inline=True)(interp)
 _confidence_score = cuda.jit(device=True, inline=True)(confidence_score)
+
+
+@cuda.jit(device=True, inline=True)
+def _surely_culled(cam, means, i, max_std, width, height):  # pragma: no cover
+    """A cheap float32 test, before the float64 EWA projection, that is True only where :func:`ewa_splat` would
+    surely cull the pair: the centre behind the near plane, or farther outside the image than the early cull's
+    3-sigma bound (computed with the same bound on the screen covariance). Every float32 rounding is covered by
+    margins (the z test by 1e-6 of the terms' magnitudes, the lateral test only where z is known to 0.1 % and with
+    1 % + 2 px + 0.2 % f slack), so a pair it culls is one the float64 path culls too: the kept pairs are exactly
+    the CPU's (tested against the numba projection)."""
+    mx = float32(means[i, 0])
+    my = float32(means[i, 1])
+    mz = float32(means[i, 2])
+    tx = float32(cam[0]) * mx + float32(cam[1]) * my + float32(cam[2]) * mz + float32(cam[9])
+    ty = float32(cam[3]) * mx + float32(cam[4]) * my + float32(cam[5]) * mz + float32(cam[10])
+    tz = float32(cam[6]) * mx + float32(cam[7]) * my + float32(cam[8]) * mz + float32(cam[11])
+    mag = abs(mx) + abs(my) + abs(mz) + float32(1.0)
+    scale = float32(3.0) * mag + abs(float32(cam[9])) + abs(float32(cam[10])) + abs(float32(cam[11]))
+    tol = float32(1e-6) * scale  # > 4x the rounding of the float32 transform (rows of R are unit vectors)
+    if tz < float32(NEAR_PLANE) - tol:
+        return True
+    if not (tz > float32(NEAR_PLANE) + tol and tol < float32(1e-3) * tz):
+        return False  # z not known well enough: leave it to the float64 path
+    fx = float32(cam[12])
+    fy = float32(cam[13])
+    cx = float32(cam[14])
+    cy = float32(cam[15])
+    _, _, _, _, jac_sq = _fov_limits(cam, width, height)  # the early cull's bound on ||J||_F^2 z^2
+    ms = float32(max_std)
+    bound = float32(1.01) * (float32(3.0) * math.sqrt(float32(jac_sq) * ms * ms / (tz * tz)
+                                                      + float32(COV2D_DILATION)) + float32(1.0))
+    u = fx * tx / tz + cx
+    v = fy * ty / tz + cy
+    slack_u = float32(0.01) * abs(u - cx) + float32(0.002) * fx + float32(2.0)
+    slack_v = float32(0.01) * abs(v - cy) + float32(0.002) * fy + float32(2.0)
+    w = float32(width)
+    h = float32(height)
+    return (u < float32(-0.5) - bound - slack_u or u > w - float32(0.5) + bound + slack_u
+            or v < float32(-0.5) - bound - slack_v or v > h - float32(0.5) + bound + slack_v)
 
 
 @cuda.jit
@@ -87,6 +126,8 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
         i = flat // n_views
         view = flat - i * n_views
         cam = cams[view]
+        if _surely_culled(cam, means, i, max_std[i], width, height):
+            continue
         lo_x, hi_x, lo_y, hi_y, jac_sq = _fov_limits(cam, width, height)
         splat = _ewa_splat(cam, means, cov3d, i, opac[i], max_std[i], width, height, lo_x, hi_x, lo_y, hi_y, jac_sq)
         if not splat[0]:
