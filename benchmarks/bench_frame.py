@@ -285,8 +285,8 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
     first_s = time.perf_counter() - t0
     backend = smap._backend
     sync = backend.ops.synchronize
-    e_b, v_b, s_b = smap._background_moments()
-    cycle, stages = [], {k: [] for k in ("prepare", "update", "render", "uncertainty")}
+    settings = smap.render_settings()
+    cycle, stages = [], {k: [] for k in ("prepare", "update", "render")}
     for i in range(1, frames + warmup + 1):
         cam, lab = cams[i], labels[i]
         sync()
@@ -302,9 +302,7 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
         backend.update(frame, lab32, w32, smap._concentrations)
         sync()
         t.append(time.perf_counter())
-        buf = backend.render(frame, smap._concentrations, e_b, v_b, s_b, smap.background_rgb, False)
-        t.append(time.perf_counter())
-        image_uncertainty_(buf)
+        backend.render_view(frame, smap._concentrations, settings)  # moments, render, U, the one copy
         t.append(time.perf_counter())
         if i > warmup:
             cycle.append(t_cycle)
@@ -341,6 +339,7 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
         result["candidates"] = len(cand)
         result["candidate_size"] = f"{cand[0].width}x{cand[0].height}"
     result.update(gpu_memory())
+    result.update(gsplat_anchor(model, gt, cams[warmup + 1:], C, cfg["width"], cfg["height"]))
     result.update(paper_estimate(model, C, cams[1], labels[1], cand if candidates else None))
     result["peak_rss_mib"] = peak_rss_mib()
     return result
@@ -362,10 +361,52 @@ def paper_estimate(model, num_classes: int, cam, labels, candidates) -> dict:
     return out
 
 
-def image_uncertainty_(buf) -> None:
-    from css_ros.engine.final_form import image_uncertainty
+def gsplat_anchor(model, gt: np.ndarray, cams: list, num_classes: int, width: int, height: int) -> dict:
+    """gsplat's C-channel render on the same scene and cameras, in the same process (an optional dependency: {} when
+    gsplat is not importable or there is no GPU). Median ms of ``forward`` (a render of per-Gaussian C-vectors: what
+    a query render computes) and ``forward+backward`` (the gradient w.r.t. the per-Gaussian features is the
+    kappa-weighted sum of the pixels' one-hot labels: one observe's update, after its render), each synchronised."""
+    try:
+        import torch
+        from gsplat import rasterization
+    except ImportError:
+        return {}
+    if not torch.cuda.is_available():
+        return {}
+    dev = torch.device("cuda")
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=dev)  # noqa: E731
+    means, quats, scales, opac = t(model.means), t(model.quats_wxyz), t(model.scales), t(model.opacities)
+    features = torch.nn.functional.one_hot(torch.as_tensor(gt % num_classes, device=dev).long(),
+                                           num_classes).float()
 
-    image_uncertainty(buf.expectation, buf.variance)
+    def views(cam):
+        return t(cam.world_to_cam)[None], t(cam.K)[None]
+
+    def forward(cam, feats):
+        vm, k = views(cam)
+        return rasterization(means, quats, scales, opac, feats, vm, k, width, height, packed=False)[0]
+
+    def forward_backward(cam, target):
+        feats = torch.zeros_like(features, requires_grad=True)
+        (forward(cam, feats) * target).sum().backward()
+
+    def timed(fn, *a) -> float:
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn(*a)
+        torch.cuda.synchronize()
+        return 1e3 * (time.perf_counter() - t0)
+
+    targets = [torch.nn.functional.one_hot(forward(c, features)[0].argmax(-1), num_classes).float()[None]
+               for c in cams]
+    forward(cams[0], features)            # gsplat's first call builds / loads its CUDA extension
+    forward_backward(cams[0], targets[0])
+    fwd = [timed(forward, c, features) for c in cams]
+    fwd_bwd = [timed(forward_backward, c, y) for c, y in zip(cams, targets)]
+    import gsplat
+
+    return dict(gsplat_version=getattr(gsplat, "__version__", "?"), gsplat_fwd_ms=statistics.median(fwd),
+                gsplat_fwd_bwd_ms=statistics.median(fwd_bwd))
 
 
 def gpu_memory_reset() -> None:
@@ -410,12 +451,22 @@ def print_cuda_table(results: list[dict]) -> None:
               f"{r['gpu_peak_alloc_mib']:>12.0f} {r.get('score_ms', float('nan')):>12.2f}")
     print()
     print("per-stage median ms, measured / on paper (cost_model.py; prepare = project + sort + bin; render includes "
-          "the moments and the one download):")
+          "the moments, the final form, U and the one copy):")
     for r in results:
         paper = r.get("paper_stages_ms", {})
         print(f"{r['name']:>7}: " + "  ".join(f"{k}={v:.2f}/{paper.get(k, float('nan')):.2f}"
                                               for k, v in r["stages_ms"].items())
               + f"   | first frame (kernel compile) {r['first_frame_s']:.2f} s, device {r['device_name']}")
+    anchored = [r for r in results if "gsplat_fwd_ms" in r]
+    if anchored:
+        print()
+        print(f"gsplat {anchored[0]['gsplat_version']} on the same scenes and cameras, same run (C-channel render; "
+              "targets: observe <= 1.0 x forward+backward, query <= 1.5 x forward):")
+        print(f"{'scene':>7} {'observe':>8} {'gsplat f+b':>10} {'ratio':>6} {'query':>8} {'gsplat fwd':>10} {'ratio':>6}")
+        for r in anchored:
+            print(f"{r['name']:>7} {r['cycle_ms']:>8.2f} {r['gsplat_fwd_bwd_ms']:>10.2f} "
+                  f"{r['cycle_ms'] / r['gsplat_fwd_bwd_ms']:>6.2f} {r['query_ms']:>8.2f} {r['gsplat_fwd_ms']:>10.2f} "
+                  f"{r['query_ms'] / r['gsplat_fwd_ms']:>6.2f}")
     for r in results:
         if "score_ms" in r:
             print(f"score_views: {r['candidates']} views at {r['candidate_size']} on {r['name']}: "

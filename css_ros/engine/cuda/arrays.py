@@ -139,6 +139,10 @@ class NumpyOps:
     def kernel_arg(self, x: Any) -> Any:
         return x
 
+    def kernel_array(self, x: Any) -> Any:
+        """A long-lived array as a kernel argument (converted once); the array itself here."""
+        return x
+
     def synchronize(self) -> None:
         if self.xp is not np:  # pragma: no cover - GPU only
             self.xp.cuda.Device().synchronize()
@@ -216,7 +220,7 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         dst.copy_(self.torch.from_numpy(np.ascontiguousarray(host)).to(dst.dtype))
 
     def view_as(self, dev: Any, dtype: Any) -> Any:
-        return dev.view(self._dt(dtype))
+        return self.kernel_array(dev.view(self._dt(dtype)))
 
     def zero_words(self, dev: Any, n: int) -> None:
         dev[:n].zero_()
@@ -275,6 +279,13 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
 
     def kernel_arg(self, x: Any) -> Any:
         return x  # torch CUDA tensors expose __cuda_array_interface__
+
+    def kernel_array(self, x: Any) -> Any:
+        """A numba device array viewing tensor ``x`` (no copy; it keeps ``x`` alive), made once: a launch then
+        passes it without converting ``__cuda_array_interface__`` again."""
+        from numba import cuda
+
+        return cuda.as_cuda_array(x)
 
     def synchronize(self) -> None:
         self.torch.cuda.synchronize(self.device)

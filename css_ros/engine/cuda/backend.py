@@ -93,13 +93,17 @@ class CudaBackend(RasterBackend):
         cov = model.covariances()
         cov6 = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
         self.num_gaussians = int(model.num_gaussians)
-        self.means = ops.upload(model.means, np.float64)
-        self.cov3d = ops.upload(cov6, np.float64)
-        self.opacities = ops.upload(model.opacities, np.float64)
-        self.max_std = ops.upload(scales.max(axis=1) if len(scales) else np.zeros(0), np.float64)
-        self.sh = ops.upload(model.sh, np.float32)
+        # arrays that live as long as the backend go to the kernels as numba device arrays, converted once
+        # (a torch tensor passed to a launch is converted through __cuda_array_interface__ at every launch)
+        karr = ops.kernel_array
+        self.means = karr(ops.upload(model.means, np.float64))
+        self.cov3d = karr(ops.upload(cov6, np.float64))
+        self.opacities = karr(ops.upload(model.opacities, np.float64))
+        self.max_std = karr(ops.upload(scales.max(axis=1) if len(scales) else np.zeros(0), np.float64))
+        self.sh = karr(ops.upload(model.sh, np.float32))
         self._capacity = {1: max(1, self.num_gaussians)}  # projection rows per batch size (grown on demand)
-        self._conc: Any = None
+        self._conc: Any = None       # the concentrations on the device (array library) ...
+        self._conc_k: Any = None     # ... and as a kernel argument
         self._host: np.ndarray | None = None
         self._host_dirty = True
         self._device_newer = False
@@ -108,9 +112,10 @@ class CudaBackend(RasterBackend):
         self._params_key: tuple[bytes, bytes] | None = None
         self._params_dev: tuple[Any, Any] = (None, None)
         self._planes_dev: dict[bytes, Any] = {}
-        self._empty_f64 = ops.zeros(0, np.float64)
-        self._empty_words = ops.zeros(HEADER_WORDS, np.int32)
-        self._empty_scores = ops.zeros((1, 2), np.float64)
+        self._out_views: tuple[Any, ...] = ()
+        self._empty_f64 = karr(ops.zeros(0, np.float64))
+        self._empty_views = self._word_views(ops.zeros(HEADER_WORDS, np.int32))
+        self._empty_scores = karr(ops.zeros((1, 2), np.float64))
 
     def _probe(self) -> None:
         """Compile and run the smallest kernel once, so that a broken stack (numba-cuda vs numpy,
@@ -143,12 +148,13 @@ class CudaBackend(RasterBackend):
         """The device copy of the concentrations, uploaded first if the host array may differ."""
         if self._conc is None or tuple(self._conc.shape) != host.shape:
             self._conc = self.ops.upload(host, np.float64)
+            self._conc_k = self.ops.kernel_array(self._conc)
             self._device_newer = False
         elif self._host_dirty or host is not self._host:
             self.ops.copy_into(self._conc, host)
             self._device_newer = False
         self._host, self._host_dirty = host, False
-        return self._conc
+        return self._conc_k
 
     def _download_if_newer(self, host: np.ndarray) -> None:
         if self._device_newer and host is self._host and self._conc is not None:
@@ -315,7 +321,8 @@ class CudaBackend(RasterBackend):
             knots = np.stack([np.asarray(cmap.knots_x, dtype=np.float64), np.asarray(cmap.knots_y, dtype=np.float64)])
         key = (host.tobytes(), knots.tobytes())
         if self._params_key != key:
-            self._params_dev = (self.ops.upload(host, np.float64), self.ops.upload(knots, np.float64))
+            self._params_dev = (self.ops.kernel_array(self.ops.upload(host, np.float64)),
+                                self.ops.kernel_array(self.ops.upload(knots, np.float64)))
             self._params_key = key
         return self._params_dev
 
@@ -327,20 +334,27 @@ class CudaBackend(RasterBackend):
         if dev is None:
             if len(self._planes_dev) > 64:  # sizes and output sets of a long-lived process: bounded
                 self._planes_dev.clear()
-            dev = self._planes_dev[key] = self.ops.upload(planes, np.int64)
+            dev = self._planes_dev[key] = self.ops.kernel_array(self.ops.upload(planes, np.int64))
         return dev
 
-    def _output_buffer(self, words: int) -> Any:
-        """The device output buffer (int32 words), grown when a frame needs more, kept between frames."""
+    def _word_views(self, words: Any) -> tuple[Any, ...]:
+        """The int32, float32, uint8 and float64 views of an output buffer, as kernel arguments."""
+        return tuple(self.ops.view_as(words, dt) for dt in (np.int32, np.float32, np.uint8, np.float64))
+
+    def _output_buffer(self, words: int) -> tuple[Any, tuple[Any, ...]]:
+        """The device output buffer (int32 words) and its kernel views, grown when a frame needs more, kept
+        between frames."""
         if self._out is None or int(self._out.shape[0]) < words:
             self._out = self.ops.empty(words + (words % 2), np.int32)  # even: the header is read as float64
-        return self._out
+            self._out_views = self._word_views(self._out)
+        return self._out, self._out_views
 
     def _launch_render(self, frame: CudaFrame, conc: Any, settings: "RenderSettings", planes: np.ndarray,
-                       out: Any, scores: Any, score: bool, mass: tuple[Any, Any, Any] | None = None) -> None:
+                       out_views: tuple[Any, ...], scores: Any, score: bool,
+                       mass: tuple[Any, Any, Any] | None = None) -> None:
         """One launch of the render kernel over all views x tiles of ``frame``."""
         self._bind()
-        ops, k = self.ops, self.k
+        k = self.k
         num_classes = int(conc.shape[1])
         mom = self._moments(frame, conc)
         params, knots = self._params(settings)
@@ -351,8 +365,7 @@ class CudaBackend(RasterBackend):
         kernel[len(frame.cameras) * frame.tiles_per_view, self.tile * self.tile](
             frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom, params, knots,
             self._planes(planes), frame.width, frame.height, frame.tiles_x, frame.tiles_per_view,
-            ops.view_as(out, np.int32), ops.view_as(out, np.float32), ops.view_as(out, np.uint8),
-            ops.view_as(out, np.float64), scores,
+            *out_views, scores,
             mass_w, mass_edges, mass_out)
 
     def render_view(self, frame: CudaFrame, concentrations: np.ndarray, settings: "RenderSettings") -> FrameImages:
@@ -362,9 +375,9 @@ class CudaBackend(RasterBackend):
         conc = self._device_concentrations_for_read(concentrations)
         num_classes = int(conc.shape[1])
         layout = plane_layout(frame.height, frame.width, num_classes, settings)
-        out = self._output_buffer(layout.words)
+        out, views = self._output_buffer(layout.words)
         self.ops.zero_words(out, HEADER_WORDS)
-        self._launch_render(frame, conc, settings, layout.planes, out, self._empty_scores, False)
+        self._launch_render(frame, conc, settings, layout.planes, views, self._empty_scores, False)
         host = self.ops.download_words(out, layout.words)  # the frame's one copy (and synchronisation)
         return layout.images(host, frame.height, frame.width, num_classes)
 
@@ -386,7 +399,7 @@ class CudaBackend(RasterBackend):
     def _device_concentrations_for_read(self, host: np.ndarray) -> Any:
         """Like _device_concentrations, but keeps a newer device state (a render after an update)."""
         if self._device_newer and host is self._host and self._conc is not None:
-            return self._conc
+            return self._conc_k
         return self._device_concentrations(host)
 
     # ------------------------------------------------------------------ query views
@@ -429,10 +442,10 @@ class CudaBackend(RasterBackend):
             if mass_weights is not None:
                 mass = self.ops.zeros(max(frame.num_pairs, 1), np.float64)
                 edges, weights = mass_weights
-                self._launch_render(frame, conc, settings, no_planes, self._empty_words, scores, True,
+                self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True,
                                     (self.ops.upload(weights, np.float64), self.ops.upload(edges, np.float64), mass))
             else:
-                self._launch_render(frame, conc, settings, no_planes, self._empty_words, scores, True)
+                self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True)
             yield idx, frame, scores, mass
 
     def _moment_sums(self, concentrations: np.ndarray) -> Any:

@@ -5,9 +5,10 @@ No numba import: the counts come from the CPU engine (the same projection and ti
 GPU's, :func:`frame_counts`), the formulas below from what each kernel of :mod:`.kernels` reads,
 writes and executes per item. The estimate is a roofline floor with stated efficiencies, not a
 simulation: a kernel takes max(bytes / (DRAM bandwidth x MEM_EFFICIENCY), instructions / (issue
-rate x ISSUE_EFFICIENCY)) plus its launch, the radix sorts are scaled from a sort timed on the lent
-H100 (torch.sort, 5M int64 keys: 0.83 ms), transfers cross PCIe. ``docs/cuda.md`` holds the table
-and says how it compares with gsplat's measured times on the same scenes.
+rate x ISSUE_EFFICIENCY)) plus the host's cost of issuing it (numba-cuda launches as measured on the H200,
+array-library calls, the synchronisations and the host's work on the frame's copy), the radix sorts are scaled
+from a sort timed on the lent H100 (torch.sort, 5M int64 keys: 0.83 ms), transfers cross PCIe. ``docs/cuda.md``
+holds the table and says how it compares with gsplat's measured times on the same scenes.
 """
 from __future__ import annotations
 
@@ -38,9 +39,15 @@ H100_SXM = GpuSpec("H100 SXM5 (132 SMs, 1.98 GHz, HBM3 3.35 TB/s, PCIe 5)", 3350
 MEM_EFFICIENCY = 0.7      # fraction of peak DRAM bandwidth a streaming kernel reaches
 ISSUE_EFFICIENCY = 0.35   # fraction of peak issue the compositing walks reach (25-66 % occupancy, divergence,
 #                           barriers between batches, shared-memory atomics)
-LAUNCH_MS = 0.02          # per launch or array-library call issued from Python (numba-cuda's argument
-#                           marshalling and torch's dispatch, ~10-30 us each, host-side)
-SYNC_MS = 0.02            # the frame's one device -> host synchronisation
+NUMBA_LAUNCH_MS = 0.2     # per numba-cuda kernel launch, host side: its argument handling in Python (~0.2 ms a
+#                           launch in the H200 profile of 2026-11-26, torch.profiler + cProfile)
+LAUNCH_MS = 0.015         # per array-library call issued from Python (torch's dispatch: allocation from its
+#                           caching allocator, a sort, a scan, a copy), host side
+SYNC_MS = 0.02            # one device -> host synchronisation
+HOST_VIEW_MS = 0.1        # the host's work on a frame's copy: numpy views into it (benchmarks/bench_host.py: 0.06-0.09 ms)
+#: bytes per pixel of a view's outputs in final form: int32 label, five float32 images (E, Var, kappa_b, evidence,
+#: depth), the float32 confidence, uint8 colour (css_ros.engine.cuda.layout)
+OUTPUT_BYTES_PER_PIXEL = 4 + 5 * 4 + 4 + 3
 # torch.sort on the lent H100: 5M int64 keys (with their int64 indices) in 0.83 ms, i.e. 8 radix passes reading
 # and writing 16 B per element. The backend sorts int32 keys (4 passes of 12 B): 4 x 12 / (8 x 16) of that.
 SORT_MS_PER_KEY = 0.83 / 5e6 * (4 * 12) / (8 * 16)
@@ -102,10 +109,14 @@ class KernelCost:
     ms: float
 
 
-def _kernel(stage: str, nbytes: float, instr: float, gpu: GpuSpec, launches: int = 1) -> KernelCost:
+def _kernel(stage: str, nbytes: float, instr: float, gpu: GpuSpec, launches: int = 0,
+            kernels: int = 1) -> KernelCost:
+    """A stage of ``kernels`` numba-cuda launches and ``launches`` array-library calls: device roofline plus the
+    host's cost of issuing them (the host and the device do not overlap within a frame: every stage is issued
+    from one Python thread and the frame ends in a synchronisation)."""
     mem_ms = nbytes / (gpu.dram_gbs * 1e9 * MEM_EFFICIENCY) * 1e3
     issue_ms = instr / (gpu.thread_instr_t * 1e12 * ISSUE_EFFICIENCY) * 1e3
-    return KernelCost(stage, nbytes, instr, max(mem_ms, issue_ms) + launches * LAUNCH_MS)
+    return KernelCost(stage, nbytes, instr, max(mem_ms, issue_ms) + kernels * NUMBA_LAUNCH_MS + launches * LAUNCH_MS)
 
 
 def observe_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM, color: bool = True,
@@ -116,10 +127,13 @@ def observe_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM, color: bool = True,
     pixels = c.width * c.height * c.views
     costs = [_project(c, gpu, color), _order(c, gpu), _moments(c, gpu), _update(c, gpu, sensor_model),
              _render(c, gpu, score=False)]
-    sync = SYNC_MS if sensor_model == "none" else 2 * SYNC_MS   # the update's no-depth count comes back
-    costs.append(KernelCost("transfers + sync", pixels * (8 + 36), 0.0,   # labels + weights in, 9 f32 out
-                            pixels * (8 + 36) / (gpu.pcie_gbs * 1e9) * 1e3 + sync + 4 * LAUNCH_MS))
+    # syncs: the pair count after the projection, the frame's copy (and with a sensor model the no-depth count)
+    sync = 2 * SYNC_MS if sensor_model == "none" else 3 * SYNC_MS
+    nbytes = pixels * (8 + OUTPUT_BYTES_PER_PIXEL)   # labels + weights in; every image out, final dtypes
+    costs.append(KernelCost("transfers + sync", nbytes, 0.0, nbytes / (gpu.pcie_gbs * 1e9) * 1e3 + sync
+                            + 4 * LAUNCH_MS + HOST_VIEW_MS))
     return costs
+
 
 
 #: How bench_frame.py --backend cuda splits the observe cycle (it synchronises after each of these), in terms of the
@@ -137,7 +151,7 @@ def bench_stages(costs: list[KernelCost]) -> dict[str, float]:
 def score_costs(c: FrameCounts, gpu: GpuSpec = H100_SXM) -> list[KernelCost]:
     """Per-stage costs of ``score_views`` over ``c.views`` candidate views (one batch)."""
     return [_project(c, gpu, False), _order(c, gpu), _moments(c, gpu), _render(c, gpu, score=True),
-            KernelCost("transfers + sync", c.views * 16, 0.0, SYNC_MS + 2 * LAUNCH_MS)]
+            KernelCost("transfers + sync", c.views * 16, 0.0, 2 * SYNC_MS + 2 * LAUNCH_MS)]
 
 
 def _project(c: FrameCounts, gpu: GpuSpec, color: bool) -> KernelCost:
@@ -147,14 +161,14 @@ def _project(c: FrameCounts, gpu: GpuSpec, color: bool) -> KernelCost:
     nbytes = c.gaussians * 88 + c.kept * 104 + (c.kept * c.sh_coeffs * 12 if color else 0)
     instr = (pairs * INSTR_PROJECT_ALL + c.kept * INSTR_PROJECT_KEPT
              + (c.kept * c.sh_coeffs * INSTR_SH_PER_COEFF if color else 0))
-    return _kernel("project", nbytes, instr, gpu)
+    return _kernel("project", nbytes, instr, gpu, launches=10)   # buffers, cumsum, the count's copy
 
 
 def _order(c: FrameCounts, gpu: GpuSpec) -> KernelCost:
     """Depth sort of the kept pairs, prefix sum of their tile counts, key emission in depth order, the
     stable sort of the 32-bit (view, tile) keys, the gather of the pair order, searchsorted."""
     nbytes = c.kept * (4 + 8 + 12 + 8 + 36) + c.keys * (8 + 16)
-    emit = _kernel("order", nbytes, c.keys * 12, gpu, launches=8)
+    emit = _kernel("order", nbytes, c.keys * 12, gpu, launches=12)
     sort_bytes = (c.kept + c.keys) * 4 * 2 * 12   # 4 digit passes, each reading and writing key + index
     sort_ms = 2 * SORT_MIN_MS + (c.kept + c.keys) * SORT_MS_PER_KEY
     return KernelCost("order", nbytes + sort_bytes, emit.instructions, emit.ms + sort_ms)
@@ -162,7 +176,8 @@ def _order(c: FrameCounts, gpu: GpuSpec) -> KernelCost:
 
 def _moments(c: FrameCounts, gpu: GpuSpec) -> KernelCost:
     rows = min(c.kept, c.gaussians)   # distinct Gaussians of the batch, at most
-    return _kernel("moments", rows * (c.classes * 8 + (2 * c.classes + 1) * 4), rows * c.classes * 8, gpu)
+    return _kernel("moments", rows * (c.classes * 8 + (2 * c.classes + 1) * 4), rows * c.classes * 8, gpu,
+                   launches=1)
 
 
 def _update(c: FrameCounts, gpu: GpuSpec, sensor_model: str) -> KernelCost:
@@ -181,16 +196,16 @@ def _update(c: FrameCounts, gpu: GpuSpec, sensor_model: str) -> KernelCost:
         instr += c.walked * INSTR_WALK + c.label_sums * c.classes * INSTR_TABLE_PER_CLASS
     if sensor_model == "confusion":
         nbytes += max(c.keys * c.classes - c.label_sums, 0) * 16
-    return _kernel("update", nbytes, instr, gpu)
+    return _kernel("update", nbytes, instr, gpu, launches=2)   # the labels and weights uploads
 
 
 def _render(c: FrameCounts, gpu: GpuSpec, score: bool) -> KernelCost:
     pixels = c.width * c.height * c.views
     passes = -(-c.classes // RENDER_CLASS_CHUNK)
-    out = c.views * 16 if score else pixels * 36
+    out = c.views * 16 if score else pixels * OUTPUT_BYTES_PER_PIXEL
     nbytes = passes * c.keys * (56 + 4 + 4 + 12 + 4 + (0 if score else 8)) + c.keys * (2 * c.classes + 1) * 4 + out
     instr = passes * c.walked * INSTR_WALK + c.contributions * c.classes * INSTR_RENDER_PER_CLASS
-    return _kernel("score" if score else "render", nbytes, instr, gpu)
+    return _kernel("score" if score else "render", nbytes, instr, gpu, launches=1)
 
 
 def frame_counts(geometry: "GaussianGeometry", cameras: "list[Camera]", classes: int,
