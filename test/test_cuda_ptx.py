@@ -19,7 +19,8 @@ Budgets and why (block = one 8x8 tile = 64 threads for update/render; 256 for th
   broadcast reads of the class moments).
 - Projection: <= 128 registers, i.e. 25 % occupancy (16 warps/SM streaming one Gaussian per thread;
   its float64 EWA maths, shared with the CPU kernel, is register-heavy; 25 % holds up to 128).
-- emit_keys / moments: <= 64 registers.
+- emit_keys / moments / view_gain / observe_expected: <= 64 registers.
+- score_gain (the score with the info gain's second walk for the evidence mass): the render's budget.
 """
 from __future__ import annotations
 
@@ -64,9 +65,9 @@ def _kernels(stats, prefix):
 
 @pytest.mark.slow
 def test_every_kernel_assembled_for_both_architectures(stats):
-    names = {"project", "emit_keys", "moments"} | {f"{k}_C{c}" for c in CLASSES
-                                                   for k in ("update", "update_model", "render", "render_probs",
-                                                             "score")}
+    names = {"project", "emit_keys", "moments", "view_gain", "observe_expected"} | {
+        f"{k}_C{c}" for c in CLASSES for k in ("update", "update_model", "render", "render_probs", "score",
+                                               "score_gain")}
     assert set(stats) == {(n, cc) for n in names for cc in ARCHS}
 
 
@@ -87,12 +88,12 @@ def test_update_budget(stats):
 
 @pytest.mark.slow
 def test_render_budget(stats):
-    for prefix in ("render", "render_probs", "score"):
+    for prefix in ("render", "render_probs", "score", "score_gain"):
         for key, r in _kernels(stats, prefix):
             c = int(key[0].rsplit("_C", 1)[1])
             assert r["registers"] <= (64 if c <= 40 else 80), (key, r)
             # static shared memory = one pass's class sums + the staged rows (geometry, r, g, b, S, row; the
-            # render's also the camera depth), nothing else
+            # render's and the info gain's score also the camera depth), nothing else
             row = 48 if prefix == "score" else 52
             assert r["shared"] <= 2 * min(c, 40) * 64 * 4 + 64 * row + 64, (key, r)
             assert r["occupancy"] >= (0.33 if c <= 20 else 0.18), (key, r)
@@ -102,7 +103,7 @@ def test_render_budget(stats):
 def test_streaming_kernels_budget(stats):
     for key, r in _kernels(stats, "project"):
         assert r["registers"] <= 128 and r["occupancy"] >= 0.25, (key, r)
-    for prefix in ("emit_keys", "moments"):
+    for prefix in ("emit_keys", "moments", "view_gain", "observe_expected"):
         for key, r in _kernels(stats, prefix):
             assert r["registers"] <= 64, (key, r)
 

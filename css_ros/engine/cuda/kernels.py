@@ -527,32 +527,106 @@ P_EBG, P_VBG, P_SBG, P_RGB, P_THRESHOLD, P_DEPTH_SCALE, P_IGNORE, P_COEF = 0, 1,
 RENDER_PARAMS = 12
 
 
+@cuda.jit(device=True, inline=True)
+def _depth_bin(depth, edges):  # pragma: no cover
+    """Bin b of ``depth`` with edges[b] <= depth < edges[b + 1]; below edges[1]: 0, beyond the last edge: B - 1 (the
+    sensor model's rule, as the CPU's)."""
+    b = 0
+    last = edges.shape[0] - 2
+    while b < last and depth >= edges[b + 1]:
+        b += 1
+    return b
+
+
+@cuda.jit(device=True, inline=True)
+def _write_final(out_i32, out_f32, out_u8, planes, params, knots, pix, best, e_hat, v_hat, tr, ev, cr, cg, cb, dz,
+                 ks):  # pragma: no cover
+    """Write one pixel's requested outputs in final form at their planes' offsets (see make_render_kernel)."""
+    ignore = int32(params[P_IGNORE])
+    label = best
+    if tr > params[P_THRESHOLD]:
+        label = ignore
+    evidence = float64(ev) + tr * params[P_SBG]
+    if planes[PL_LABELS] >= 0:
+        out_i32[planes[PL_LABELS] + pix] = label
+    if planes[PL_E] >= 0:
+        out_f32[planes[PL_E] + pix] = float32(e_hat)
+    if planes[PL_VAR] >= 0:
+        out_f32[planes[PL_VAR] + pix] = float32(v_hat)
+    if planes[PL_BG] >= 0:
+        out_f32[planes[PL_BG] + pix] = float32(tr)
+    if planes[PL_EVIDENCE] >= 0:
+        out_f32[planes[PL_EVIDENCE] + pix] = float32(evidence)
+    if planes[PL_DEPTH] >= 0:
+        depth = math.nan
+        if ks > float32(0.0):
+            depth = float64(dz) / float64(ks) * params[P_DEPTH_SCALE]
+        out_f32[planes[PL_DEPTH] + pix] = float32(depth)
+    if planes[PL_CONFIDENCE] >= 0:
+        conf = 0.0
+        if label != ignore:
+            conf = _interp(_confidence_score(e_hat, evidence, params[P_COEF], params[P_COEF + 1], params[P_COEF + 2]),
+                           knots[0], knots[1])
+        out_f32[planes[PL_CONFIDENCE] + pix] = float32(conf)
+    if planes[PL_RGB] >= 0:
+        base = planes[PL_RGB] + 3 * pix
+        out_u8[base] = _to_byte(float64(cr) + tr * params[P_RGB])
+        out_u8[base + 1] = _to_byte(float64(cg) + tr * params[P_RGB + 1])
+        out_u8[base + 2] = _to_byte(float64(cb) + tr * params[P_RGB + 2])
+
+
+@cuda.jit(device=True, inline=True)
+def _mass_walk(s_g, s_row, order, packed, start, end, batch, tid, fu, fv, w, mass):  # pragma: no cover
+    """The info gain's second walk of a tile's list: mass[j] += kappa_ij * w over the block's pixels (w: each
+    pixel's net vote weight, 0 for pixels that add nothing), summed per warp, one float64 atomic per warp and pair.
+    Every thread of the block must call it (barriers and warp shuffles)."""
+    done = not (w != float32(0.0))
+    trans = float32(1.0)
+    lane = tid % WARP
+    for b0 in range(start, end, batch):
+        if cuda.syncthreads_count(0 if done else 1) == 0:
+            break
+        n = min(batch, end - b0)
+        if tid < n:
+            j = order[b0 + tid]
+            stage_geometry(s_g, tid, packed, j)
+            s_row[tid] = j
+        cuda.syncthreads()
+        for k in range(n):  # every lane walks every Gaussian: the warp sums need all 32
+            contrib = float32(0.0)
+            if not done:
+                kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
+                contrib = kappa * w
+            total = warp_sum(contrib)
+            if lane == 0 and total != float32(0.0):
+                cuda.atomic.add(mass, s_row[k], float64(total))
+
+
+# The render kernel's modes (make_render_kernel):
+# - score False (one view): the view's outputs in final form, each requested plane written at its offset (labels
+#   int32 with the ignore label where kappa_b > threshold; E, Var, kappa_b, evidence float32; depth sum kappa z /
+#   sum kappa times the depth scale (NaN without any contribution); the calibrated confidence (0 on unknown pixels);
+#   colour uint8; with probs the (H, W, C) float32 E_i^c) and out_f64[0:2] += (sum_i log max(Var_i, VAR_FLOOR),
+#   sum_i E_i), reduced per warp, one float64 atomic per warp.
+# - score True: scores (V, 2) f64 += the same two sums per view. With with_mass also mass[j] += sum_i kappa_ij
+#   mass_w[label_i B + b_i] per pair j (label_i the pixel's argmax class, b_i the bin of its expected depth in
+#   mass_edges, splat units): a second walk of the pixel's list (_mass_walk).
+# The pixel walk is float32; each pixel's E and Var sums of the classes of one pass live in shared memory (column
+# tid of a (2 chunk, tile^2) array: no runtime-indexed local arrays, no bank conflicts). Up to chunk classes take
+# one pass; more classes walk the tile's list again per pass, carrying the running argmax (first maximum, as the
+# CPU) and its Var in registers, so shared memory and occupancy do not depend on C beyond chunk.
 @lru_cache(maxsize=None)
 def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                        chunk: int = RENDER_CLASS_CHUNK, with_mass: bool = False) -> Any:
-    """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode, classes per pass).
+    """Render kernel for C = ``num_classes`` (compile-time constants: C, tile, mode, classes per pass; the modes
+    in the comment above).
 
     Launch: grid = views * tiles, block = tile * tile threads (a multiple of 32). Kernel arguments:
     offsets (V T + 1,) i64; order (P,) i32 pair of each sorted key; packed (M, 8) f64; colors (M, 3) f32;
     pair_row (M,) i32 row of each pair in ``mom``; mom (R, 2C + 1) f32 moments; params (RENDER_PARAMS,) f64
     (``P_*``); knots (2, K) f64 the confidence map's isotonic knots; planes (NUM_PLANES,) i64 (``PL_*``);
     width, height [px]; tiles_x, tiles_per_view; out_i32, out_f32, out_u8, out_f64: views of one output buffer;
-    scores (V, 2) f64; mass_w (C B,) f64, mass_edges (B + 1,) f64, mass (M,) f64. Modes:
-
-    - ``score`` False (one view): the view's outputs in final form, each requested plane written at its offset
-      (labels int32 with ``ignore`` where kappa_b > threshold; E, Var, kappa_b, evidence float32; depth
-      sum kappa z / sum kappa times the depth scale (NaN without any contribution); the calibrated confidence
-      (0 on unknown pixels); colour uint8; with ``probs`` the (H, W, C) float32 E_i^c) and out_f64[0:2] +=
-      (sum_i log max(Var_i, VAR_FLOOR), sum_i E_i), reduced per warp, one float64 atomic per warp.
-    - ``score`` True: scores (V, 2) f64 += the same two sums per view. With ``with_mass`` also mass[j] +=
-      sum_i kappa_ij mass_w[label_i B + b_i] per pair j (label_i the pixel's argmax class, b_i the bin of its
-      expected depth in ``mass_edges``, splat units): a second walk of the pixel's list, summed per warp.
-
-    The pixel walk is float32; each pixel's E and Var sums of the classes of one pass live in shared
-    memory (column ``tid`` of a (2 chunk, tile^2) array: no runtime-indexed local arrays, no bank
-    conflicts). Up to ``chunk`` classes take one pass; more classes walk the tile's list again per
-    pass of ``chunk`` classes, carrying the running argmax (first maximum, as the CPU) and its Var
-    in registers, so shared memory and occupancy do not depend on C beyond ``chunk``.
+    scores (V, 2) f64; mass_w (C B,) f64, mass_edges (B + 1,) f64, mass (M,) f64.
     """
     nt = tile * tile
     if nt % WARP:
@@ -677,66 +751,15 @@ def make_render_kernel(num_classes: int, tile: int, score: bool, probs: bool,
                 cuda.atomic.add(out_f64, 0, lv)
                 cuda.atomic.add(out_f64, 1, le)
             if inside:
-                label = best
-                if tr > params[P_THRESHOLD]:
-                    label = int32(params[P_IGNORE])
-                evidence = float64(ev) + tr * params[P_SBG]
-                if planes[PL_LABELS] >= 0:
-                    out_i32[planes[PL_LABELS] + pix] = label
-                if planes[PL_E] >= 0:
-                    out_f32[planes[PL_E] + pix] = float32(e_hat)
-                if planes[PL_VAR] >= 0:
-                    out_f32[planes[PL_VAR] + pix] = float32(v_hat)
-                if planes[PL_BG] >= 0:
-                    out_f32[planes[PL_BG] + pix] = float32(tr)
-                if planes[PL_EVIDENCE] >= 0:
-                    out_f32[planes[PL_EVIDENCE] + pix] = float32(evidence)
-                if planes[PL_DEPTH] >= 0:
-                    depth = math.nan
-                    if ks > float32(0.0):
-                        depth = float64(dz) / float64(ks) * params[P_DEPTH_SCALE]
-                    out_f32[planes[PL_DEPTH] + pix] = float32(depth)
-                if planes[PL_CONFIDENCE] >= 0:
-                    conf = 0.0
-                    if label != int32(params[P_IGNORE]):
-                        conf = _interp(_confidence_score(e_hat, evidence, params[P_COEF], params[P_COEF + 1],
-                                                         params[P_COEF + 2]), knots[0], knots[1])
-                    out_f32[planes[PL_CONFIDENCE] + pix] = float32(conf)
-                if planes[PL_RGB] >= 0:
-                    base = planes[PL_RGB] + 3 * pix
-                    out_u8[base] = _to_byte(float64(cr) + tr * params[P_RGB])
-                    out_u8[base + 1] = _to_byte(float64(cg) + tr * params[P_RGB + 1])
-                    out_u8[base + 2] = _to_byte(float64(cb) + tr * params[P_RGB + 2])
+                _write_final(out_i32, out_f32, out_u8, planes, params, knots, pix, best, e_hat, v_hat, tr, ev, cr, cg,
+                             cb, dz, ks)
         if with_mass:
             # second walk: each contribution's kappa times the pixel's net vote weight, summed per warp and pair
             w = float32(0.0)
             if inside and ks > float32(0.0):
-                d = float64(dz) / float64(ks)
-                bins = mass_edges.shape[0] - 1
-                bn = 0
-                while bn < bins - 1 and d >= mass_edges[bn + 1]:
-                    bn += 1
-                w = float32(mass_w[best * bins + bn])
-            done = not (w != float32(0.0))
-            trans = float32(1.0)
-            lane = tid % WARP
-            for b0 in range(start, end, batch):
-                if cuda.syncthreads_count(0 if done else 1) == 0:
-                    break
-                n = min(batch, end - b0)
-                if tid < n:
-                    j = order[b0 + tid]
-                    stage_geometry(s_g, tid, packed, j)
-                    s_row[tid] = j
-                cuda.syncthreads()
-                for k in range(n):  # every lane walks every Gaussian: the warp sums need all 32
-                    contrib = float32(0.0)
-                    if not done:
-                        kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
-                        contrib = kappa * w
-                    total = warp_sum(contrib)
-                    if lane == 0 and total != float32(0.0):
-                        cuda.atomic.add(mass, s_row[k], float64(total))
+                w = float32(mass_w[best * (mass_edges.shape[0] - 1) + _depth_bin(float64(dz) / float64(ks),
+                                                                                 mass_edges)])
+            _mass_walk(s_g, s_row, order, packed, start, end, batch, tid, fu, fv, w, mass)
     return render_kernel
 
 
