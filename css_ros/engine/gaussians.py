@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelError
+from .atomic import new_file_mode
 from .sh import SH_C0, num_sh_coeffs
 
 __all__ = ["GaussianModel", "SH_C0", "num_sh_coeffs", "sh_degree_from_rest_count"]
@@ -382,7 +383,7 @@ class GaussianModel:
                 ply.write(fh)
                 fh.flush()
                 os.fsync(fh.fileno())
-            os.chmod(tmp_name, (p.stat().st_mode & 0o777) if p.exists() else 0o644)
+            os.chmod(tmp_name, (p.stat().st_mode & 0o777) if p.exists() else new_file_mode())
             os.replace(tmp_name, p)
             tmp_name = None
         except OSError as exc:
