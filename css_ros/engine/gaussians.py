@@ -131,6 +131,12 @@ class GaussianModel:
         object.__setattr__(self, "rotations", rotations)
         object.__setattr__(self, "normals", normals)
 
+    def __repr__(self) -> str:
+        """One line: N, SH degree and the bounding box of the means (metres); never the arrays."""
+        lo, hi = self.means.min(axis=0), self.means.max(axis=0)
+        box = " x ".join(f"[{a:.3g}, {b:.3g}]" for a, b in zip(lo, hi))
+        return f"GaussianModel({self.num_gaussians} Gaussians, SH degree {self.sh_degree}, means in {box} m)"
+
     # ------------------------------------------------------------------ properties
     @property
     def num_gaussians(self) -> int:
