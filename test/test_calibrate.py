@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import stat
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from rosbags.typesys import Stores, get_typestore
 from css_ros.calibration.cli import figure_paths, main as calibrate_main
 from css_ros.calibration.learn import LabelDepthCounts, fit_sensor_model, symmetric_votes
 from css_ros.demo.make_demo import make_demo
+from css_ros.engine.atomic import current_umask
 from css_ros.engine.sensor_model import SensorModel
 from css_ros.evaluation.cli import main as replay_main
 
@@ -76,11 +78,17 @@ def test_calibrate_writes_a_valid_model_and_figures(bags, tmp_path, capsys):
     assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(out), "--quiet", "--bin-width", "1",
                            "--max-depth", "6"]) == 0
     printed = capsys.readouterr().out
-    assert "held out" in printed and "wrote" in printed
+    assert "held out" in printed
+    last = printed.strip().splitlines()[-1]   # the last line names the YAML and the three figures beside it
+    assert last.startswith(f"wrote {out} (sensor model")
+    assert all(str(p) in last for p in figure_paths(out).values())
     names = [e["name"] for e in yaml.safe_load((bags / "studio" / "classes.yaml").read_text())["classes"]]
     sensor = SensorModel.load(out, names)
     assert sensor.num_bins == 6 and sensor.confidence is not None
     assert all(p.is_file() and p.stat().st_size > 10_000 for p in figure_paths(out).values())
+    # written like every other output: 0o666 less the umask (0o644 with umask 022), not mkstemp's 0o600
+    mode = 0o666 & ~current_umask()
+    assert all(stat.S_IMODE(p.stat().st_mode) == mode for p in [out, *figure_paths(out).values()])
     info = sensor.info
     assert info["frames_heldout"] == 4 and info["frames_fit"] == 20   # every 5th of 24 frames held out
     labels = info["input_label_calibration"]

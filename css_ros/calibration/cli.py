@@ -193,7 +193,7 @@ def calibrate(args: argparse.Namespace) -> int:
             "calibrated confidence": ReliabilityBins.from_json(conf_report["after"]["bins"])}))
     sensor = SensorModel(sensor.class_names, sensor.depth_edges, sensor.weight, sensor.confusion, sensor.confidence,
                          info)
-    write_outputs(args.out, sensor, counts, classes, panels)
+    figures = write_outputs(args.out, sensor, counts, classes, panels)
     print(f"{PROG}: {fit_pixels} labelled pixels in {counts.frames_fit} frames ({counts.frames_heldout} held out); "
           f"{counts.no_depth} labelled pixels had no rendered depth")
     print(f"input labels, held out: paper (p = 1): {_fmt(labels_report['before'])}; fitted p(right | label, depth): "
@@ -201,7 +201,7 @@ def calibrate(args: argparse.Namespace) -> int:
     if "confidence_calibration" in info:
         cr = info["confidence_calibration"]
         print(f"map confidence, {cr['judged_on']}: E: {_fmt(cr['before'])}; calibrated: {_fmt(cr['after'])}")
-    print(f"wrote {args.out} ({sensor.describe()})")
+    print(f"wrote {args.out} ({sensor.describe()}) and its figures {', '.join(str(p) for p in figures)}")
     return 0
 
 
@@ -213,8 +213,8 @@ def figure_paths(out: Path) -> dict[str, Path]:
 
 
 def write_outputs(out: Path, sensor: SensorModel, counts: LabelDepthCounts, classes: ClassSet,
-                  panels: list) -> None:
-    """The figures (each atomic), then the YAML (atomic, last)."""
+                  panels: list) -> list[Path]:
+    """The figures (each atomic), then the YAML (atomic, last); returns the figures written."""
     from .plots import (confusion_bands_figure, reliability_by_depth_figure, reliability_panels_figure,
                         save_figure)
 
@@ -223,9 +223,12 @@ def write_outputs(out: Path, sensor: SensorModel, counts: LabelDepthCounts, clas
     total = counts.fit + counts.heldout
     save_figure(reliability_by_depth_figure(sensor, counts.fit, classes), paths["reliability_by_depth"])
     save_figure(confusion_bands_figure(total, sensor.depth_edges, classes), paths["confusion"])
+    written = [paths["reliability_by_depth"], paths["confusion"]]
     if panels:
         save_figure(reliability_panels_figure(panels), paths["reliability"])
+        written.append(paths["reliability"])
     sensor.save(out)
+    return written
 
 
 def main(argv: Sequence[str] | None = None) -> int:
