@@ -26,7 +26,7 @@ from ..evaluation.config import ReplayConfig
 from ..evaluation.source import FrameSource
 from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
                     DEFAULT_WEIGHT_FLOOR, MIN_LABELLED_PIXELS, ConfidenceSamples, LabelDepthCounts, fit_confidence,
-                    fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
+                    extrapolated_bins, fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
                     right_rates)
 
 PROG = "css_calibrate"
@@ -176,6 +176,7 @@ def calibrate(args: argparse.Namespace) -> int:
         "weight_rule": "w = max(weight_floor, 2 p - 1), p = fraction of right labels "
                        + ("per label and depth bin" if args.per_class else "per depth bin (all labels)"),
         "votes": args.votes,
+        "extrapolated": extrapolated_bins(counts.fit, edges, classes.names, args.per_class),
         "input_label_calibration": {"before": labels_report["before"], "after": labels_report["after"]},
     }
     panels = []  # the reliability diagrams, from the bins the reports already hold
