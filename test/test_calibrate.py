@@ -122,6 +122,10 @@ def test_replay_with_the_sensor_model_reports_both_updates(bags, tmp_path, monke
     m = json.loads((out / "metrics.json").read_text())
     alone = json.loads((paper_out / "metrics.json").read_text())
     assert alone["sensor_model"] is None and m["sensor_model"] is not None
+    mode = 0o666 & ~current_umask()   # every output as a plain open() makes it (map.npz and PLYs included)
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert {"map.npz", "map_semantic.ply", "report.md", "reliability.png"} <= {p.name for p in files}
+    assert {oct(stat.S_IMODE(p.stat().st_mode)) for p in files} == {oct(mode)}
     seg = m["segmentation"]
     for key in ("input", "css", "css_online", "paper_online", "paper_fused"):
         assert 0.0 <= seg[key]["pixel_accuracy"] <= 1.0, key
