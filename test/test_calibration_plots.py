@@ -156,3 +156,9 @@ def test_birdseye_legend_explains_white():
     (leg,) = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
     white = leg.legend_handles[-1].get_facecolor()
     assert tuple(white[:3]) == (1.0, 1.0, 1.0)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)   # the picture's Figure has no pyplot canvas
+    r = _draw(fig)
+    box, page = leg.get_window_extent(r), fig.bbox
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, "legend cut off"

@@ -71,7 +71,7 @@ def birdseye_camera(means: np.ndarray, width: int, margin: float = 0.05) -> tupl
 
 
 #: Legend entry of the white pixels.
-EMPTY_LABEL = "white: unobserved or empty (no observed Gaussian below)"
+EMPTY_LABEL = "white: unobserved"
 
 
 def birdseye_figure(rgb: np.ndarray, extent: tuple[float, ...], classes: ClassSet, order: list[int],
