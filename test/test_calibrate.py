@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import stat
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from rosbags.typesys import Stores, get_typestore
 from css_ros.calibration.cli import figure_paths, main as calibrate_main
 from css_ros.calibration.learn import LabelDepthCounts, fit_sensor_model, symmetric_votes
 from css_ros.demo.make_demo import make_demo
+from css_ros.engine.atomic import current_umask
 from css_ros.engine.sensor_model import SensorModel
 from css_ros.evaluation.cli import main as replay_main
 
@@ -76,11 +78,17 @@ def test_calibrate_writes_a_valid_model_and_figures(bags, tmp_path, capsys):
     assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(out), "--quiet", "--bin-width", "1",
                            "--max-depth", "6"]) == 0
     printed = capsys.readouterr().out
-    assert "held out" in printed and "wrote" in printed
+    assert "held out" in printed
+    last = printed.strip().splitlines()[-1]   # the last line names the YAML and the three figures beside it
+    assert last.startswith(f"wrote {out} (sensor model")
+    assert all(str(p) in last for p in figure_paths(out).values())
     names = [e["name"] for e in yaml.safe_load((bags / "studio" / "classes.yaml").read_text())["classes"]]
     sensor = SensorModel.load(out, names)
     assert sensor.num_bins == 6 and sensor.confidence is not None
     assert all(p.is_file() and p.stat().st_size > 10_000 for p in figure_paths(out).values())
+    # written like every other output: 0o666 less the umask (0o644 with umask 022), not mkstemp's 0o600
+    mode = 0o666 & ~current_umask()
+    assert all(stat.S_IMODE(p.stat().st_mode) == mode for p in [out, *figure_paths(out).values()])
     info = sensor.info
     assert info["frames_heldout"] == 4 and info["frames_fit"] == 20   # every 5th of 24 frames held out
     labels = info["input_label_calibration"]
@@ -104,21 +112,49 @@ def test_calibrate_refuses_too_few_pixels_and_writes_nothing(bags, tmp_path, cap
     assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(out), "--heldout-every", "1"]) == 1
 
 
-def test_replay_with_the_sensor_model_reports_both_updates(bags, tmp_path):
+def test_replay_with_the_sensor_model_reports_both_updates(bags, tmp_path, monkeypatch):
     sm = tmp_path / "sm.yaml"
     assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(sm), "--quiet"]) == 0
-    out = tmp_path / "replay"
-    assert replay_main([str(bags / "room" / "bag"), "--out", str(out), "--quiet", "--sensor-model", str(sm)]) == 0
+    monkeypatch.chdir(tmp_path)   # default output folders: one per update, neither overwrites the other
+    assert replay_main([str(bags / "room" / "bag"), "--quiet", "--sensor-model", str(sm)]) == 0
+    assert replay_main([str(bags / "room" / "bag"), "--quiet", "--no-output-bag"]) == 0
+    out, paper_out = tmp_path / "out" / "replay_room_sm", tmp_path / "out" / "replay_room"
     m = json.loads((out / "metrics.json").read_text())
+    alone = json.loads((paper_out / "metrics.json").read_text())
+    assert alone["sensor_model"] is None and m["sensor_model"] is not None
+    mode = 0o666 & ~current_umask()   # every output as a plain open() makes it (map.npz and PLYs included)
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert {"map.npz", "map_semantic.ply", "report.md", "reliability.png"} <= {p.name for p in files}
+    assert {oct(stat.S_IMODE(p.stat().st_mode)) for p in files} == {oct(mode)}
     seg = m["segmentation"]
     for key in ("input", "css", "css_online", "paper_online", "paper_fused"):
         assert 0.0 <= seg[key]["pixel_accuracy"] <= 1.0, key
+    # the paper's update fused beside the sensor model is the paper's update run alone, measure for measure
+    paper = m["paper_update"]
+    assert paper["segmentation"]["online"] == alone["segmentation"]["css_online"] == seg["paper_online"]
+    assert paper["segmentation"]["fused"] == alone["segmentation"]["css"] == seg["paper_fused"]
+    assert paper["pixel_sparsification"]["ause"] == alone["pixel_sparsification"]["ause"]
+    for renders in ("online", "fused"):
+        assert paper["calibration"][renders]["expectation"] == alone["calibration"][renders]["expectation"]
+        assert paper["calibration"][renders]["confidence"] is None
     assert m["sensor_model"]["fingerprint"] == SensorModel.load(sm).fingerprint
     cal = m["calibration"]["online"]
     assert cal["confidence"]["ece"] is not None and cal["expectation"]["ece"] is not None
     assert "confidence" in m["pixel_sparsification"]["ause"]
     report = (out / "report.md").read_text()
     assert "Paper update vs the sensor model" in report and "reliability.png" in report
+    table = report[report.index("| measure | input segmentation | paper update | sensor model |"):]
+    table = table[:table.index("\n\n")].splitlines()
+    rows = {r.split(" | ")[0].lstrip("| "): [c.strip(" |*") for c in r.split(" | ")[1:]] for r in table[2:]}
+    ause_e = rows["pixel AUSE of E (fused renders)"]
+    assert ause_e == ["—", f"{paper['pixel_sparsification']['ause']['expectation']:.4f}",
+                      f"{m['pixel_sparsification']['ause']['expectation']:.4f}"]
+    ece = rows["ECE of E, online renders"]
+    assert ece[1:] == [f"{paper['calibration']['online']['expectation']['ece']:.4f}", f"{cal['expectation']['ece']:.4f}"]
+    conf = rows["ECE of the calibrated `~/confidence`, online renders"]
+    assert conf == ["—", "—", f"{cal['confidence']['ece']:.4f}"]
+    acc = rows["fused pixel accuracy (every pose rendered with the final map), %"]
+    assert acc == ["—", f"{100 * seg['paper_fused']['pixel_accuracy']:.1f}", f"{100 * seg['css']['pixel_accuracy']:.1f}"]
     assert (out / "reliability.png").is_file()
     with AnyReader([out / "bag"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conf = [c for c in reader.connections if c.topic == "/css_node/confidence"]

@@ -200,8 +200,8 @@ def test_smoothed_rates_rows_and_limits():
     assert p.shape == c.shape
     np.testing.assert_allclose(p.sum(axis=-1), 1.0, atol=1e-12)
     np.testing.assert_allclose(p[0, 2], [0.999, 0.001, 0.0], atol=1e-3)
-    prior = smoothing_prior(c)
-    assert np.array_equal(p[1, 3], prior[1, 3])
+    # the empty row (1, 3) lies between two bins with data: their midpoint (linear in bin index), not its prior
+    np.testing.assert_allclose(p[1, 3], 0.5 * (p[1, 2] + p[1, 4]), atol=1e-15)
     glob = c.sum(axis=(0, 1)) / c.sum()
     np.testing.assert_allclose(p[2], np.broadcast_to(glob, (5, 3)), atol=1e-15)
 
@@ -228,11 +228,63 @@ def test_smoothed_rates_degenerate_inputs():
     np.testing.assert_allclose(p[1, 0], [0.75, 0.25])  # unseen class: global rate
     c = _counts()
     np.testing.assert_allclose(smoothed_rates(c, pseudo_count=0.0)[0, 0], c[0, 0] / c[0, 0].sum())  # tau = 0: frequency
-    np.testing.assert_allclose(smoothed_rates(c, pseudo_count=0.0)[1, 3], smoothing_prior(c)[1, 3])  # empty row: prior
+    p0 = smoothed_rates(c, pseudo_count=0.0)
+    np.testing.assert_allclose(p0[1, 3], 0.5 * (c[1, 2] / c[1, 2].sum() + c[1, 4] / c[1, 4].sum()))  # empty: between
     with pytest.raises(ValueError):
         smoothed_rates(np.zeros((2, 3)))
     with pytest.raises(ValueError):
         smoothed_rates(-np.ones((1, 1, 2)))
+
+
+def _falling_with_empty_far_bins() -> np.ndarray:
+    """(2 labels, 16 bins of 0.5 m, 2 true classes) counts: label 0 right 95 % near, falling to 5 % at 3.5-7 m,
+    nothing observed from 7 m on; label 1 only near (bins 0-3)."""
+    c = np.zeros((2, 16, 2))
+    right = np.r_[np.linspace(0.95, 0.05, 7), np.full(7, 0.05)]
+    c[0, :14, 0] = 4000 * right
+    c[0, :14, 1] = 4000 * (1 - right)
+    c[1, :4] = [3000, 1000]
+    return c
+
+
+def test_empty_far_bins_follow_their_neighbours_not_the_class_rate():
+    c = _falling_with_empty_far_bins()
+    p = smoothed_rates(c, pseudo_count=200.0)
+    last = p[0, 13]
+    # before: an empty bin without a neighbour with data fell back to the class rate (about 0.3 here)
+    class_rate = c[0].sum(axis=0) / c[0].sum()
+    assert class_rate[0] > 0.25
+    np.testing.assert_allclose(p[0, 14:], np.broadcast_to(last, (2, 2)), atol=1e-15)   # the trend held, no jump
+    assert np.all(np.diff(p[0, :, 0]) <= 1e-12)                                        # monotone over every bin
+    np.testing.assert_allclose(p[1, 4:], np.broadcast_to(p[1, 3], (12, 2)), atol=1e-15)
+    np.testing.assert_allclose(p.sum(axis=-1), 1.0, atol=1e-12)
+    # an interior gap is the linear interpolation of its two neighbours with data
+    g = c.copy()
+    g[0, 5:8] = 0
+    q = smoothed_rates(g, pseudo_count=200.0)
+    for k, b in enumerate((5, 6, 7), start=1):
+        np.testing.assert_allclose(q[0, b], q[0, 4] + k / 4 * (q[0, 8] - q[0, 4]), atol=1e-14)
+
+
+def test_sensor_model_and_yaml_mark_the_extrapolated_far_bins(tmp_path):
+    from css_ros.calibration.learn import LabelDepthCounts, extrapolated_bins, fit_sensor_model
+    from css_ros.engine.sensor_model import SensorModel, uniform_edges
+
+    edges = uniform_edges(8.0, 0.5)
+    counts = LabelDepthCounts(2, edges)
+    counts.fit[...] = _falling_with_empty_far_bins().astype(np.int64)
+    sensor = fit_sensor_model(counts, ["floor", "wall"])
+    w = sensor.weight[0]
+    assert np.all(np.diff(w) <= 1e-12) and w[14] == w[15] == w[13]    # weights never rise again
+    info = extrapolated_bins(counts.fit, edges, ["floor", "wall"])
+    assert info["depth_bins"] == [14, 15] and info["depths_m"] == [[7.0, 7.5], [7.5, 8.0]]
+    per = extrapolated_bins(counts.fit, edges, ["floor", "wall"], per_class=True)
+    assert per["per_label"] == {"floor": [14, 15], "wall": list(range(4, 16))}
+    path = SensorModel(sensor.class_names, sensor.depth_edges, sensor.weight, sensor.confusion,
+                       info={"extrapolated": info}).save(tmp_path / "sm.yaml")
+    loaded = SensorModel.load(path)
+    assert loaded.info["extrapolated"]["depth_bins"] == [14, 15]
+    assert "follow the neighbouring bins" in loaded.info["extrapolated"]["rule"]
 
 
 # ----------------------------------------------------------------------------------------------

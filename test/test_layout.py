@@ -1,4 +1,4 @@
-"""The package layout's dependency rule, checked on the code's own imports.
+"""The package layout's dependency rule, checked on the code's own imports, and the longest function allowed.
 
 Layers, lowest first: ``engine`` (and ``errors``) <- ``io`` <- ``evaluation`` / ``export`` /
 ``importers`` <- ``ros`` <- ``demo`` / ``clients``. A module may import its own layer and the
@@ -64,6 +64,21 @@ def _imports(path: Path) -> list[tuple[str, int]]:
 def _layer(path: Path) -> str | None:
     rel = path.relative_to(PKG).parts
     return rel[0] if len(rel) > 1 else None
+
+
+#: Longest function or method [lines, decorators excluded, docstring included]: longer ones are split into named steps.
+MAX_FUNCTION_LINES = 150
+
+
+def test_functions_are_at_most_150_lines():
+    long = []
+    for path in _modules():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = (node.end_lineno or node.lineno) - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{path.relative_to(PKG)}:{node.lineno} {node.name} is {n} lines")
+    assert not long, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(long)
 
 
 def test_every_subpackage_has_a_rule():

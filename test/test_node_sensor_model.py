@@ -242,8 +242,8 @@ def test_resume_of_a_checkpoint_without_the_sensor_model_is_refused_and_kept_asi
 
 def _engine(tmp: Path, **params: Any) -> tuple[Any, list[str]]:
     warnings: list[str] = []
-    p = NodeParams(model_path=str(tmp / "wall.ply"), class_file="", num_classes=C, checkpoint_path=str(tmp / "map.npz"),
-                   **params)
+    params.setdefault("checkpoint_path", str(tmp / "map.npz"))
+    p = NodeParams(model_path=str(tmp / "wall.ply"), class_file="", num_classes=C, **params)
     return load_engine(p, lambda _m: None, warnings.append), warnings
 
 
@@ -269,6 +269,34 @@ def test_resume_rules_of_load_engine(tmp_path: Path) -> None:
     engine, warnings = _engine(tmp_path, sensor_model=str(sm_path))
     assert engine.resume_status.startswith("resumed") and not warnings
     assert engine.smap.fused_sensor_model == sm.fingerprint
+
+
+def test_refusal_of_another_update_says_why_and_how_to_keep_both(tmp_path: Path) -> None:
+    """A checkpoint fused with a sensor model, a node started without one: the warning says why (units) and how to
+    keep both (a checkpoint per update, the old file renamed back); following it resumes both maps."""
+    sm = sensor_model(confidence=False)
+    sm_path = sm.save(tmp_path / "sensor_model.yaml")
+    model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
+    ckpt = tmp_path / "map.npz"
+    made = SemanticMap(model, C, sensor_model=sm, depth_scale=2.0)
+    made.update(splat_camera((0, 0, 0), 0.0), rh.wall_labels())
+    made.save(ckpt)
+    engine, warnings = _engine(tmp_path)                     # the paper's update now
+    (aside,) = tmp_path.glob("map.npz.rejected-*")
+    (warning,) = warnings
+    assert f"sensor model {sm.fingerprint[:12]}" in warning and "different units" in warning
+    own = tmp_path / "map_paper.npz"
+    assert f"-p checkpoint_path:={own}" in warning
+    assert f"rename {aside.name} back to {ckpt.name}" in warning and "fingerprint " + sm.fingerprint[:12] in warning
+    # follow the advice: this update gets its own checkpoint, the old map its name back
+    engine.smap.update(splat_camera((0, 0, 3), 0.0), rh.wall_labels())
+    engine.smap.save(own)
+    aside.rename(ckpt)
+    paper, warnings = _engine(tmp_path, checkpoint_path=str(own))
+    assert paper.resume_status.startswith("resumed") and not warnings and paper.smap.sensor_model is None
+    again, warnings = _engine(tmp_path, sensor_model=str(sm_path), splat_to_map=SPLAT_TO_MAP)
+    assert again.resume_status.startswith("resumed") and not warnings
+    np.testing.assert_array_equal(again.smap.concentrations, made.concentrations)
 
 
 def test_model_swap_keeps_the_sensor_model(tmp_path: Path) -> None:

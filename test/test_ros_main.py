@@ -18,6 +18,24 @@ def test_help_text_lists_every_parameter_with_default():
         assert f"  {name} = " in text
 
 
+def test_help_text_has_an_example_and_every_topic_in_and_out():
+    from css_ros.io.topics import INPUT_TOPICS, INPUT_TYPES, OUTPUT_TOPICS
+
+    text = help_text()
+    examples = text[text.index("examples:"):text.index("topics in")]
+    assert "css_node --ros-args --params-file config/css_node.yaml" in examples
+    assert "-r segmentation:=" in examples  # how to point an input at the robot's topic
+    topics_in = text[text.index("topics in"):text.index("topics out")]
+    topics_out = text[text.index("topics out"):text.index("parameters (name")]
+    for kind, name in INPUT_TOPICS.items():
+        assert f"  {name} [{INPUT_TYPES[kind]}]" in topics_in, name
+    for name, typ in OUTPUT_TOPICS.items():
+        assert f"  ~/{name} [{typ}]" in topics_out, name
+    for service in ("~/save_map", "~/reset_map", "~/load_map"):
+        assert service in topics_out
+    assert text.index("topics out") < text.index("parameters (name") < text.index("  model_path = ")
+
+
 @pytest.mark.parametrize("argv, expected", [(["-h"], True), (["--help"], True), ([], False),
                                             (["--ros-args", "-p", "x:=1"], False),
                                             (["--ros-args", "-r", "-h:=x"], False)])

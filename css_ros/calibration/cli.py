@@ -26,7 +26,7 @@ from ..evaluation.config import ReplayConfig
 from ..evaluation.source import FrameSource
 from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
                     DEFAULT_WEIGHT_FLOOR, MIN_LABELLED_PIXELS, ConfidenceSamples, LabelDepthCounts, fit_confidence,
-                    fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
+                    extrapolated_bins, fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
                     right_rates)
 
 PROG = "css_calibrate"
@@ -176,6 +176,7 @@ def calibrate(args: argparse.Namespace) -> int:
         "weight_rule": "w = max(weight_floor, 2 p - 1), p = fraction of right labels "
                        + ("per label and depth bin" if args.per_class else "per depth bin (all labels)"),
         "votes": args.votes,
+        "extrapolated": extrapolated_bins(counts.fit, edges, classes.names, args.per_class),
         "input_label_calibration": {"before": labels_report["before"], "after": labels_report["after"]},
     }
     panels = []  # the reliability diagrams, from the bins the reports already hold
@@ -193,7 +194,7 @@ def calibrate(args: argparse.Namespace) -> int:
             "calibrated confidence": ReliabilityBins.from_json(conf_report["after"]["bins"])}))
     sensor = SensorModel(sensor.class_names, sensor.depth_edges, sensor.weight, sensor.confusion, sensor.confidence,
                          info)
-    write_outputs(args.out, sensor, counts, classes, panels)
+    figures = write_outputs(args.out, sensor, counts, classes, panels)
     print(f"{PROG}: {fit_pixels} labelled pixels in {counts.frames_fit} frames ({counts.frames_heldout} held out); "
           f"{counts.no_depth} labelled pixels had no rendered depth")
     print(f"input labels, held out: paper (p = 1): {_fmt(labels_report['before'])}; fitted p(right | label, depth): "
@@ -201,7 +202,7 @@ def calibrate(args: argparse.Namespace) -> int:
     if "confidence_calibration" in info:
         cr = info["confidence_calibration"]
         print(f"map confidence, {cr['judged_on']}: E: {_fmt(cr['before'])}; calibrated: {_fmt(cr['after'])}")
-    print(f"wrote {args.out} ({sensor.describe()})")
+    print(f"wrote {args.out} ({sensor.describe()}) and its figures {', '.join(str(p) for p in figures)}")
     return 0
 
 
@@ -213,8 +214,8 @@ def figure_paths(out: Path) -> dict[str, Path]:
 
 
 def write_outputs(out: Path, sensor: SensorModel, counts: LabelDepthCounts, classes: ClassSet,
-                  panels: list) -> None:
-    """The figures (each atomic), then the YAML (atomic, last)."""
+                  panels: list) -> list[Path]:
+    """The figures (each atomic), then the YAML (atomic, last); returns the figures written."""
     from .plots import (confusion_bands_figure, reliability_by_depth_figure, reliability_panels_figure,
                         save_figure)
 
@@ -223,9 +224,12 @@ def write_outputs(out: Path, sensor: SensorModel, counts: LabelDepthCounts, clas
     total = counts.fit + counts.heldout
     save_figure(reliability_by_depth_figure(sensor, counts.fit, classes), paths["reliability_by_depth"])
     save_figure(confusion_bands_figure(total, sensor.depth_edges, classes), paths["confusion"])
+    written = [paths["reliability_by_depth"], paths["confusion"]]
     if panels:
         save_figure(reliability_panels_figure(panels), paths["reliability"])
+        written.append(paths["reliability"])
     sensor.save(out)
+    return written
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -3,7 +3,8 @@
 - :func:`isotonic_fit`: monotone (non-decreasing) map from a score to a probability, as interpolation knots.
 - :func:`logistic_fit` / :func:`logistic_predict`: L2-regularised logistic regression (Newton / IRLS).
 - :func:`smoothed_rates`: per (predicted class, depth bin) outcome rates shrunk toward neighbouring bins
-  and the class's overall rate, so that sparsely observed bins stay sensible.
+  and the class's overall rate, so that sparsely observed bins stay sensible; bins without data follow their
+  neighbours (:func:`fill_empty_bins`).
 - :func:`reliability_weight`: the evidence weight of a vote that is right with probability p.
 """
 from __future__ import annotations
@@ -286,8 +287,13 @@ def smoothed_rates(counts: np.ndarray, pseudo_count: float = 200.0) -> np.ndarra
       use their one neighbour);
     - prior[y, b] = ½ N[y, b] + ½ R[y]; when the neighbours hold no count (or B = 1), prior[y, b] = R[y].
 
-    So a row with few samples follows its neighbouring bins and the class's overall rate, a row with
-    n ≫ τ stays at its own frequency (off by at most τ / (n + τ)), and an empty row equals its prior.
+    So a row with few samples follows its neighbouring bins and the class's overall rate, and a row with
+    n ≫ τ stays at its own frequency (off by at most τ / (n + τ)).
+
+    An empty row (n[y, b] = 0) of a class seen in other bins has no data of its own and follows its neighbours
+    (:func:`fill_empty_bins`): between two bins with data it is their linear interpolation (in bin index), beyond
+    the first / last bin with data it repeats that bin's row, so unobserved far bins continue the trend instead
+    of jumping back to the class rate. A class never seen keeps its prior.
     """
     if not pseudo_count >= 0:
         raise ValueError("pseudo_count must be >= 0")
@@ -295,8 +301,26 @@ def smoothed_rates(counts: np.ndarray, pseudo_count: float = 200.0) -> np.ndarra
     prior = smoothing_prior(c)
     tau = float(pseudo_count)
     n = c.sum(axis=-1, keepdims=True)
-    seen = n > 0  # an empty row is its prior exactly (no rounding through τ·prior / τ)
-    return np.where(seen, (c + tau * prior) / np.where(seen, n + tau, 1.0), prior)
+    seen = n > 0
+    rates = np.where(seen, (c + tau * prior) / np.where(seen, n + tau, 1.0), prior)
+    return fill_empty_bins(rates, seen[..., 0])
+
+
+def fill_empty_bins(rates: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """``rates`` (C, B, K) with each row y's unseen bins (``seen`` (C, B) False) replaced from its seen ones:
+    linear interpolation in bin index between seen bins, the nearest seen bin's row beyond them (rows stay
+    convex combinations of seen rows: they sum to 1 and never leave the range of their neighbours). Rows of a
+    class without any seen bin are returned unchanged."""
+    out = np.array(rates, dtype=np.float64)
+    bins = np.arange(out.shape[1])
+    for y in range(out.shape[0]):
+        have = np.flatnonzero(seen[y])
+        if have.size == 0 or have.size == bins.size:
+            continue
+        empty = np.flatnonzero(~seen[y])
+        for k in range(out.shape[2]):
+            out[y, empty, k] = np.interp(empty, have, out[y, have, k])
+    return out
 
 
 def reliability_weight(p_correct: np.ndarray, floor: float = 0.0) -> np.ndarray:

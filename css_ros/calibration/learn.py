@@ -98,6 +98,27 @@ def depth_reliability(counts: np.ndarray, pseudo_count: float = DEFAULT_PSEUDO_C
     return smoothed_rates(two, pseudo_count)[0, :, 0]
 
 
+#: How the sensor-model YAML describes the values of depth bins without data (its ``calibration.extrapolated``).
+EXTRAPOLATION_RULE = ("no labelled pixel in these depth bins: their values follow the neighbouring bins with data "
+                      "(linear between them, the last bin's value beyond), not measured")
+
+
+def extrapolated_bins(counts: np.ndarray, edges: np.ndarray, class_names: Iterable[str],
+                      per_class: bool = False) -> dict[str, Any]:
+    """The depth bins whose p and w are extrapolated (no fitting pixel), for the YAML's ``calibration`` section:
+    ``depth_bins`` (indices) and ``depths_m`` ([lo, hi] metres) of the bins without any labelled pixel; with
+    ``per_class`` also ``per_label`` (label name -> bins without a pixel of that label; labels never seen, which
+    keep the prior, are left out)."""
+    n = counts.sum(axis=2)                 # (C, B) pixels per label and bin
+    empty = np.flatnonzero(n.sum(axis=0) == 0)
+    out: dict[str, Any] = {"rule": EXTRAPOLATION_RULE, "depth_bins": [int(b) for b in empty],
+                           "depths_m": [[float(edges[b]), float(edges[b + 1])] for b in empty]}
+    if per_class:
+        out["per_label"] = {name: [int(b) for b in np.flatnonzero(n[y] == 0)]
+                            for y, name in enumerate(class_names) if n[y].any() and not n[y].all()}
+    return out
+
+
 #: How a vote is spread over the classes (css_calibrate --votes).
 VOTE_KINDS = ("symmetric", "onehot", "confusion")
 DEFAULT_VOTES = "symmetric"

@@ -130,7 +130,12 @@ class NbvClient:
         with self.lock:
             pose = self.pose
         if pose is None:
-            self.log.warning("no pose received yet on " + self.node.resolve_topic_name("pose"))
+            within = f" within {self.args.timeout:g} s" if self.args.once else " yet"
+            self.log.warning(f"no pose received{within} on {self.node.resolve_topic_name('pose')} "
+                             f"({POSE_TYPES[self.args.pose_type]}): start what publishes the camera pose (the "
+                             "robot's localisation, or the demo player in another shell: css_demo --loops 10), "
+                             "remap the topic with --ros-args -r pose:=/your/pose, or match its type with "
+                             "--pose-type")
             return None
         if self.pub_candidates.get_subscription_count() == 0:
             self.log.warning(f"nobody subscribes to {self.pub_candidates.topic_name} (is css_node running?)")

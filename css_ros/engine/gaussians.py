@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelError
+from .atomic import new_file_mode
 from .sh import SH_C0, num_sh_coeffs
 
 __all__ = ["GaussianModel", "SH_C0", "num_sh_coeffs", "sh_degree_from_rest_count"]
@@ -129,6 +130,12 @@ class GaussianModel:
         object.__setattr__(self, "log_scales", log_scales)
         object.__setattr__(self, "rotations", rotations)
         object.__setattr__(self, "normals", normals)
+
+    def __repr__(self) -> str:
+        """One line: N, SH degree and the bounding box of the means (metres); never the arrays."""
+        lo, hi = self.means.min(axis=0), self.means.max(axis=0)
+        box = " x ".join(f"[{a:.3g}, {b:.3g}]" for a, b in zip(lo, hi))
+        return f"GaussianModel({self.num_gaussians} Gaussians, SH degree {self.sh_degree}, means in {box} m)"
 
     # ------------------------------------------------------------------ properties
     @property
@@ -382,7 +389,7 @@ class GaussianModel:
                 ply.write(fh)
                 fh.flush()
                 os.fsync(fh.fileno())
-            os.chmod(tmp_name, (p.stat().st_mode & 0o777) if p.exists() else 0o644)
+            os.chmod(tmp_name, (p.stat().st_mode & 0o777) if p.exists() else new_file_mode())
             os.replace(tmp_name, p)
             tmp_name = None
         except OSError as exc:

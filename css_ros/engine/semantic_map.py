@@ -341,6 +341,13 @@ class SemanticMap:
         self.received: Mapping[str, SourceEvidence] = {}
         self._field_index: FieldIndex | None = None  # SPEC §9 spatial index, built on first query
 
+    def __repr__(self) -> str:
+        """One line: size, backend, frames fused and the update's sensor model; never the arrays."""
+        fp = self.sensor_fingerprint
+        return (f"SemanticMap({self.model.num_gaussians} Gaussians x {self.num_classes} classes, "
+                f"backend {self.backend_name}, {self.frames_observed} frames observed, prior {self.prior:g}, "
+                f"{'sensor model ' + fp[:12] if fp else 'paper update'})")
+
     # ------------------------------------------------------------------ state
     @property
     def sensor_model(self) -> "SensorModel | None":

@@ -160,6 +160,14 @@ class SensorModel:
             object.__setattr__(self, "confusion", np.asarray(self.confusion, dtype=np.float64))
         self.validate(self.source or "sensor model")
 
+    def __repr__(self) -> str:
+        """One line: classes, depth bins, votes, confidence map, fingerprint; never the tables."""
+        e = self.depth_edges
+        return (f"SensorModel({self.num_classes} classes, {self.num_bins} depth bins {e[0]:g}-{e[-1]:g} m, "
+                f"{'vote rows' if self.confusion is not None else 'one-hot votes'}, "
+                f"{'calibrated confidence' if self.confidence is not None else 'no confidence map'}, "
+                f"fingerprint {self.fingerprint[:12]})")
+
     # ------------------------------------------------------------------ facts
     @property
     def num_classes(self) -> int:

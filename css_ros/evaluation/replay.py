@@ -10,8 +10,9 @@ import sys
 import time
 from collections import Counter
 from contextlib import nullcontext
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -34,11 +35,14 @@ from .metrics import ConfusionMatrix, PixelSampler
 from .source import Frame, FrameSource, check_label_range
 
 
-def default_out_dir(bag: Path) -> Path:
-    """``out/replay_<bagname>``; a bag directory named ``bag`` is named after its parent (``out/replay_demo``)."""
+def default_out_dir(bag: Path, sensor_model: Path | None = None) -> Path:
+    """``out/replay_<bagname>`` for the paper's update, ``out/replay_<bagname>_<sensor-model stem>`` with a sensor
+    model (runs of the two updates never overwrite each other); a bag directory named ``bag`` is named after its
+    parent (``bags/demo/bag`` -> ``out/replay_demo``)."""
     bag = bag.resolve()
     name = bag.parent.name if bag.name == "bag" and bag.parent.name else bag.name
-    return Path("out") / f"replay_{name}"
+    suffix = "" if sensor_model is None else f"_{Path(sensor_model).stem}"
+    return Path("out") / f"replay_{name}{suffix}"
 
 
 def _progress(total: int | None, desc: str, quiet: bool) -> tqdm:
@@ -59,11 +63,85 @@ def _write_outputs(obag: BagWriter, frame: Frame, view: RenderedView, classes: C
                            frame.map_frame)
 
 
-def run(cfg: ReplayConfig) -> dict[str, Any]:
-    """Replay ``cfg.bag``; write outputs into ``cfg.out``; return the metrics dict (also in metrics.json)."""
-    from .report import make_plots, write_markdown  # matplotlib: imported only when a report is made
+class PaperBaseline:
+    """The paper's update (no sensor model) fused on the same frames as the main map and evaluated the same way:
+    online and fused accuracy / mIoU, pixel sparsification (AUSE) and calibration (ECE) of its E."""
 
-    t0 = time.perf_counter()
+    def __init__(self, smap: SemanticMap, cfg: ReplayConfig, classes: ClassSet) -> None:
+        self.smap = smap
+        self.cfg = cfg
+        self.num_classes = classes.num_classes
+        self.online_cm = ConfusionMatrix(classes.num_classes, cfg.ignore_label)
+        #: the online renders' (right, E) samples; the same seed as the main map's, so the same pixels
+        self.online_pixels = PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed + 1)
+        self.evaluator = Evaluator(cfg, classes, [])  # the fused renders (every frame with the final map)
+
+    def _online(self, frame: Frame, view: RenderedView) -> None:
+        assert frame.gt is not None
+        self.online_cm.update(frame.gt, view.labels)
+        push_calibration(self.online_pixels, frame.gt, view, self.num_classes, self.cfg.ignore_label)
+
+    def fuse(self, frame: Frame) -> None:
+        """A training frame: update (and, with ground truth, render online at the same pose)."""
+        if frame.gt is None:
+            self.smap.update(frame.camera, frame.labels, frame.confidence)
+        else:
+            self._online(frame, self.smap.observe(frame.camera, frame.labels, frame.confidence))
+
+    def heldout(self, frame: Frame) -> None:
+        """A held-out frame (the map is final): its render is both online and fused."""
+        if frame.gt is not None:
+            view = self.smap.render(frame.camera)
+            self._online(frame, view)
+            self.evaluator.add(frame, view, trained=False)
+
+    def evaluate(self, frame: Frame) -> None:
+        """Pass 2: a training frame's pose rendered with the final map."""
+        if frame.gt is not None:
+            self.evaluator.add(frame, self.smap.render(frame.camera), trained=True)
+
+    def report(self, class_names: Sequence[str]) -> dict[str, Any]:
+        """metrics.json's ``paper_update``: the same sections as the main map's, for the paper's update."""
+        return {
+            "segmentation": {"online": self.online_cm.summary(class_names),
+                             "fused": self.evaluator.css.summary(class_names)},
+            "pixel_sparsification": self.evaluator.pixel_report(),
+            "calibration": {"online": calibration_report(self.online_pixels),
+                            "fused": calibration_report(self.evaluator.calibration_pixels)},
+        }
+
+
+@dataclass
+class _Setup:
+    """What a run needs before its first frame: the model, classes, maps, frame source and accumulators."""
+
+    model: GaussianModel
+    classes: ClassSet
+    sensor: SensorModel | None
+    smap: SemanticMap
+    paper: PaperBaseline | None
+    source: FrameSource
+    expected: int  # frames the run will process
+    train: int  # K: frames fused into the map
+    evaluator: Evaluator
+    input_cm: ConfusionMatrix
+    online_cm: ConfusionMatrix  # the online renders written to the output bag
+    online_pixels: PixelSampler
+
+
+@dataclass
+class _FusePass:
+    """What pass 1 counted."""
+
+    processed: int = 0
+    trained: int = 0
+    no_depth: int = 0  # labelled pixels without a rendered depth (sensor model only)
+    #: (camera, U_var or None) of the fused frames, for css_view
+    trajectory: list = field(default_factory=list)
+
+
+def _setup(cfg: ReplayConfig) -> _Setup:
+    """Load model, classes and sensor model; build the map (and the paper's baseline); open the frame source."""
     model = GaussianModel.from_ply(cfg.model)
     classes = ClassSet.from_yaml(cfg.classes) if cfg.classes else ClassSet.default(int(cfg.num_classes or 0))
     C = classes.num_classes
@@ -79,11 +157,7 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     smap = new_map(sensor)
     cfg.unknown_threshold = smap.unknown_threshold
     # the paper's update on the same frames, for the report's comparison (only with a sensor model)
-    paper = new_map(None) if sensor is not None and cfg.paper_baseline else None
-    paper_online_cm = ConfusionMatrix(C, cfg.ignore_label)
-    paper_fused_cm = ConfusionMatrix(C, cfg.ignore_label)
-    online_pixels = PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed + 1)
-    no_depth = 0
+    paper = PaperBaseline(new_map(None), cfg, classes) if sensor is not None and cfg.paper_baseline else None
     source = FrameSource(cfg)
     source.check()
     if not source.present.get("gt") and not cfg.quiet:
@@ -93,99 +167,99 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
     K = expected if cfg.train_frames is None else min(cfg.train_frames, expected)
     n_ex = min(cfg.examples, expected)
     example_indices = sorted({int(round(i)) for i in np.linspace(0, max(expected - 1, 0), n_ex)}) if n_ex else []
-    evaluator = Evaluator(cfg, classes, example_indices)
-    input_cm = ConfusionMatrix(C, cfg.ignore_label)
-    online_cm = ConfusionMatrix(C, cfg.ignore_label)  # the online renders written to the output bag
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    t_load = time.perf_counter() - t0
+    return _Setup(model, classes, sensor, smap, paper, source, expected, K, Evaluator(cfg, classes, example_indices),
+                  ConfusionMatrix(C, cfg.ignore_label), ConfusionMatrix(C, cfg.ignore_label),
+                  PixelSampler(max_samples=cfg.max_pixels, seed=cfg.seed + 1))
 
-    # Pass 1: fuse the first K frames (observe), render the rest; write the online outputs.
-    t1 = time.perf_counter()
-    processed = trained = 0
-    trajectory: list = []  # (camera, U_var or None) of the fused frames, for css_view
+
+def _fuse_pass(cfg: ReplayConfig, st: _Setup) -> _FusePass:
+    """Pass 1: fuse the first K frames (observe), render the rest (the map is final for them: evaluated now);
+    write the online outputs. Raises CssError when no frame was usable."""
+    res = _FusePass()
+    smap, C = st.smap, st.classes.num_classes
     bag_ctx = BagWriter(cfg.out / "bag") if cfg.output_bag else nullcontext()
-    with bag_ctx as obag, _progress(expected, "fuse", cfg.quiet) as bar:
-        for frame in source.frames() if expected > 0 else ():
+    with bag_ctx as obag, _progress(st.expected, "fuse", cfg.quiet) as bar:
+        for frame in st.source.frames() if st.expected > 0 else ():
             online = obag is not None or frame.gt is not None
-            if frame.index < K:
-                trajectory.append((frame.camera, None))
+            view: RenderedView | None
+            if frame.index < st.train:
+                res.trajectory.append((frame.camera, None))
                 if online:
                     view = smap.observe(frame.camera, frame.labels, frame.confidence)
                 else:  # no online outputs wanted: skip the render (the evaluation renders in pass 2)
                     smap.update(frame.camera, frame.labels, frame.confidence)
                     view = None
-                no_depth += smap.last_update.no_depth if smap.last_update is not None else 0
-                trained += 1
-                if paper is not None:
-                    pview = paper.observe(frame.camera, frame.labels, frame.confidence) if frame.gt is not None \
-                        else paper.update(frame.camera, frame.labels, frame.confidence)
-                    if frame.gt is not None:
-                        paper_online_cm.update(frame.gt, pview.labels)
+                res.no_depth += smap.last_update.no_depth if smap.last_update is not None else 0
+                res.trained += 1
+                if st.paper is not None:
+                    st.paper.fuse(frame)
             else:
                 view = smap.render(frame.camera)
-                evaluator.add(frame, view, trained=False)  # map is final: evaluate now
-                if paper is not None and frame.gt is not None:
-                    pview = paper.render(frame.camera)
-                    paper_online_cm.update(frame.gt, pview.labels)
-                    paper_fused_cm.update(frame.gt, pview.labels)
+                st.evaluator.add(frame, view, trained=False)  # map is final: evaluate now
+                if st.paper is not None:
+                    st.paper.heldout(frame)
             if frame.gt is not None:
-                input_cm.update(frame.gt, frame.labels)
+                st.input_cm.update(frame.gt, frame.labels)
                 if view is not None:
-                    online_cm.update(frame.gt, view.labels)
-                    push_calibration(online_pixels, frame.gt, view, C, cfg.ignore_label)
+                    st.online_cm.update(frame.gt, view.labels)
+                    push_calibration(st.online_pixels, frame.gt, view, C, cfg.ignore_label)
             if obag is not None and view is not None:
-                _write_outputs(obag, frame, view, classes, cfg)
-            if view is not None and frame.index < K:
-                trajectory[-1] = (frame.camera, view.u_var)
-            processed += 1
+                _write_outputs(obag, frame, view, st.classes, cfg)
+            if view is not None and frame.index < st.train:
+                res.trajectory[-1] = (frame.camera, view.u_var)
+            res.processed += 1
             bar.update(1)
-            if cfg.max_frames is not None and processed >= cfg.max_frames:
+            if cfg.max_frames is not None and res.processed >= cfg.max_frames:
                 break
-    t_fuse = time.perf_counter() - t1
-    if processed == 0:
-        reasons = ", ".join(f"{k}={v}" for k, v in sorted(source.skips.items())) or "no synchronised frames"
+    if res.processed == 0:
+        reasons = ", ".join(f"{k}={v}" for k, v in sorted(st.source.skips.items())) or "no synchronised frames"
         raise CssError(f"no usable frames in {cfg.bag} ({reasons})")
-    range_warning = check_label_range(source.label_range, OUT_OF_RANGE_MAX_SHARE, cfg.allow_out_of_range)
-    if range_warning:
-        print(range_warning, file=sys.stderr)
+    return res
 
-    # Pass 2: render every trained frame's pose with the final map (paper protocol).
-    t2 = time.perf_counter()
-    skips_pass1 = Counter(source.skips)
-    evaluated_train = 0
+
+def _evaluate_pass(cfg: ReplayConfig, st: _Setup, trained: int) -> int:
+    """Pass 2: render every trained frame's pose with the final map (the paper's protocol); returns the count."""
+    evaluated = 0
     if trained:
         source2 = FrameSource(cfg)
-        source2.present, source2.anchor_count = source.present, source.anchor_count
-        source2.pose_type = source.pose_type
+        source2.present, source2.anchor_count = st.source.present, st.source.anchor_count
+        source2.pose_type = st.source.pose_type
         with _progress(trained, "evaluate", cfg.quiet) as bar:
             for frame in source2.frames():
-                evaluator.add(frame, smap.render(frame.camera), trained=True)
-                if paper is not None and frame.gt is not None:
-                    paper_fused_cm.update(frame.gt, paper.render(frame.camera).labels)
-                evaluated_train += 1
+                st.evaluator.add(frame, st.smap.render(frame.camera), trained=True)
+                if st.paper is not None:
+                    st.paper.evaluate(frame)
+                evaluated += 1
                 bar.update(1)
-                if evaluated_train >= trained:
+                if evaluated >= trained:
                     break
-    t_eval = time.perf_counter() - t2
-    evaluator.images.sort(key=lambda r: r["index"])
-    evaluator.examples.sort(key=lambda r: r["index"])
+    st.evaluator.images.sort(key=lambda r: r["index"])
+    st.evaluator.examples.sort(key=lambda r: r["index"])
+    return evaluated
 
-    # Map, viewer files (semantic and uncertainty splats) and the bird's-eye picture.
-    t3 = time.perf_counter()
-    smap.save(cfg.out / "map.npz")
+
+def _write_map_files(cfg: ReplayConfig, st: _Setup, trajectory: list) -> str | None:
+    """Map, viewer files (semantic and uncertainty splats), trajectory and the bird's-eye picture (its file name,
+    None when nothing was observed)."""
+    st.smap.save(cfg.out / "map.npz")
     splat_to_map = Similarity.from_params(cfg.splat_to_map)
     write_replay_trajectory(cfg.out / "trajectory.npz", trajectory, splat_to_map)
-    export_map(smap, classes, cfg.out, "map", formats=("semantic", "uncertainty"), splat_to_map=splat_to_map)
-    birdseye = _birdseye(smap, classes, cfg.out / "birdseye.png", splat_to_map)
+    export_map(st.smap, st.classes, cfg.out, "map", formats=("semantic", "uncertainty"), splat_to_map=splat_to_map)
+    return _birdseye(st.smap, st.classes, cfg.out / "birdseye.png", splat_to_map)
 
-    has_gt = input_cm.num_pixels > 0
+
+def _metrics(cfg: ReplayConfig, st: _Setup, fused: _FusePass, skips_pass1: Counter) -> dict[str, Any]:
+    """metrics.json (all but the timings) from what the two passes accumulated."""
+    names = st.classes.names
+    source, evaluator = st.source, st.evaluator
+    has_gt = st.input_cm.num_pixels > 0
     metrics: dict[str, Any] = {
-        "bag": str(cfg.bag), "model": str(cfg.model), "num_gaussians": int(model.num_gaussians),
-        "classes": list(classes.names),
+        "bag": str(cfg.bag), "model": str(cfg.model), "num_gaussians": int(st.model.num_gaussians),
+        "classes": list(names),
         "config": cfg.to_json(),
         "frames": {
-            "segmentation_messages": source.anchor_count, "processed": processed, "trained": trained,
-            "evaluated": len(evaluator.images), "heldout": processed - trained,
+            "segmentation_messages": source.anchor_count, "processed": fused.processed, "trained": fused.trained,
+            "evaluated": len(evaluator.images), "heldout": fused.processed - fused.trained,
             "skipped": dict(sorted(skips_pass1.items())), "sync_counts": source.sync_counts,
             "topics_used": {k: (cfg.topics[k] if v else None) for k, v in source.present.items()},
             "out_of_range_labels": {"kinds": source.label_range.summary(), "max_share": OUT_OF_RANGE_MAX_SHARE,
@@ -194,9 +268,9 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         "segmentation": {
             "miou_definition": "mean IoU over classes present in the GT or the prediction; pixels with GT = "
                                "ignore_label (or >= C) are excluded; predicted 'no label' counts as wrong",
-            "input": input_cm.summary(classes.names) if has_gt else None,
-            "css": evaluator.css.summary(classes.names) if has_gt else None,
-            "css_online": online_cm.summary(classes.names) if has_gt and online_cm.num_pixels else None,
+            "input": st.input_cm.summary(names) if has_gt else None,
+            "css": evaluator.css.summary(names) if has_gt else None,
+            "css_online": st.online_cm.summary(names) if has_gt and st.online_cm.num_pixels else None,
             "css_definition": "css: every frame rendered with the FINAL map (after all training frames, the "
                               "paper's protocol); css_online: the renders published per frame (output bag), "
                               "made right after that frame's update",
@@ -204,27 +278,56 @@ def run(cfg: ReplayConfig) -> dict[str, Any]:
         "pixel_sparsification": evaluator.pixel_report(),
         "image_level": evaluator.image_report(),
     }
-    metrics["sensor_model"] = None if sensor is None else {
-        "file": str(cfg.sensor_model), "fingerprint": sensor.fingerprint, "description": sensor.describe(),
-        "labelled_pixels_without_depth": no_depth,
+    metrics["sensor_model"] = None if st.sensor is None else {
+        "file": str(cfg.sensor_model), "fingerprint": st.sensor.fingerprint, "description": st.sensor.describe(),
+        "labelled_pixels_without_depth": fused.no_depth,
         "without_depth_rule": "a labelled pixel that no Gaussian covers has no rendered depth and adds nothing"}
-    if paper is not None and has_gt:
-        metrics["segmentation"]["paper_online"] = paper_online_cm.summary(classes.names)
-        metrics["segmentation"]["paper_fused"] = paper_fused_cm.summary(classes.names)
+    if st.paper is not None and has_gt:
+        paper = st.paper.report(names)
+        metrics["paper_update"] = paper
+        metrics["segmentation"]["paper_online"] = paper["segmentation"]["online"]
+        metrics["segmentation"]["paper_fused"] = paper["segmentation"]["fused"]
     if has_gt:
-        metrics["calibration"] = {"online": calibration_report(online_pixels),
+        metrics["calibration"] = {"online": calibration_report(st.online_pixels),
                                   "fused": calibration_report(evaluator.calibration_pixels),
                                   "definition": "probability that the rendered label is right: E of the argmax "
                                                 "class, and the calibrated ~/confidence of the sensor model"}
-    if has_gt and 0 < trained < processed:
-        metrics["segmentation"]["css_trained_frames"] = evaluator.css_train.summary(classes.names)
-        metrics["segmentation"]["css_heldout_frames"] = evaluator.css_heldout.summary(classes.names)
+    if has_gt and 0 < fused.trained < fused.processed:
+        metrics["segmentation"]["css_trained_frames"] = evaluator.css_train.summary(names)
+        metrics["segmentation"]["css_heldout_frames"] = evaluator.css_heldout.summary(names)
+    return metrics
+
+
+def run(cfg: ReplayConfig) -> dict[str, Any]:
+    """Replay ``cfg.bag``; write outputs into ``cfg.out``; return the metrics dict (also in metrics.json)."""
+    from .report import make_plots, write_markdown  # matplotlib: imported only when a report is made
+
+    t0 = time.perf_counter()
+    st = _setup(cfg)
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    t_load = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    fused = _fuse_pass(cfg, st)
+    t_fuse = time.perf_counter() - t1
+    range_warning = check_label_range(st.source.label_range, OUT_OF_RANGE_MAX_SHARE, cfg.allow_out_of_range)
+    if range_warning:
+        print(range_warning, file=sys.stderr)
+
+    t2 = time.perf_counter()
+    skips_pass1 = Counter(st.source.skips)
+    evaluated_train = _evaluate_pass(cfg, st, fused.trained)
+    t_eval = time.perf_counter() - t2
+
+    t3 = time.perf_counter()
+    birdseye = _write_map_files(cfg, st, fused.trajectory)
+    metrics = _metrics(cfg, st, fused, skips_pass1)
     metrics["timing"] = {
         "warmup_s": cfg.warmup_s, "compilation_excluded": cfg.warmup_s is not None,
-        "load_s": t_load, "fuse_s": t_fuse, "fuse_fps": processed / t_fuse if t_fuse > 0 else None,
+        "load_s": t_load, "fuse_s": t_fuse, "fuse_fps": fused.processed / t_fuse if t_fuse > 0 else None,
         "evaluate_s": t_eval, "evaluate_fps": evaluated_train / t_eval if t_eval > 0 else None,
     }
-    plots = make_plots(cfg.out, metrics, evaluator.examples, classes, cfg.ignore_label)
+    plots = make_plots(cfg.out, metrics, st.evaluator.examples, st.classes, cfg.ignore_label)
     if birdseye:
         plots.insert(0, ("The semantic map from above (observed Gaussians, rendered with the engine)", birdseye))
     metrics["timing"]["save_report_s"] = time.perf_counter() - t3

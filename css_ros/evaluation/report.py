@@ -6,6 +6,9 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from .comparison import comparison_rows
+from .report_guide import CAPTIONS, TERMS
+
 if TYPE_CHECKING:
     from ..engine.classes import ClassSet
 
@@ -472,18 +475,11 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
                            ("css_heldout_frames", "CSS, held-out frames only")):
             if seg.get(key):
                 lines.append(f"| {label} | {_pct(seg[key]['miou'])} | {_pct(seg[key]['pixel_accuracy'])} |")
-        if seg.get("paper_online") and seg.get("css_online"):
-            lines += ["", "### Paper update vs the sensor model (same frames)", "",
-                      "| | online accuracy (%) | online mIoU (%) | fused accuracy (%) | fused mIoU (%) |",
-                      "|---|---|---|---|---|",
-                      f"| input segmentation | {_pct(seg['input']['pixel_accuracy'])} | {_pct(seg['input']['miou'])} "
-                      "| | |",
-                      f"| paper update | {_pct(seg['paper_online']['pixel_accuracy'])} | "
-                      f"{_pct(seg['paper_online']['miou'])} | {_pct(seg['paper_fused']['pixel_accuracy'])} | "
-                      f"{_pct(seg['paper_fused']['miou'])} |",
-                      f"| sensor model | {_pct(seg['css_online']['pixel_accuracy'])} | "
-                      f"{_pct(seg['css_online']['miou'])} | {_pct(seg['css']['pixel_accuracy'])} | "
-                      f"{_pct(seg['css']['miou'])} |"]
+        comparison = comparison_rows(metrics)
+        if comparison:
+            lines += ["", "### Paper update vs the sensor model (same frames, one run)", "",
+                      "Both maps fuse the same frames; the paper's update counts every labelled pixel as one vote, "
+                      "the sensor model weights it by its depth. Bold: the better of the two.", "", *comparison]
         lines += ["", "## Per-class IoU table", "",
                   "IoU in %, difference = CSS - input in percentage points; — = the class is absent from the "
                   "ground truth and that prediction (classes absent from both are not counted as 0).", "",
@@ -519,9 +515,11 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
                                f"{_f(r['ece'])} | {_f(r['brier'])} | {_f(r['mean_confidence'], '.3f')} | "
                                f"{_f(r['accuracy'], '.3f')} |")
     if unc:
-        lines += ["", "## Uncertainty", "", *unc]
+        lines += ["", "## Uncertainty", "", *unc, "", *TERMS]
     for title, fname in plots:
         lines += ["", f"## {title}", "", f"![{title}]({fname})"]
+        if fname in CAPTIONS:
+            lines += ["", CAPTIONS[fname]]
     lines += ["", "Raw numbers: `metrics.json`. Output bag: `bag/` (if written). Map: `map.npz`; "
               "splats for 3DGS viewers: `map_semantic.ply` (class colours), `map_uncertainty_variance.ply` (variance "
               "colour map, colour bar in `map_uncertainty_variance_colorbar.png`).", ""]

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -69,6 +70,35 @@ def birdseye_camera(means: np.ndarray, width: int, margin: float = 0.05) -> tupl
     return cam, tuple(float(v) for v in extent)
 
 
+#: Legend entry of the white pixels.
+EMPTY_LABEL = "white: unobserved"
+
+
+def birdseye_figure(rgb: np.ndarray, extent: tuple[float, ...], classes: ClassSet, order: list[int],
+                    title: str | None = None, dpi: int = 100) -> Any:
+    """The picture's figure: ``rgb`` (H, W, 3) uint8 over ``extent`` (x_min, x_max, y_min, y_max) m, a legend of
+    the classes ``order`` (ids, most pixels first) and of the white :data:`EMPTY_RGB` pixels, axes in metres."""
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    h, w = rgb.shape[:2]
+    fig = Figure(figsize=(w / dpi + 2.6, h / dpi + 0.9), dpi=dpi)
+    ax = fig.add_axes((0.6 / (w / dpi + 2.6), 0.6 / (h / dpi + 0.9), (w / dpi) / (w / dpi + 2.6),
+                       (h / dpi) / (h / dpi + 0.9)))
+    ax.imshow(rgb, extent=extent, origin="upper", interpolation="nearest")
+    ax.set_xlabel("x [m] (map frame)", fontsize=8)
+    ax.set_ylabel("y [m]", fontsize=8)
+    ax.tick_params(labelsize=7)
+    if title:
+        ax.set_title(title, fontsize=9)
+    handles = [Patch(facecolor=classes.palette[i] / 255.0, edgecolor="black", label=classes.names[i])
+               for i in order]
+    handles.append(Patch(facecolor=np.asarray(EMPTY_RGB) / 255.0, edgecolor="black", label=EMPTY_LABEL))
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
+              borderaxespad=0.0)
+    return fig
+
+
 def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.PathLike[str], width: int = 800,
                     min_evidence: float = DEFAULT_MIN_EVIDENCE, observed_only: bool = True,
                     max_height: float | None = None, title: str | None = None, dpi: int = 100,
@@ -90,9 +120,6 @@ def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.Pat
     Raises:
         MapError: class count mismatch, or no Gaussian left to render.
     """
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Patch
-
     if classes.num_classes != smap.num_classes:
         raise MapError(f"{classes.num_classes} classes given for a map of {smap.num_classes} classes")
     sim = splat_to_map if splat_to_map is not None and not splat_to_map.is_identity else None
@@ -118,22 +145,8 @@ def render_birdseye(smap: SemanticMap, classes: ClassSet, path_png: str | os.Pat
     rgb[valid] = classes.palette[labels[valid]]
 
     ids, counts = np.unique(labels[valid], return_counts=True)
-    order = ids[np.argsort(-counts, kind="stable")]
-    h, w = labels.shape
-    fig = Figure(figsize=(w / dpi + 2.6, h / dpi + 0.9), dpi=dpi)
-    ax = fig.add_axes((0.6 / (w / dpi + 2.6), 0.6 / (h / dpi + 0.9), (w / dpi) / (w / dpi + 2.6),
-                       (h / dpi) / (h / dpi + 0.9)))
-    ax.imshow(rgb, extent=extent, origin="upper", interpolation="nearest")
-    ax.set_xlabel("x [m] (map frame)", fontsize=8)
-    ax.set_ylabel("y [m]", fontsize=8)
-    ax.tick_params(labelsize=7)
-    if title:
-        ax.set_title(title, fontsize=9)
-    handles = [Patch(facecolor=classes.palette[i] / 255.0, edgecolor="black", label=classes.names[i])
-               for i in order]
-    if handles:
-        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
-                  borderaxespad=0.0)
+    order = [int(i) for i in ids[np.argsort(-counts, kind="stable")]]
+    fig = birdseye_figure(rgb, extent, classes, order, title, dpi)
     with atomic_binary(path_png) as fh:
         fig.savefig(fh, format="png", dpi=dpi)
     return BirdseyeView(Path(path_png), camera, labels, rgb, extent)

@@ -7,12 +7,12 @@ and ``css_make_demo --robot`` write one (:func:`write_params_file`), the node ta
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from ..engine.atomic import atomic_file
 from ..errors import ConfigError
 from .topics import NODE_NAME
 
@@ -57,13 +57,6 @@ def write_params_file(path: str | os.PathLike, params: dict[str, Any], comment: 
     path = Path(path)
     text = "".join(f"# {line}\n" for line in comment.splitlines())
     text += yaml.safe_dump({NODE_NAME: {"ros__parameters": params}}, sort_keys=False, default_flow_style=None)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "w") as f:
+        f.write(text)
     return path

@@ -19,16 +19,64 @@ USAGE = f"""usage: css_node [-h] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ... 
 scores candidate views (SPEC §7-8). Stop it with SIGINT or SIGTERM: it finishes the current frame (or
 candidate slice) and writes a final checkpoint.
 
-parameters (name, default, unit, description):
+examples:
+  css_node --ros-args --params-file config/css_node.yaml      # the shipped demo model and classes
+  css_node --ros-args -p model_path:=/data/room.ply -p class_file:=/data/classes.yaml \\
+           -r segmentation:=/camera/seg -r pose:=/camera/pose_optical
+  (then, e.g., css_demo plays the demo bag into it; css_ctl talks to it)
 """
+
+#: What each input kind carries (css_node --help); names and types come from io.topics.
+_INPUT_HELP = {
+    "segmentation": "label image (mono8/8UC1/mono16/16UC1), one per frame: the frame's anchor",
+    "confidence": "optional per-pixel confidence in [0, 1] (32FC1), matched by stamp",
+    "image": "optional colour image, matched by stamp (only for the PSNR on /diagnostics)",
+    "camera_info": "pinhole intrinsics; the latest valid one is used",
+    "pose": "pose of the camera (pose_type: PoseStamped, PoseWithCovarianceStamped or Odometry)",
+    "candidates": "poses to score as candidate views (answered on ~/candidate_scores)",
+    "point_queries": "points to query (answered on ~/point_query_results)",
+}
+#: What each output carries (css_node --help).
+_OUTPUT_HELP = {
+    "semantic": "argmax class per pixel (mono8/mono16), per observed frame",
+    "semantic_color": "the labels in class colours (rgb8)",
+    "expectation": "E of the argmax class (32FC1)",
+    "variance": "Var of the argmax class (32FC1)",
+    "rendered_image": "colour render of the splat (rgb8)",
+    "confidence": "calibrated probability that the label is right (32FC1; with a sensor model)",
+    "view_uncertainty": "U_var, U_exp of the frame's view (one point at the camera)",
+    "candidate_scores": "U_var, U_exp, info_gain per candidate pose, request order",
+    "semantic_cloud": "observed Gaussians with class and uncertainty (every cloud_period s)",
+    "point_query_results": "SPEC §9 field at each queried point",
+}
+
+
+def topics_text() -> str:
+    """The topics in and out and the services, with their message types (``css_node --help``)."""
+    from ..io.topics import INPUT_TOPICS, INPUT_TYPES, OUTPUT_TOPICS
+
+    lines = ["topics in (relative: remap with -r NAME:=/your/topic; with cameras:=[ns...] each camera reads "
+             "/ns/NAME):"]
+    lines += [f"  {INPUT_TOPICS[k]} [{INPUT_TYPES[k]}]\n      {d}" for k, d in _INPUT_HELP.items()]
+    lines += ["  <evidence_in topics> [std_msgs/msg/UInt8MultiArray]\n      evidence of other nodes (parameter "
+              "evidence_in)", "", "topics out (private: /css_node/NAME; per camera namespace with several "
+              "cameras):"]
+    lines += [f"  ~/{k} [{OUTPUT_TOPICS[k]}]\n      {d}" for k, d in _OUTPUT_HELP.items()]
+    lines += ["  ~/evidence [std_msgs/msg/UInt8MultiArray]\n      this node's evidence (publish_evidence)",
+              "  ~/view/info, ~/view/semantics, ~/view/model\n      for css_view --live (view_period)",
+              "  /diagnostics [diagnostic_msgs/msg/DiagnosticArray]\n      counters (publish_diagnostics)",
+              "", "services (std_srvs/srv/Trigger; css_ctl save|reset|load): ~/save_map, ~/reset_map, ~/load_map, "
+              "~/view/resync", ""]
+    return "\n".join(lines)
 
 
 def help_text() -> str:
-    """Usage and the parameter table (``css_node --help``)."""
+    """Usage, examples, the topics in and out and the parameter table (``css_node --help``)."""
     rows = []
     for name, default, unit, desc in param_table():
         rows.append(f"  {name} = {format_default(default)}{' [' + unit + ']' if unit else ''}\n      {desc}")
-    return USAGE + "\n".join(rows) + "\n"
+    return (USAGE + "\n" + topics_text() + "\nparameters (name, default, unit, description):\n"
+            + "\n".join(rows) + "\n")
 
 
 def wants_help(argv: Sequence[str]) -> bool:

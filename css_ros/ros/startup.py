@@ -3,7 +3,8 @@ kernel warm-up.
 
 Fatal problems raise CssError (ModelError, ConfigError, SensorModelError, ...) for main() to report; a checkpoint
 that cannot be used (also one fused with another sensor model than ``sensor_model``) is renamed aside
-(``<name>.rejected-<time>``) and the map starts fresh.
+(``<name>.rejected-<time>``) and the map starts fresh; for another sensor model the warning says why and how to
+keep both maps (a checkpoint per update).
 """
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ import numpy as np
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
-from ..engine.sensor_model import SensorModel
+from ..engine.map_file import read_map_info
+from ..engine.sensor_model import NO_SENSOR_MODEL, SensorModel
 from ..engine.similarity import Similarity
 from ..engine.warmup import warm_up_kernels
 from ..errors import ConfigError, CssError, MapError, ModelError, SensorModelError
@@ -67,6 +69,33 @@ def reject_aside(path: Path) -> Path | None:
         return aside
     except OSError:
         return None
+
+
+def _fused_sensor_model(path: Path) -> str | None:
+    """The sensor-model fingerprint a map file records ("" = the paper's update; None: unreadable)."""
+    try:
+        return read_map_info(path).sensor_model
+    except (CssError, OSError):
+        return None
+
+
+def _fingerprint_of(model: SensorModel | None) -> str:
+    return NO_SENSOR_MODEL if model is None else model.fingerprint
+
+
+def keep_both_hint(params: NodeParams, ckpt: Path, aside: Path, fused_with: str, sensor_model: SensorModel | None) -> str:
+    """Why a checkpoint of another update is set aside, and how to keep both maps (appended to the warning)."""
+    old = f"sensor model {fused_with[:12]}" if fused_with else "the paper's update (no sensor model)"
+    new = f"sensor model {sensor_model.fingerprint[:12]}" if sensor_model is not None else "the paper's update"
+    tag = f"sm-{sensor_model.fingerprint[:12]}" if sensor_model is not None else "paper"
+    template = Path(params.checkpoint_path)
+    suggestion = template.with_name(f"{template.stem}_{tag}{template.suffix or '.npz'}")
+    resume_old = f"with the sensor_model of fingerprint {fused_with[:12]}" if fused_with \
+        else "with sensor_model:=''"
+    return (f". Why: that map was fused with {old} and this node fuses with {new}; their evidence is in different "
+            "units, so one map cannot continue the other. To keep both: give this update its own checkpoint "
+            f"(-p checkpoint_path:={suggestion}) and rename {aside.name} back to {ckpt.name}; that map resumes "
+            f"when the node runs {resume_old}")
 
 
 def load_classes(params: NodeParams, log_warning: Callable[[str], None]) -> ClassSet:
@@ -199,9 +228,13 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
                             f"parameters ({p.prior:g}, {p.background:g})")
         except MapError as exc:
             smap = None
+            fused_with = _fused_sensor_model(ckpt)
             aside = reject_aside(ckpt)
             status = f"starting fresh: checkpoint refused: {exc}" + (f"; kept it as {aside}" if aside else "")
-            log_warning(status)
+            hint = ""
+            if aside is not None and fused_with is not None and fused_with != _fingerprint_of(sensor_model):
+                hint = keep_both_hint(p, ckpt, aside, fused_with, sensor_model)
+            log_warning(status + hint)
     elif ckpt is not None and p.resume:
         status = f"fresh map (no checkpoint at {ckpt} yet)"
     if smap is None:
