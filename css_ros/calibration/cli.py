@@ -124,7 +124,7 @@ def collect(configs: list[ReplayConfig], edges: np.ndarray, num_classes: int, he
         for frame in _frames(cfg, "statistics", quiet):
             if frame.gt is None:
                 continue
-            depth = smap.render(frame.camera).depth
+            depth = smap.render(frame.camera, outputs=("depth",)).depth
             assert depth is not None  # the numba backend always renders depth
             counts.add(frame.labels, frame.gt, depth, is_heldout(frame.index, heldout_every))
     return counts

@@ -63,6 +63,11 @@ def _write_outputs(obag: BagWriter, frame: Frame, view: RenderedView, classes: C
                            frame.map_frame)
 
 
+#: the images css_replay evaluates and writes (the report's metrics and plots, the output bag's topics); the
+#: engine does not make or copy the others (kappa_b, depth)
+EVALUATED_IMAGES = ("labels", "expectation", "variance", "evidence", "rgb", "confidence")
+
+
 class PaperBaseline:
     """The paper's update (no sensor model) fused on the same frames as the main map and evaluated the same way:
     online and fused accuracy / mIoU, pixel sparsification (AUSE) and calibration (ECE) of its E."""
@@ -86,19 +91,19 @@ class PaperBaseline:
         if frame.gt is None:
             self.smap.update(frame.camera, frame.labels, frame.confidence)
         else:
-            self._online(frame, self.smap.observe(frame.camera, frame.labels, frame.confidence))
+            self._online(frame, self.smap.observe(frame.camera, frame.labels, frame.confidence, outputs=EVALUATED_IMAGES))
 
     def heldout(self, frame: Frame) -> None:
         """A held-out frame (the map is final): its render is both online and fused."""
         if frame.gt is not None:
-            view = self.smap.render(frame.camera)
+            view = self.smap.render(frame.camera, outputs=EVALUATED_IMAGES)
             self._online(frame, view)
             self.evaluator.add(frame, view, trained=False)
 
     def evaluate(self, frame: Frame) -> None:
         """Pass 2: a training frame's pose rendered with the final map."""
         if frame.gt is not None:
-            self.evaluator.add(frame, self.smap.render(frame.camera), trained=True)
+            self.evaluator.add(frame, self.smap.render(frame.camera, outputs=EVALUATED_IMAGES), trained=True)
 
     def report(self, class_names: Sequence[str]) -> dict[str, Any]:
         """metrics.json's ``paper_update``: the same sections as the main map's, for the paper's update."""
@@ -185,7 +190,7 @@ def _fuse_pass(cfg: ReplayConfig, st: _Setup) -> _FusePass:
             if frame.index < st.train:
                 res.trajectory.append((frame.camera, None))
                 if online:
-                    view = smap.observe(frame.camera, frame.labels, frame.confidence)
+                    view = smap.observe(frame.camera, frame.labels, frame.confidence, outputs=EVALUATED_IMAGES)
                 else:  # no online outputs wanted: skip the render (the evaluation renders in pass 2)
                     smap.update(frame.camera, frame.labels, frame.confidence)
                     view = None
@@ -194,7 +199,7 @@ def _fuse_pass(cfg: ReplayConfig, st: _Setup) -> _FusePass:
                 if st.paper is not None:
                     st.paper.fuse(frame)
             else:
-                view = smap.render(frame.camera)
+                view = smap.render(frame.camera, outputs=EVALUATED_IMAGES)
                 st.evaluator.add(frame, view, trained=False)  # map is final: evaluate now
                 if st.paper is not None:
                     st.paper.heldout(frame)
@@ -226,7 +231,7 @@ def _evaluate_pass(cfg: ReplayConfig, st: _Setup, trained: int) -> int:
         source2.pose_type = st.source.pose_type
         with _progress(trained, "evaluate", cfg.quiet) as bar:
             for frame in source2.frames():
-                st.evaluator.add(frame, st.smap.render(frame.camera), trained=True)
+                st.evaluator.add(frame, st.smap.render(frame.camera, outputs=EVALUATED_IMAGES), trained=True)
                 if st.paper is not None:
                     st.paper.evaluate(frame)
                 evaluated += 1
