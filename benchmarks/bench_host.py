@@ -11,7 +11,10 @@ timed here without a GPU. Two forms of that host work, per scene size (the bench
   the host builds numpy views into the one copy (:class:`css_ros.engine.cuda.layout.PlaneLayout`).
 
 The copy itself is not counted in either (a memcpy from device to page-locked memory on the GPU machine); the
-bytes it moves are printed. Usage: ``python benchmarks/bench_host.py [--repeat 30] [--confidence]``.
+bytes it moves are printed. With ``--node``, a second table times what css_node adds to a frame beyond the observe:
+turning a view into its image messages (``~/semantic`` ids, ``~/semantic_color``, ``~/expectation``,
+``~/variance``, ``~/rendered_image``, ``~/confidence``: io/outputs.frame_output_images + ros/conversions.image_msg).
+Usage: ``python benchmarks/bench_host.py [--repeat 30] [--confidence] [--node]``.
 """
 from __future__ import annotations
 
@@ -50,6 +53,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeat", type=int, default=30, help="timed repetitions per scene (median reported)")
     p.add_argument("--confidence", action="store_true", help="with a sensor model's confidence map")
+    p.add_argument("--node", action="store_true", help="also time css_node's message conversions per frame")
     args = p.parse_args()
     rng = np.random.default_rng(0)
     print("| scene | pixels | interleaved host [ms] | final host [ms] | bytes copied: interleaved / final (all images)"
@@ -74,6 +78,35 @@ def main() -> None:
             new.append(time.perf_counter() - t)
         print(f"| {name} | {w}x{h} | {1e3 * statistics.median(old):.2f} | {1e3 * statistics.median(new):.3f} | "
               f"{buf.nbytes / 1e6:.1f} MB / {4 * layout.words / 1e6:.1f} MB / {4 * only_labels.words / 1e6:.1f} MB |")
+    if args.node:
+        node_conversions(args.repeat, args.confidence)
+
+
+def node_conversions(repeat: int, confidence: bool) -> None:
+    """Median ms per frame of css_node's image messages from a view in final form, per scene size."""
+    from css_ros import RenderedView
+    from css_ros.engine.classes import ClassSet
+    from css_ros.io.outputs import frame_output_images
+    from css_ros.ros import conversions as rc
+
+    rng = np.random.default_rng(1)
+    print()
+    print("| scene | pixels | css_node's image messages, all topics [ms] |")
+    print("|---|---|---|")
+    for name, (w, h, c) in SCENES.items():
+        f32 = lambda h=h, w=w: rng.random((h, w), dtype=np.float32)  # noqa: E731
+        view = RenderedView(rng.integers(0, c, (h, w)).astype(np.int32), f32(), f32(), f32(), f32(),
+                            rng.integers(0, 256, (h, w, 3)).astype(np.uint8), 0.1, 0.5,
+                            confidence=f32() if confidence else None)
+        classes = ClassSet.default(c)
+        header = rc.header_msg(123, "camera")
+        times = []
+        for _ in range(repeat):
+            t = time.perf_counter()
+            for array, encoding in frame_output_images(view, classes, 255).values():
+                rc.image_msg(array, encoding, header)
+            times.append(time.perf_counter() - t)
+        print(f"| {name} | {w}x{h} | {1e3 * statistics.median(times):.2f} |")
 
 
 if __name__ == "__main__":
