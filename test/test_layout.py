@@ -147,3 +147,59 @@ def test_engine_imports_torch_only_for_the_torch_backend():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
+
+
+BACKEND_PACKAGES = ("cpu", "cuda", "torch")
+#: modules inside a backend's folder that are tools about it, not part of it: the CUDA cost model counts a frame's
+#: sizes with the CPU engine (the same culls and tile lists)
+BACKEND_TOOLS = {("engine", "cuda", "cost_model.py")}
+
+
+def test_backends_know_only_the_contract_and_the_registry_knows_them():
+    """Each rasteriser backend imports the backend contract (engine/raster_backend.py), never another backend or the
+    registry; engine/backends.py is the only module of the package that imports a backend's entry module."""
+    bad = []
+    for path in _modules():
+        rel = path.relative_to(PKG).parts
+        own = rel[1] if len(rel) > 2 and rel[0] == "engine" and rel[1] in BACKEND_PACKAGES else None
+        if rel in BACKEND_TOOLS:
+            continue
+        for mod, line in _imports(path):
+            parts = mod.split(".")
+            if own is not None:
+                other = len(parts) > 2 and parts[1] == "engine" and parts[2] in BACKEND_PACKAGES and parts[2] != own
+                if other or mod in ("css_ros.engine.backends", "css_ros.engine.semantic_map"):
+                    bad.append(f"{path.relative_to(PKG)}:{line} imports {mod}")
+            elif (mod in {f"css_ros.engine.{b}.backend" for b in ("cpu", "cuda")} or mod == "css_ros.engine.torch.raster") \
+                    and rel != ("engine", "backends.py"):
+                bad.append(f"{path.relative_to(PKG)}:{line} imports backend {mod} (only engine/backends.py may)")
+    assert not bad, "\n".join(bad)
+
+
+def test_engine_imports_have_no_cycles():
+    """The engine's module imports (module level and deferred) form no cycle."""
+    graph: dict[str, set[str]] = {}
+    for path in _modules():
+        if _layer(path) != "engine":
+            continue
+        name = "css_ros." + ".".join(path.relative_to(PKG).with_suffix("").parts)
+        name = name.removesuffix(".__init__")
+        graph[name] = {m for m, _ in _imports(path) if m.startswith("css_ros.engine")}
+    graph = {k: {m for m in v if m in graph and m != k and not k.startswith(m + ".")} for k, v in graph.items()}
+    seen: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> None:
+        seen[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if seen.get(nxt) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(nxt):] + [nxt]))
+            if nxt not in seen:
+                visit(nxt)
+        stack.pop()
+        seen[node] = 2
+
+    for node in sorted(graph):
+        if node not in seen:
+            visit(node)
