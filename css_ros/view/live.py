@@ -26,6 +26,7 @@ from ..io.clouds import unpack_cloud, unpack_rgb, unpack_scored_views
 from ..io.messages import stamp_to_ns
 from ..io.view_stream import parse_info
 from .data import ViewData
+from .opening import AXIS_NAMES
 
 REDRAW_PERIOD_S = 0.5      # at most two redraws a second while updates arrive
 NODE_GONE_S = 3.0          # no publisher of ~/view/semantics for this long: the page says the node is gone
@@ -202,7 +203,9 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
             time.sleep(0.1)
         data = follower.build_data()
         follower.resync(10.0)
-        view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}")
+        up = getattr(args, "up", None)
+        view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}",
+                       up=None if up is None else np.asarray(AXIS_NAMES[up], np.float64))
         view.query = _node_query(follower)
         print(f"css_view: following {follower.node_name} ({data.num_gaussians:,} Gaussians)", flush=True)
         print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)
