@@ -49,9 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--splat-to-map", type=float, nargs=8, metavar=("S", "X", "Y", "Z", "QX", "QY", "QZ", "QW"),
                    help="show the map in the map frame of this similarity (css_node's splat_to_map; default: the "
                    "replay folder's, else the splat's own frame)")
-    p.add_argument("--up", choices=sorted(AXIS_NAMES), default=None,
-                   help="the map's up axis (default: from the trajectory, else estimated from the map's surfaces); "
-                   "the page opens level with it and cuts ceilings along it")
+    p.add_argument("--up", choices=UP_CHOICES, default=None, metavar="AXIS",
+                   help="the map's up axis: x, y, z, or -x, -y, -z written as --up=-y (default: from the trajectory, "
+                   "else estimated from the map's surfaces); the page opens level with it and cuts ceilings along it")
     p.add_argument("--live", action="store_true", help="follow a running css_node over DDS (shows the node's "
                    "map frame)")
     p.add_argument("--node", default="/css_node", help="node name to follow with --live (default /css_node)")
@@ -125,9 +125,15 @@ def map_frame_query(smap: SemanticMap, to_map: Similarity):
     return query
 
 
+#: ``--up`` values: the six axis names of :data:`AXIS_NAMES` and x, y, z for their + ones
+UP_CHOICES = sorted(AXIS_NAMES) + ["x", "y", "z"]
+
+
 def up_vector(name: str | None) -> np.ndarray | None:
     """The ``--up`` axis as a (3,) vector, None when not given."""
-    return None if name is None else np.asarray(AXIS_NAMES[name], np.float64)
+    if name is None:
+        return None
+    return np.asarray(AXIS_NAMES[name if name[0] in "+-" else "+" + name], np.float64)
 
 
 def opening_line(view) -> str:

@@ -26,7 +26,6 @@ from ..io.clouds import unpack_cloud, unpack_rgb, unpack_scored_views
 from ..io.messages import stamp_to_ns
 from ..io.view_stream import parse_info
 from .data import ViewData
-from .opening import AXIS_NAMES
 
 REDRAW_PERIOD_S = 0.5      # at most two redraws a second while updates arrive
 NODE_GONE_S = 3.0          # no publisher of ~/view/semantics for this long: the page says the node is gone
@@ -185,6 +184,7 @@ class LiveFollower:
 def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
                stop: threading.Event | None = None) -> int:
     """Follow ``args.node`` and serve the page until interrupted (or ``--exit-after`` seconds, or ``stop``)."""
+    from .cli import up_vector
     from .server import MapView, check_port_free
 
     check_port_free(args.host, args.port)
@@ -203,9 +203,8 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
             time.sleep(0.1)
         data = follower.build_data()
         follower.resync(10.0)
-        up = getattr(args, "up", None)
         view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}",
-                       up=None if up is None else np.asarray(AXIS_NAMES[up], np.float64))
+                       up=up_vector(getattr(args, "up", None)))
         view.query = _node_query(follower)
         print(f"css_view: following {follower.node_name} ({data.num_gaussians:,} Gaussians)", flush=True)
         print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)

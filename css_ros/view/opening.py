@@ -35,7 +35,7 @@ CUT_BELOW_TOP = 0.12                 # default cut: this share of the height ran
 STEP_BACK = 0.6                      # a frame's opening view starts this far [m] behind the frame's camera ...
 STEP_UP = 0.4                        # ... and this much higher (over its shoulder: the frame's frustum in sight)
 FRAME_TARGET = 1.5                   # ... looking at the point this far [m] ahead of the frame's camera
-TRAJECTORY_PREFERENCE = 1.2          # a fused frame's score counts this much more than an in-room viewpoint's
+TRAJECTORY_PREFERENCE = 2.0          # a fused frame wins unless an in-room viewpoint scores this many times more
 MIN_OPACITY = 0.1                    # fainter Gaussians neither show nor hide anything in the scoring
 
 AXIS_NAMES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),

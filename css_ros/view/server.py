@@ -104,7 +104,7 @@ class MapView:
         self.opening: OpeningView = opening_view(data, up)
         # the default cut on the slider's 5 cm grid (so the slider echoes the same value back)
         self.cut = (float(np.floor(self.opening.cut * 20.0) / 20.0) if self.opening.cut is not None
-                    else self._cut_max())
+                    else self.cut_max())
         self.query = query
         self.lock = threading.RLock()
         self.mode = "semantic"
@@ -143,8 +143,8 @@ class MapView:
             self._heights = self.data.centers.astype(np.float64) @ self.opening.up
         return self._heights
 
-    def _cut_max(self) -> float:
-        """A cut height that keeps every Gaussian (the slider's top) [m]."""
+    def cut_max(self) -> float:
+        """The slider's top [m]: a cut height that keeps every Gaussian."""
         return float(np.ceil(max(self.opening.top, self.opening.high) * 20.0 + 1.0) / 20.0)
 
     def set_cut(self, height: float) -> None:
@@ -169,7 +169,7 @@ class MapView:
         self.colorbar = gui.add_html("")
         o = self.opening
         lo = float(np.floor(o.low * 20.0) / 20.0)
-        self.cut_slider = gui.add_slider(f"Cut above (m, {axis_label(o.up)} up)", min=lo, max=self._cut_max(),
+        self.cut_slider = gui.add_slider(f"Cut above (m, {axis_label(o.up)} up)", min=lo, max=self.cut_max(),
                                          step=0.05, initial_value=self.cut,
                                          hint="hide Gaussians above this height (ceilings); the top keeps all; "
                                          f"up axis from {o.up_source}")
@@ -229,7 +229,7 @@ class MapView:
             d = self.data
             rgb, bar = mode_colors(d, self.mode)
             keep = visible_mask(d, self.hidden, self.observed_only, self.uncertain_only, self.var_threshold)
-            if self.cut < self._cut_max():
+            if self.cut < self.cut_max():
                 keep &= self.heights() <= self.cut
             self.keep = keep
             self.colorbar.content = colorbar_html(bar) if bar is not None else ""
@@ -247,7 +247,7 @@ class MapView:
         with self.lock:
             self.status.content = (f"showing {int(self.keep.sum()):,} of {self.data.num_gaussians:,} Gaussians · "
                                    f"{MODE_LABELS[self.mode]} · "
-                                   + (f"cut above {self.cut:.2f} m · " if self.cut < self._cut_max() else "")
+                                   + (f"cut above {self.cut:.2f} m · " if self.cut < self.cut_max() else "")
                                    + f"update {self.redraws} · "
                                    f"{time.strftime('%H:%M:%S')}" + (f"\n\n{self.status_note}" if self.status_note
                                                                      else ""))
