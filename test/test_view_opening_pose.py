@@ -124,7 +124,7 @@ def test_the_opening_camera_is_in_the_room_and_the_engine_sees_the_classes_from_
     smap = observed_map(model, truth, classes)
     data = turned(smap, classes, up)
     o = opening_view(data)
-    assert o.source == "inside the observed box"
+    assert o.source == "a viewpoint inside the observed box"
     lo, hi = np.percentile(data.centers, 1, axis=0), np.percentile(data.centers, 99, axis=0)
     assert np.all(o.position > lo) and np.all(o.position < hi), (o.position, lo, hi)
     assert o.position @ o.up < o.cut

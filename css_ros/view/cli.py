@@ -24,11 +24,15 @@ EXAMPLES = """\
 examples:
   css_view out/replay_demo                                  # a css_replay output folder (map, model, classes, trajectory)
   css_view map.npz --model model.ply --classes classes.yaml # a map file
+  css_view map.npz --model model.ply --up y                 # y is up (x, y, z; --up=-y for -y)
   css_view map.npz --model big.ply --max-gaussians 500000   # the 500k most informative Gaussians only
   css_view --live                                           # follow a running css_node over DDS
 
-Open the printed URL in a browser. Modes: RGB, semantic class, E and Var of the argmax class, evidence;
-filters, class legend with toggles, camera trajectory coloured by U_var, click for a point query.
+Open the printed URL in a browser. The page opens inside the map, on its observed surfaces: over the shoulder of
+a fused frame (replay folders), else at the in-room viewpoint that shows the most classes, with ceilings cut
+away along the up axis (the "Cut above" slider; its right end shows everything). Modes: RGB, semantic class,
+E and Var of the argmax class, evidence; filters, class legend with toggles, camera trajectory coloured by
+U_var, click for a point query.
 """
 
 

@@ -51,7 +51,7 @@ class OpeningView:
         low, high: 1st and 99th percentiles of the Gaussians' heights along ``up`` [m].
         top: the largest height [m]; cut: default "cut above" height [m] (None: the map has no ceiling, nothing cut).
         position, look_at: (3,) camera position and orbit centre [m]; fov_y: vertical field of view [rad].
-        source: "trajectory frame i" or "inside the observed box".
+        source: "trajectory frame i" or "a viewpoint inside the observed box".
         classes_shown, coverage: classes on >= MIN_CLASS_SHARE and share of the coarse image in class colours,
             as scored for the chosen pose.
     """
@@ -257,7 +257,7 @@ def candidate_views(data: ViewData, points: np.ndarray, observed: np.ndarray, up
         for share in (0.55, 0.85):
             pos = ground + (low + share * (ceiling - low)) * up
             if np.linalg.norm(target - pos) > 1e-3:
-                out.append((pos, target - pos, "inside the observed box", False))
+                out.append((pos, target - pos, "a viewpoint inside the observed box", False))
     return out
 
 
