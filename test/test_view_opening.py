@@ -86,9 +86,9 @@ def wait_until(predicate, timeout: float, what: str, poll: float = 0.2):
     return value
 
 
-def first_picture(args: list[str], timeout: float = 300.0) -> tuple[np.ndarray, str]:
-    """Start ``css_view args`` (its own port), open its URL in headless Chromium and return (the canvas of the first
-    settled screenshot, css_view's output). Settled: the splat is drawn (non-white pixels) and two screenshots
+def first_picture(args: list[str], timeout: float = 300.0) -> tuple[np.ndarray, np.ndarray, str]:
+    """Start ``css_view args`` (its own port), open its URL in headless Chromium and return (the first settled
+    screenshot of the page, its 3D canvas, css_view's output). Settled: the splat is drawn (non-white pixels) and two screenshots
     in a row are equal."""
     if find_chromium() is None:
         pytest.skip("no chromium on PATH (CI installs Debian's chromium in .ci/run; apt-get install chromium)")
@@ -114,11 +114,14 @@ def first_picture(args: list[str], timeout: float = 300.0) -> tuple[np.ndarray, 
         address = wait_until(url, timeout, "css_view to print its URL")
         browser = Browser(WIDTH, HEIGHT)
         browser.goto(address)
-        w, h = wait_until(lambda: canvas_box(browser) if browser.evaluate("document.querySelectorAll('canvas')"
-                                                                          ".length") else None, 60, "the page's canvas")
-        drawn = lambda img: np.mean(np.abs(img[:h, :w].astype(np.int16) - 255).sum(axis=2) > 60) > 0.05  # noqa: E731
+        wait_until(lambda: browser.evaluate("document.querySelectorAll('canvas').length"), 60, "the page's canvas")
+
+        def drawn(img: np.ndarray) -> bool:   # the splat is on the canvas (its size is final once the panel docks)
+            w, h = canvas_box(browser)
+            return bool(np.mean(np.abs(img[:h, :w].astype(np.int16) - 255).sum(axis=2) > 60) > 0.05)
         img = browser.stable_screenshot(max(end - time.monotonic(), 30.0), accept=drawn)
-        return img[:h, :w], "".join(lines)
+        w, h = canvas_box(browser)
+        return img, img[:h, :w], "".join(lines)
     finally:
         if browser is not None:
             browser.close()
@@ -163,10 +166,10 @@ def replay(tmp_path_factory) -> Path:
 
 
 def test_the_demo_replay_opens_on_its_observed_room(replay):
-    canvas, log = first_picture([str(replay)])
+    page, canvas, log = first_picture([str(replay)])
     assert "opens at trajectory frame" in log and "up +z (from trajectory)" in log, log
-    save_shot(canvas, "css_view_opening.png")
-    assert_shows_the_room(canvas, DEMO / "classes.yaml", "css_view out/replay_demo")
+    save_shot(page, "css_view_opening.png")
+    print("classes shown, class share:", assert_shows_the_room(canvas, DEMO / "classes.yaml", "css_view out/replay_demo"))
 
 
 def test_a_bare_y_up_map_opens_inside_its_room(replay, tmp_path):
@@ -185,8 +188,8 @@ def test_a_bare_y_up_map_opens_inside_its_room(replay, tmp_path):
     bare = SemanticMap(turned, fused.num_classes, prior=fused.prior, background=fused.background)
     bare.concentrations = fused.concentrations.copy()
     bare.save(tmp_path / "map.npz")
-    canvas, log = first_picture([str(tmp_path / "map.npz"), "--model", str(tmp_path / "room_y_up.ply"),
+    page, canvas, log = first_picture([str(tmp_path / "map.npz"), "--model", str(tmp_path / "room_y_up.ply"),
                                  "--classes", str(DEMO / "classes.yaml")])
     assert "up +y (from surfaces)" in log, log
-    save_shot(canvas, "css_view_opening_y_up.png")
-    assert_shows_the_room(canvas, DEMO / "classes.yaml", "a bare y-up map")
+    save_shot(page, "css_view_opening_y_up.png")
+    print("classes shown, class share:", assert_shows_the_room(canvas, DEMO / "classes.yaml", "a bare y-up map"))
