@@ -74,6 +74,20 @@ def test_the_up_axis_holds_when_the_ceiling_was_observed_too(room, up):
     np.testing.assert_array_equal(o.up, AXES[up])
 
 
+@pytest.mark.parametrize("up", ["+z", "-x"])
+def test_a_corridor_narrower_than_high_still_finds_its_floor(room, up):
+    """The room squeezed along y to 2.1 m wide (2.7 m high; the Gaussians keep their shapes, so the room's
+    surfaces keep their normals): the thinnest axis is now a wall's normal; the floor was observed and the
+    ceiling not, which picks the vertical."""
+    model, truth, classes = room
+    narrow = GaussianModel.from_activated(model.means * [1.0, 2.1 / 6.0, 1.0], model.scales, model.rotations,
+                                          model.opacities, model.base_colors)
+    data = turned(observed_map(narrow, truth, classes), classes, up)
+    extent = np.ptp(data.centers, axis=0)
+    assert np.argmin(extent) != int(np.flatnonzero(AXES[up])[0])   # thinnest is not the vertical
+    np.testing.assert_array_equal(opening_view(data).up, AXES[up])
+
+
 def test_the_default_cut_removes_the_ceiling_and_keeps_the_furniture(room):
     model, truth, classes = room
     data = turned(observed_map(model, truth, classes), classes, "-y")

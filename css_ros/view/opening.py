@@ -8,8 +8,10 @@ in-room viewpoint that shows the most of the observed map, and the ceiling is cu
 The up axis comes, in this order, from ``--up``, from the trajectory (the dominant surface axis closest to the
 cameras' mean up, -y of the optical frame), else from the surfaces alone: flat Gaussians' normals cluster on the
 room's three axes (floor/ceiling, two wall directions); the axis along which the map is thinnest is vertical
-(a room is lower than it is wide) and it points away from the side where the observed Gaussians crowd (floor
-and furniture). Everything is in the map frame of :class:`~css_ros.view.data.ViewData` (metres).
+(a room is lower than it is wide) unless an axis nearly as thin has ends that differ much more in how much of them
+was observed (a corridor: the floor was seen, the ceiling not). Up points from the better observed end (the
+floor) or, when both ends were seen alike, away from the side where the observed Gaussians crowd (floor and
+furniture). Everything is in the map frame of :class:`~css_ros.view.data.ViewData` (metres).
 """
 from __future__ import annotations
 
@@ -30,6 +32,8 @@ FLAT_RATIO = 0.35                    # flat Gaussian: smallest std. dev. <= this
 AXIS_COS = math.cos(math.radians(12.0))   # normals within 12 degrees of an axis belong to it
 SNAP_COS = math.cos(math.radians(2.0))    # an up axis within 2 degrees of a frame axis is snapped onto it
 CEILING_SLAB = 0.08                  # the top slab (share of the height range) where a ceiling is looked for
+CLOSE_EXTENT = 1.5                   # axes thinner than this x the thinnest may be vertical (a corridor) ...
+STRONG_ASYMMETRY = 0.3               # ... and the one whose ends differ most in observed share is (floor vs ceiling)
 CEILING_SHARE = 0.2                  # a ceiling: the top slab holds this share of the horizontal surface area
 CUT_BELOW_TOP = 0.12                 # default cut: this share of the height range below the top
 STEP_BACK = 0.6                      # a frame's opening view starts this far [m] behind the frame's camera ...
@@ -150,11 +154,28 @@ def estimate_up(data: ViewData, normals: np.ndarray, weights: np.ndarray, rows: 
             return _snap(axes[k] * np.sign(dots[k])), "trajectory"
     h = centers @ axes.T                                                    # (M, 3)
     lo, hi = np.percentile(h, 2, axis=0), np.percentile(h, 98, axis=0)
-    k = int(np.argmin(hi - lo))
+    extent = hi - lo
     observed = data.semantics.observed[rows]
-    mass = h[observed, k] if np.count_nonzero(observed) >= 10 else h[:, k]
-    sign = 1.0 if np.median(mass) <= 0.5 * (lo[k] + hi[k]) else -1.0
+    asym = np.array([end_asymmetry(h[:, j], observed, lo[j], hi[j]) for j in range(3)])
+    close = np.flatnonzero(extent <= CLOSE_EXTENT * extent.min())
+    k = int(np.argmin(extent))
+    if len(close) > 1 and np.abs(asym[close]).max() >= STRONG_ASYMMETRY:
+        k = int(close[np.argmax(np.abs(asym[close]))])
+    if abs(asym[k]) >= STRONG_ASYMMETRY:
+        sign = float(np.sign(asym[k]))
+    else:
+        mass = h[observed, k] if np.count_nonzero(observed) >= 10 else h[:, k]
+        sign = 1.0 if np.median(mass) <= 0.5 * (lo[k] + hi[k]) else -1.0
     return _snap(axes[k] * sign), "surfaces"
+
+
+def end_asymmetry(h: np.ndarray, observed: np.ndarray, lo: float, hi: float) -> float:
+    """Observed share of the Gaussians in the bottom slab (CEILING_SLAB of ``lo``..``hi``) minus that of the top
+    slab, along one axis with heights ``h`` (M,) [m]: near 1 for floor (seen) against ceiling (never seen), near 0
+    for two opposite walls."""
+    slab = CEILING_SLAB * (hi - lo)
+    bottom, top = observed[h <= lo + slab], observed[h >= hi - slab]
+    return (float(bottom.mean()) if len(bottom) else 0.0) - (float(top.mean()) if len(top) else 0.0)
 
 
 def ceiling_cut(heights: np.ndarray, normals: np.ndarray, weights: np.ndarray, up: np.ndarray,
