@@ -2,8 +2,8 @@
 surfaces from where they were observed.
 
 Indoor maps are closed rooms: a view from outside shows the outer side of walls and a never-observed (grey)
-ceiling. So the page opens inside: at the fused frame (a little behind it) or, without a trajectory, at the
-in-room viewpoint that shows the most of the observed map, and the ceiling is cut away along the up axis.
+ceiling. So the page opens inside: over the shoulder of a fused frame or, without a trajectory, at the in-room
+viewpoint that shows the most of the observed map, and the ceiling is cut away along the up axis.
 
 The up axis comes, in this order, from ``--up``, from the trajectory (the dominant surface axis closest to the
 cameras' mean up, -y of the optical frame), else from the surfaces alone: flat Gaussians' normals cluster on the

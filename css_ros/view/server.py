@@ -102,6 +102,7 @@ class MapView:
         check_port_free(host, port)
         self.data = data
         self.opening: OpeningView = opening_view(data, up)
+        self._heights = data.centers.astype(np.float64) @ self.opening.up   # (M,) [m] along the up axis
         # the default cut on the slider's 5 cm grid (so the slider echoes the same value back)
         self.cut = (float(np.floor(self.opening.cut * 20.0) / 20.0) if self.opening.cut is not None
                     else self.cut_max())
@@ -138,9 +139,7 @@ class MapView:
         cam.position = tuple(float(v) for v in o.position)
 
     def heights(self) -> np.ndarray:
-        """(M,) heights [m] of the displayed Gaussians' centres along the up axis."""
-        if getattr(self, "_heights", None) is None or len(self._heights) != len(self.data.centers):
-            self._heights = self.data.centers.astype(np.float64) @ self.opening.up
+        """(M,) heights [m] of the displayed Gaussians' centres along the up axis (their centres never move)."""
         return self._heights
 
     def cut_max(self) -> float:
