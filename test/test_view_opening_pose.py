@@ -204,3 +204,23 @@ def test_frustums_shrink_where_frames_crowd():
     assert frustum_scale(line) == pytest.approx(0.05)
     assert frustum_scale(line * 10.0) == pytest.approx(0.15)
     assert frustum_scale(line[:1]) == pytest.approx(0.15)
+
+
+@pytest.mark.parametrize("shape", ["one point", "five in one place", "a vertical line", "a flat patch"])
+def test_degenerate_maps_open_at_a_finite_pose(shape):
+    means = {"one point": np.zeros((1, 3)), "five in one place": np.zeros((5, 3)),
+             "a vertical line": np.c_[np.zeros(50), np.zeros(50), np.linspace(0.0, 2.0, 50)],
+             "a flat patch": np.random.default_rng(0).uniform(-1, 1, (30, 3)) * [1.0, 1.0, 0.0]}[shape]
+    n = len(means)
+    model = GaussianModel.from_activated(means, np.full((n, 3), 0.05), np.tile([1.0, 0, 0, 0], (n, 1)),
+                                         np.full(n, 0.9), np.full((n, 3), 0.5))
+    smap = SemanticMap(model, 3)
+    smap.concentrations = smap.concentrations + np.array([0.0, 5.0, 0.0])
+    view = MapView(build_view_data(smap, ClassSet.default(3)), "127.0.0.1", 0, title="t")
+    try:
+        o = view.opening
+        assert np.isfinite(o.position).all() and np.isfinite(o.look_at).all()
+        assert np.linalg.norm(o.look_at - o.position) > 0.1 and abs(np.linalg.norm(o.up) - 1.0) < 1e-12
+        assert view.keep.all()
+    finally:
+        view.stop()

@@ -55,7 +55,8 @@ class OpeningView:
         low, high: 1st and 99th percentiles of the Gaussians' heights along ``up`` [m].
         top: the largest height [m]; cut: default "cut above" height [m] (None: the map has no ceiling, nothing cut).
         position, look_at: (3,) camera position and orbit centre [m]; fov_y: vertical field of view [rad].
-        source: "trajectory frame i" or "a viewpoint inside the observed box".
+        source: "trajectory frame i", "a viewpoint inside the observed box" (or, for a map without extent,
+            "a view from outside (the map has no extent)").
         classes_shown, coverage: classes on >= MIN_CLASS_SHARE and share of the coarse image in class colours,
             as scored for the chosen pose.
     """
@@ -266,6 +267,8 @@ def candidate_views(data: ViewData, points: np.ndarray, observed: np.ndarray, up
     c0 = flat.mean(axis=0)
     e = np.linalg.eigh((flat - c0).T @ (flat - c0))[1]
     e1 = e[:, 2] - (e[:, 2] @ up) * up
+    if np.linalg.norm(e1) < 1e-6:           # no horizontal spread: any level direction
+        e1 = camera_axes(up, up)[0]
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
     a, b = (flat - c0) @ e1, (flat - c0) @ e2
@@ -279,6 +282,9 @@ def candidate_views(data: ViewData, points: np.ndarray, observed: np.ndarray, up
             pos = ground + (low + share * (ceiling - low)) * up
             if np.linalg.norm(target - pos) > 1e-3:
                 out.append((pos, target - pos, "a viewpoint inside the observed box", False))
+    if not out:   # a map without extent (every Gaussian in one place): from 3 m away, a little above
+        out.append((target - 3.0 * e1 + 1.0 * up, 3.0 * e1 - 1.0 * up, "a view from outside (the map has no extent)",
+                    False))
     return out
 
 
