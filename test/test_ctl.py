@@ -60,6 +60,12 @@ def test_ctl_save_query_candidates_reset(tmp_path):
         assert rows[best].endswith("<- best next view (info gain)")
         assert "<- most uncertain" in rows[3] and sum("<- best next view" in row for row in rows) == 1
 
+        # --yaw 0 builds the README's level view along +x: the node scores the same pose, to the digit
+        level = css_ctl(domain, "candidates", "0.1", "0.2", "0.5", "-0.5", "0.5", "-0.5", "0.5")
+        by_yaw = css_ctl(domain, "candidates", "--yaw", "0.1", "0.2", "0.5", "0")
+        assert level.returncode == 0 and by_yaw.returncode == 0, level.stderr + by_yaw.stderr
+        assert by_yaw.stdout == level.stdout and np.isfinite(float(level.stdout.splitlines()[2].split()[4]))
+
         many = tmp_path / "poses.txt"   # one more than the node's max_candidates (256): every row NaN
         many.write_text("\n".join("0 0 0 0 0 0 1" for _ in range(257)) + "\n")
         r = css_ctl(domain, "candidates", "--file", str(many))

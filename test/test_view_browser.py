@@ -94,15 +94,18 @@ def page():
 
     full, classes = demo_map()
     data = build_view_data(full, classes, MAX_GAUSSIANS)
-    # the engine's map of exactly the drawn Gaussians: the expectation of what the canvas shows
-    smap = SemanticMap(full.model.select(data.index), classes.num_classes)
-    smap.concentrations = full.concentrations[data.index]
 
     def query(xyz):
-        q = smap.query_points(xyz)
+        q = full.query_points(xyz)
         return q.labels, q.expectation, q.variance
 
     view = MapView(data, port=free_port(), query=query, title="demo map")
+    # the engine's map of exactly the drawn Gaussians (below the page's default ceiling cut, brute force along its
+    # up axis): the expectation of what the canvas shows
+    assert np.array_equal(view.opening.up, [0.0, 0.0, 1.0]) and view.cut < view.cut_max()
+    drawn = data.index[data.centers[:, 2].astype(np.float64) <= view.cut]
+    smap = SemanticMap(full.model.select(drawn), classes.num_classes)
+    smap.concentrations = full.concentrations[drawn]
     clients = []
     view.server.on_client_connect(lambda client: clients.append(client))
     browser = Browser(WIDTH, HEIGHT)

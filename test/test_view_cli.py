@@ -263,33 +263,3 @@ def test_a_replay_made_with_splat_to_map_is_shown_and_queried_in_the_map_frame(t
     np.testing.assert_allclose(pose[:3, 3], 2.0 * R @ cam.T_map_cam[:3, 3] + t, atol=1e-12)
     np.testing.assert_allclose(pose[:3, :3], R @ cam.T_map_cam[:3, :3], atol=1e-12)
 
-
-def test_the_page_opens_framed_on_the_observed_map_in_the_map_frame(tmp_path):
-    """A scene trained y-down (splat frame) shown with its splat_to_map: the first view looks at the centre of the
-    observed Gaussians' box, from above, with z up in the map frame."""
-    from css_ros.engine.classes import ClassSet
-    from css_ros.engine.similarity import Similarity
-    from css_ros.view.data import build_view_data
-    from css_ros.view.server import MapView, initial_view
-
-    rng = np.random.default_rng(0)
-    n = 400
-    means = rng.uniform(-1.0, 1.0, (n, 3)) * [2.0, 0.1, 1.5] + [10.0, 0.0, 0.0]   # a wall, y down in the splat
-    model = GaussianModel.from_activated(means, np.full((n, 3), 0.05), np.tile([1.0, 0, 0, 0], (n, 1)),
-                                         np.full(n, 0.9), np.full((n, 3), 0.5))
-    smap = SemanticMap(model, 3)
-    observed = np.arange(n) < n // 2
-    smap.concentrations[observed, 1] += 5.0
-    to_map = Similarity.from_params([1.0, 0, 0, 0, *(np.array([1.0, 0, 0, 1.0]) / np.sqrt(2))])  # y-down -> z-up
-    data = build_view_data(smap, ClassSet.default(3), splat_to_map=to_map)
-    centre, eye = initial_view(data)
-    obs = data.centers[data.semantics.observed]
-    np.testing.assert_allclose(centre, 0.5 * (np.percentile(obs, 5, 0) + np.percentile(obs, 95, 0)), atol=1e-6)
-    assert eye[2] > centre[2] + 0.5 and np.linalg.norm(eye - centre) > 1.0
-    view = MapView(data, "127.0.0.1", 0, title="t")
-    try:
-        assert tuple(view.server.initial_camera.up) == (0.0, 0.0, 1.0)
-        np.testing.assert_allclose(view.server.initial_camera.look_at, centre, atol=1e-6)
-        np.testing.assert_allclose(view.server.initial_camera.position, eye, atol=1e-6)
-    finally:
-        view.stop()

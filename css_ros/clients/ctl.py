@@ -11,6 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..console import run_console
+from ..engine.camera import body_to_optical_rotation, matrix_to_quaternion_xyzw
 from ..errors import CssError
 from ..io.clouds import pack_cloud, unpack_cloud, unpack_scored_views
 from ..io.point_queries import ANSWER_FIELDS
@@ -27,10 +28,15 @@ examples:
   css_ctl load                                # replace the map by the checkpoint at checkpoint_path
   css_ctl query 0.5 0.2 1.0  -1 0 0.3         # SPEC §9 point queries (x y z triples, map frame, metres)
   css_ctl query --file points.txt             # one "x y z" per line
-  css_ctl candidates 0 0 1.5 0 0 0 1          # score views (x y z qx qy qz qw of the optical frame, map frame):
-                                              # U_var, U_exp, info_gain; marks the most uncertain view and the
-                                              # best next view (largest expected information gain)
-  css_ctl candidates --file poses.txt         # one "x y z qx qy qz qw" per line
+  css_ctl candidates 0 0 1.5 -0.5 0.5 -0.5 0.5
+                                              # score views (x y z qx qy qz qw of the optical frame, map frame:
+                                              # z forward, x right, y down): here 1.5 m up, looking level along +x;
+                                              # prints U_var, U_exp, info_gain, marks the most uncertain view and
+                                              # the best next view (largest expected information gain)
+  css_ctl candidates --yaw 0 0 1.5 0  0 0 1.5 90
+                                              # the same as x y z yaw: a level camera turned yaw degrees from +x
+                                              # towards +y about the map's z (up): along +x, then along +y
+  css_ctl candidates --file poses.txt         # one "x y z qx qy qz qw" per line (with --yaw: "x y z yaw")
 Use ROS_DOMAIN_ID as for the node; --node for another node name.
 """
 
@@ -48,8 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("xyz", type=float, nargs="*", help="x y z triples [m, map frame]")
     q.add_argument("--file", type=Path, help="text file, one 'x y z' per line")
     c = sub.add_parser("candidates", help="score candidate views (U_var, U_exp, info_gain)")
-    c.add_argument("pose", type=float, nargs="*", help="x y z qx qy qz qw per view (optical frame in the map)")
-    c.add_argument("--file", type=Path, help="text file, one 'x y z qx qy qz qw' per line")
+    c.add_argument("pose", type=float, nargs="*", help="x y z qx qy qz qw per view (optical frame in the map: z "
+                   "forward, x right, y down; the identity looks along the map's +z), or x y z yaw with --yaw")
+    c.add_argument("--yaw", action="store_true", help="give each view as x y z yaw: a level camera (REP-103 body "
+                   "frame: x forward, z up) turned yaw degrees about the map's +z from +x towards +y")
+    c.add_argument("--file", type=Path, help="text file, one 'x y z qx qy qz qw' per line ('x y z yaw' with --yaw)")
     return p
 
 
@@ -68,6 +77,19 @@ def read_rows(values: Sequence[float], file: Path | None, width: int, what: str)
     if not values or len(values) % width:
         raise CssError(f"give {what} as groups of {width} numbers (got {len(values)})")
     return np.asarray(values, np.float64).reshape(-1, width)
+
+
+def level_poses(rows: np.ndarray) -> np.ndarray:
+    """(M, 7) x y z qx qy qz qw of the optical frame in the map for (M, 4) rows x y z yaw [m, degrees]: the REP-103
+    body frame (x forward, y left, z up) turned by yaw about the map's +z, then to the optical frame with
+    :func:`~css_ros.engine.camera.body_to_optical_rotation` (yaw 0 looks along +x: quaternion -0.5 0.5 -0.5 0.5)."""
+    yaw = np.radians(rows[:, 3])
+    c, s = np.cos(yaw), np.sin(yaw)
+    r_map_body = np.zeros((len(rows), 3, 3))
+    r_map_body[:, 0, 0], r_map_body[:, 0, 1], r_map_body[:, 1, 0], r_map_body[:, 1, 1] = c, -s, s, c
+    r_map_body[:, 2, 2] = 1.0
+    quats = [matrix_to_quaternion_xyzw(r @ body_to_optical_rotation()) for r in r_map_body]
+    return np.hstack([rows[:, :3], np.reshape(quats, (-1, 4))])
 
 
 def format_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
@@ -190,7 +212,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "query":
             xyz = read_rows(args.xyz, args.file, 3, "points")
         elif args.command == "candidates":
-            poses = read_rows(args.pose, args.file, 7, "poses")
+            poses = (level_poses(read_rows(args.pose, args.file, 4, "x y z yaw poses")) if args.yaw
+                     else read_rows(args.pose, args.file, 7, "poses"))
         link = NodeLink()
         try:
             if args.command in SERVICES:

@@ -17,17 +17,22 @@ from ..engine.semantic_map import SemanticMap
 from ..engine.similarity import Similarity
 from ..errors import CssError
 from .data import build_view_data, classes_for_map
+from .opening import AXIS_NAMES, axis_label
 from ..io.trajectory import load_trajectory
 
 EXAMPLES = """\
 examples:
   css_view out/replay_demo                                  # a css_replay output folder (map, model, classes, trajectory)
   css_view map.npz --model model.ply --classes classes.yaml # a map file
+  css_view map.npz --model model.ply --up y                 # y is up (x, y, z; --up=-y for -y)
   css_view map.npz --model big.ply --max-gaussians 500000   # the 500k most informative Gaussians only
   css_view --live                                           # follow a running css_node over DDS
 
-Open the printed URL in a browser. Modes: RGB, semantic class, E and Var of the argmax class, evidence;
-filters, class legend with toggles, camera trajectory coloured by U_var, click for a point query.
+Open the printed URL in a browser. The page opens inside the map, on its observed surfaces: over the shoulder of
+a fused frame (replay folders), else at the in-room viewpoint that shows the most classes, with ceilings cut
+away along the up axis (the "Cut above" slider; its right end shows everything). Modes: RGB, semantic class,
+E and Var of the argmax class, evidence; filters, class legend with toggles, camera trajectory coloured by
+U_var, click for a point query.
 """
 
 
@@ -48,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--splat-to-map", type=float, nargs=8, metavar=("S", "X", "Y", "Z", "QX", "QY", "QZ", "QW"),
                    help="show the map in the map frame of this similarity (css_node's splat_to_map; default: the "
                    "replay folder's, else the splat's own frame)")
+    p.add_argument("--up", choices=UP_CHOICES, default=None, metavar="AXIS",
+                   help="the map's up axis: x, y, z, or -x, -y, -z written as --up=-y (default: from the trajectory, "
+                   "else estimated from the map's surfaces); the page opens level with it and cuts ceilings along it")
     p.add_argument("--live", action="store_true", help="follow a running css_node over DDS (shows the node's "
                    "map frame)")
     p.add_argument("--node", default="/css_node", help="node name to follow with --live (default /css_node)")
@@ -121,6 +129,25 @@ def map_frame_query(smap: SemanticMap, to_map: Similarity):
     return query
 
 
+#: ``--up`` values: the six axis names of :data:`AXIS_NAMES` and x, y, z for their + ones
+UP_CHOICES = sorted(AXIS_NAMES) + ["x", "y", "z"]
+
+
+def up_vector(name: str | None) -> np.ndarray | None:
+    """The ``--up`` axis as a (3,) vector, None when not given."""
+    if name is None:
+        return None
+    return np.asarray(AXIS_NAMES[name if name[0] in "+-" else "+" + name], np.float64)
+
+
+def opening_line(view) -> str:
+    """One line on where the page opens: the up axis and its source, the ceiling cut, the start pose."""
+    o = view.opening
+    cut = f"cut above {view.cut:.2f} m" if o.cut is not None else "no ceiling found, nothing cut"
+    return (f"css_view: up {axis_label(o.up)} (from {o.up_source}), {cut}; opens at {o.source} "
+            f"({o.classes_shown} classes in sight)")
+
+
 def serve_offline(args: argparse.Namespace) -> int:
     """Load the map, serve it, block until interrupted (or ``--exit-after`` seconds)."""
     from .server import MapView, check_port_free
@@ -137,9 +164,11 @@ def serve_offline(args: argparse.Namespace) -> int:
     data = build_view_data(smap, classes, args.max_gaussians, splat_to_map=to_map)
     if traj_file is not None:
         data.trajectory = load_trajectory(traj_file)   # css_replay writes it in the map frame
-    view = MapView(data, args.host, args.port, query=map_frame_query(smap, to_map), title=f"{map_file.name} on {model_file.name}")
+    view = MapView(data, args.host, args.port, query=map_frame_query(smap, to_map),
+                   title=f"{map_file.name} on {model_file.name}", up=up_vector(args.up))
     print(f"css_view: {len(data.index):,} of {model.num_gaussians:,} Gaussians loaded in "
           f"{time.perf_counter() - t0:.1f} s", flush=True)
+    print(opening_line(view), flush=True)
     print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)
     wait(args.exit_after)
     view.stop()

@@ -184,6 +184,7 @@ class LiveFollower:
 def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
                stop: threading.Event | None = None) -> int:
     """Follow ``args.node`` and serve the page until interrupted (or ``--exit-after`` seconds, or ``stop``)."""
+    from .cli import up_vector
     from .server import MapView, check_port_free
 
     check_port_free(args.host, args.port)
@@ -202,7 +203,8 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
             time.sleep(0.1)
         data = follower.build_data()
         follower.resync(10.0)
-        view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}")
+        view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}",
+                       up=up_vector(getattr(args, "up", None)))
         view.query = _node_query(follower)
         print(f"css_view: following {follower.node_name} ({data.num_gaussians:,} Gaussians)", flush=True)
         print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)

@@ -13,11 +13,14 @@ import numpy as np
 from ..errors import CssError
 from .coloring import MODE_LABELS, MODES, ColorBar, mode_colors, visible_mask
 from .data import ViewData
+from .opening import OpeningView, axis_label, opening_view
 
 SPLAT_NAME = "/map"
 DEFAULT_VAR_THRESHOLD = 0.05   # uncertain-only slider start (Var of the argmax class; the maximum is 0.25)
 PICK_SIGMAS = 2.0              # a click hits a Gaussian whose centre is within this many std. devs of the ray
 PICK_MIN_OPACITY = 0.1
+FRUSTUM_SCALE = 0.15           # largest drawn size of a fused frame's frustum [m]; smaller where frames crowd
+FRUSTUM_LINE_PX = 2.0          # frustum line width [screen px] (world-width lines fill the view near a frame)
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -62,18 +65,13 @@ def colorbar_html(bar: ColorBar) -> str:
             f'</div><div style="font-size:11px">{html.escape(bar.label)}; grey = unobserved</div></div>')
 
 
-def initial_view(data: ViewData) -> tuple[np.ndarray, np.ndarray]:
-    """(look-at point, camera position) [m, map frame] framing the observed Gaussians (all when none is observed):
-    the centre of their 5th-95th percentile box, seen from the south-west above at ~35 degrees, 1.2 box diagonals
-    away."""
-    pts = data.centers[data.semantics.observed] if np.any(data.semantics.observed) else data.centers
-    if len(pts) == 0:
-        return np.zeros(3), np.array([-3.0, -3.0, 3.0])
-    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
-    centre = 0.5 * (lo + hi)
-    diag = max(float(np.linalg.norm(hi - lo)), 0.5)
-    direction = np.array([-0.57, -0.57, 0.59])   # south-west, 35 degrees above the horizon
-    return centre, centre + 1.2 * diag * direction / np.linalg.norm(direction)
+def frustum_scale(positions: np.ndarray) -> float:
+    """Frustum size [m] for camera centres (F, 3) [m]: FRUSTUM_SCALE, or half the median step between consecutive
+    frames when they are closer (so that a dense trajectory does not become a fence)."""
+    if len(positions) < 2:
+        return FRUSTUM_SCALE
+    step = float(np.median(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
+    return float(np.clip(0.5 * step, 0.03, FRUSTUM_SCALE))
 
 
 def legend_html(names, palette) -> str:
@@ -93,15 +91,21 @@ class MapView:
         data: what to draw.
         query: optional SPEC §9 point query, (M, 3) map-frame points -> (labels (M,), E (M, C), Var (M, C)).
         title: shown on the page.
+        up: (3,) up axis of the map frame (``--up``); None: estimated (:mod:`css_ros.view.opening`).
     """
 
     def __init__(self, data: ViewData, host: str = "127.0.0.1", port: int = 8080,
                  query: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
-                 title: str = "css_ros map") -> None:
+                 title: str = "css_ros map", up: np.ndarray | None = None) -> None:
         import viser
 
         check_port_free(host, port)
         self.data = data
+        self.opening: OpeningView = opening_view(data, up)
+        self._heights = data.centers.astype(np.float64) @ self.opening.up   # (M,) [m] along the up axis
+        # the default cut on the slider's 5 cm grid (so the slider echoes the same value back)
+        self.cut = (float(np.floor(self.opening.cut * 20.0) / 20.0) if self.opening.cut is not None
+                    else self.cut_max())
         self.query = query
         self.lock = threading.RLock()
         self.mode = "semantic"
@@ -124,15 +128,31 @@ class MapView:
         self.redraw()
 
     def frame_camera(self) -> None:
-        """Open on the observed map (all Gaussians when none is observed): z up in the map frame, looking at the
-        centre of its bounding box (5th-95th percentiles, so a few stray Gaussians do not zoom out) from above at
-        about 35 degrees, far enough for the box to fill the view."""
-        centers, view_from = initial_view(self.data)
-        self.server.scene.set_up_direction("+z")
+        """Open inside the map, on its observed surfaces (:func:`css_ros.view.opening.opening_view`): at a fused
+        frame or the in-room viewpoint that shows the most classes, with the map's up axis up."""
+        o = self.opening
+        self.server.scene.set_up_direction(tuple(float(v) for v in o.up))
         cam = self.server.initial_camera
-        cam.up = (0.0, 0.0, 1.0)
-        cam.look_at = tuple(float(v) for v in centers)
-        cam.position = tuple(float(v) for v in view_from)
+        cam.up = tuple(float(v) for v in o.up)
+        cam.fov = o.fov_y
+        cam.look_at = tuple(float(v) for v in o.look_at)
+        cam.position = tuple(float(v) for v in o.position)
+
+    def heights(self) -> np.ndarray:
+        """(M,) heights [m] of the displayed Gaussians' centres along the up axis (their centres never move)."""
+        return self._heights
+
+    def cut_max(self) -> float:
+        """The slider's top [m]: a cut height that keeps every Gaussian."""
+        return float(np.ceil(max(self.opening.top, self.opening.high) * 20.0 + 1.0) / 20.0)
+
+    def set_cut(self, height: float) -> None:
+        """Draw only the Gaussians whose centre lies at or below ``height`` [m along the up axis] and redraw."""
+        with self.lock:
+            self.cut = float(height)
+            if abs(self.cut_slider.value - self.cut) > 1e-9:
+                self.cut_slider.value = self.cut
+        self.redraw()
 
     # ------------------------------------------------------------------ GUI
     def _build_gui(self, title: str) -> None:
@@ -146,6 +166,14 @@ class MapView:
         self.threshold = gui.add_slider("Var threshold", min=0.0, max=0.25, step=0.005,
                                         initial_value=DEFAULT_VAR_THRESHOLD)
         self.colorbar = gui.add_html("")
+        o = self.opening
+        lo = float(np.floor(o.low * 20.0) / 20.0)
+        self.cut_slider = gui.add_slider(f"Cut above (m, {axis_label(o.up)} up)", min=lo, max=self.cut_max(),
+                                         step=0.05, initial_value=self.cut,
+                                         hint="hide Gaussians above this height (ceilings); the top keeps all; "
+                                         f"up axis from {o.up_source}")
+        self.cut_slider.on_update(lambda ev: self.set_cut(ev.target.value) if abs(ev.target.value - self.cut) > 1e-9
+                                  else None)
         folder = gui.add_folder("Classes")
         self.class_cbs = []
         with folder:
@@ -200,6 +228,8 @@ class MapView:
             d = self.data
             rgb, bar = mode_colors(d, self.mode)
             keep = visible_mask(d, self.hidden, self.observed_only, self.uncertain_only, self.var_threshold)
+            if self.cut < self.cut_max():
+                keep &= self.heights() <= self.cut
             self.keep = keep
             self.colorbar.content = colorbar_html(bar) if bar is not None else ""
             if np.any(keep):
@@ -215,7 +245,9 @@ class MapView:
         """Refresh the status line (Gaussians shown, mode, redraw count, live state)."""
         with self.lock:
             self.status.content = (f"showing {int(self.keep.sum()):,} of {self.data.num_gaussians:,} Gaussians · "
-                                   f"{MODE_LABELS[self.mode]} · update {self.redraws} · "
+                                   f"{MODE_LABELS[self.mode]} · "
+                                   + (f"cut above {self.cut:.2f} m · " if self.cut < self.cut_max() else "")
+                                   + f"update {self.redraws} · "
                                    f"{time.strftime('%H:%M:%S')}" + (f"\n\n{self.status_note}" if self.status_note
                                                                      else ""))
 
@@ -230,6 +262,7 @@ class MapView:
         ok = np.isfinite(u) & (u > 0)
         lo, hi = (np.log(u[ok].min()), np.log(u[ok].max())) if ok.any() else (0.0, 1.0)
         cm = matplotlib.colormaps["magma"]
+        scale = frustum_scale(np.array([t[0][:3, 3] for t in traj], np.float64))
         for i, (T, fov_y, aspect, uv) in enumerate(traj):
             x, y, z, w = matrix_to_quaternion_xyzw(T[:3, :3])
             if ok[i]:
@@ -237,7 +270,8 @@ class MapView:
             else:
                 color = (128, 128, 128)
             self.server.scene.add_camera_frustum(f"/trajectory/frame_{i:05d}", fov=float(fov_y),
-                                                 aspect=float(aspect), scale=0.15, color=color,
+                                                 aspect=float(aspect), scale=scale, color=color,
+                                                 thickness=FRUSTUM_LINE_PX, thickness_units="screen",
                                                  wxyz=(w, x, y, z), position=tuple(T[:3, 3]))
 
     # ------------------------------------------------------------------ clicks
