@@ -6,10 +6,11 @@ from types import SimpleNamespace as NS
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from css_ros.io.pose_history import LookupStatus, PosePolicy
 from css_ros.io.tf_buffer import TfBuffer, TfSample, decode_tf_message
+from tf_reference import brute_chain, mat, pose_errors
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S
@@ -25,34 +26,10 @@ def tf_msg(entries):
     return NS(transforms=out)
 
 
-def mat(xyz, q):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q).as_matrix()
-    T[:3, 3] = xyz
-    return T
-
-
-def brute_edge(samples, t):
-    """T_parent_child at t from sorted (stamp, xyz, q) samples: linear + scipy slerp, exact at a sample."""
-    times = np.array([s[0] for s in samples], dtype=np.int64)
-    i = int(np.searchsorted(times, t))
-    if i < len(times) and times[i] == t:
-        return mat(samples[i][1], samples[i][2])
-    (t0, p0, q0), (t1, p1, q1) = samples[i - 1], samples[i]
-    u = (t - t0) / (t1 - t0)
-    rot = Slerp([0.0, 1.0], Rotation.from_quat([q0, q1]))([u])[0]
-    T = np.eye(4)
-    T[:3, :3] = rot.as_matrix()
-    T[:3, 3] = np.asarray(p0) + u * (np.asarray(p1) - np.asarray(p0))
-    return T
-
-
 def assert_pose(look, T, tol=1e-9):
     assert look.status is LookupStatus.OK, (look.reason, look.detail)
-    np.testing.assert_allclose(look.position, T[:3, 3], atol=tol)
-    R = Rotation.from_quat(look.quat).as_matrix()
-    angle = Rotation.from_matrix(R.T @ T[:3, :3]).magnitude()
-    assert angle < tol
+    dp, da = pose_errors(look.position, look.quat, T)
+    assert dp < tol and da < tol
 
 
 def random_q(rng):
@@ -87,12 +64,7 @@ def robot():
 
 
 def brute_in_map(frame, t, dyn, static, parents):
-    T = np.eye(4)
-    while frame != "map":
-        E = static[frame] if frame in static else brute_edge(dyn[frame], t)
-        T = E @ T
-        frame = parents[frame]
-    return T
+    return brute_chain(frame, "map", t, parents, dyn, static)
 
 
 def test_chain_lookups_match_the_brute_force(robot):
