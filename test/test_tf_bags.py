@@ -4,6 +4,7 @@ lookup map <- the segmentation's frame_id at its stamp (checked against a numpy 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -133,12 +134,12 @@ def test_pose_source_options_and_refusals(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_the_tf_robot_demo_replays_like_the_pose_topic_robot_demo(tmp_path: Path) -> None:
     for name, tf in (("pose", False), ("tf", True)):
-        make_robot_demo(tmp_path / name, num_gaussians=3000, frames=5, width=48, height=36, progress=False, tf=tf)
+        make_robot_demo(tmp_path / name, num_gaussians=3000, frames=6, width=64, height=48, progress=False, tf=tf)
     a = _source(tmp_path / "pose" / "bag", tmp_path)
     b = _source(tmp_path / "tf" / "bag", tmp_path)
     assert (a.pose_source, b.pose_source) == ("topic", "tf")
     fa, fb = list(a.frames()), list(b.frames())
-    assert len(fa) == len(fb) == 10 and not a.skips and not b.skips
+    assert len(fa) == len(fb) == 12 and not a.skips and not b.skips
     for x, y in zip(fa, fb):
         assert (x.stamp_ns, x.camera_index) == (y.stamp_ns, y.camera_index)
         dp, da = pose_errors(y.position_map, y.quat_map, mat(x.position_map, x.quat_map))
@@ -151,7 +152,16 @@ def test_the_tf_robot_demo_replays_like_the_pose_topic_robot_demo(tmp_path: Path
         assert res.returncode == 0, res.stderr
         metrics.append(json.loads((tmp_path / f"out_{name}" / "metrics.json").read_text()))
     assert metrics[1]["config"]["pose_source"] == "tf"
-    assert metrics[0]["frames"]["processed"] == metrics[1]["frames"]["processed"] == 10
+    assert metrics[0]["frames"]["processed"] == metrics[1]["frames"]["processed"] == 12
     for metric in ("miou", "pixel_accuracy"):
         for what in ("input", "css"):
             assert abs(metrics[0]["segmentation"][what][metric] - metrics[1]["segmentation"][what][metric]) < 1e-9
+    # css_calibrate reads the labelled TF bag the same way: the same sensor model (fingerprint of its tables)
+    fingerprints = []
+    for name in ("pose", "tf"):
+        res = subprocess.run([sys.executable, "-m", "css_ros.calibration.cli", str(tmp_path / name / "bag"), "--out",
+                              str(tmp_path / f"{name}_sensor.yaml"), "--quiet"], capture_output=True, text=True,
+                             timeout=600)
+        assert res.returncode == 0, res.stderr
+        fingerprints.append(re.search(r"fingerprint ([0-9a-f]{12})", res.stdout + res.stderr).group(1))
+    assert fingerprints[0] == fingerprints[1]
