@@ -52,6 +52,7 @@ class TfClient:
         self.tf = node.create_publisher(TFMessage, "/tf", qos)
         self.tf_static = node.create_publisher(TFMessage, "/tf_static", QoSProfile(
             depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.tf_static_volatile = node.create_publisher(TFMessage, "/tf_static", qos)  # not tf2_ros's QoS
         self.cams = {ns: (node.create_publisher(CameraInfo, f"{ns + '/' if ns else ''}camera_info", qos),
                           node.create_publisher(Image, f"{ns + '/' if ns else ''}segmentation", qos))
                      for ns in cameras}
@@ -72,10 +73,11 @@ class TfClient:
         return record
 
     def publishers(self) -> list:
-        return [self.tf, self.tf_static] + [p for pair in self.cams.values() for p in pair]
+        return [self.tf, self.tf_static, self.tf_static_volatile] + [p for pair in self.cams.values() for p in pair]
 
-    def send_tf(self, entries, static: bool = False) -> None:
-        """entries: (parent, child, stamp [ns], xyz, xyzw) -> one TFMessage."""
+    def send_tf(self, entries, static: bool = False, volatile: bool = False) -> None:
+        """entries: (parent, child, stamp [ns], xyz, xyzw) -> one TFMessage (``volatile``: /tf_static published
+        without transient-local durability, as a hand-written publisher may do)."""
         from geometry_msgs.msg import TransformStamped
         from tf2_msgs.msg import TFMessage
 
@@ -93,7 +95,7 @@ class TfClient:
                 self.static[child] = mat(p, q)
             else:
                 self.dynamic.setdefault(child, []).append((stamp, np.asarray(p, float), np.asarray(q, float)))
-        (self.tf_static if static else self.tf).publish(msg)
+        (self.tf_static_volatile if volatile else self.tf_static if static else self.tf).publish(msg)
 
     def send_frame(self, ns: str, stamp: int, frame_id: str, labels: np.ndarray) -> None:
         from css_ros.ros.conversions import camera_info_msg, header_msg, image_msg
@@ -197,8 +199,9 @@ def test_robot_tf_stream_with_a_map_odom_jump_and_late_segmentation(tmp_path):
 
 
 def test_two_cameras_wait_for_late_tf_and_unanswerable_lookups_are_refused(tmp_path):
-    """Two cameras by their frame ids; TF lags 0.2 s behind the segmentations, so every lookup must wait (within
-    pose_wait); a frame in an unknown frame and one past the last transform are refused with their reasons."""
+    """Two cameras by their frame ids (static transforms from a volatile /tf_static publisher); TF lags 0.2 s behind
+    the segmentations, so every lookup must wait (within pose_wait); a frame in an unknown frame and one past the
+    last transform are refused with their reasons."""
     domain = rh.next_domain_id()
     client = rh.RosClient(domain, topics={"pose": "unused_pose"})
     tfc = TfClient(client, ["front", "left"])
@@ -209,7 +212,7 @@ def test_two_cameras_wait_for_late_tf_and_unanswerable_lookups_are_refused(tmp_p
         tfc.send_tf([("base_link", "front_optical", stamp0, [0.1, 0.0, 0.0], OPTICAL_IN_LINK),
                      ("base_link", "left_optical", stamp0, [0.0, 0.1, 0.0],
                       (Rotation.from_rotvec([0, 0, 0.2]) * Rotation.from_quat(OPTICAL_IN_LINK)).as_quat())],
-                    static=True)
+                    static=True, volatile=True)
         time.sleep(0.3)
         rng = np.random.default_rng(5)
         lag, duration = 0.2, 4.0

@@ -184,14 +184,19 @@ class CssNode(Node):
     # ------------------------------------------------------------------ wiring
     def _subscribe_tf(self, sub: Any) -> None:
         """/tf and /tf_static with tf2_ros's listener QoS (reliable, depth 100; /tf_static transient-local, so the
-        static transforms published before the node started arrive too)."""
+        static transforms published before the node started arrive too, and once more volatile)."""
         tf_message = self._tf_message
         qos_tf = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                             history=HistoryPolicy.KEEP_LAST)
         qos_static = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
         sub(tf_message, TF_TOPIC, self._enqueue(self.gate.on_tf), qos_tf)
-        sub(tf_message, TF_STATIC_TOPIC, self._enqueue(lambda m: self.gate.on_tf(m, static=True)), qos_static)
+        on_static = self._enqueue(lambda m: self.gate.on_tf(m, static=True))
+        sub(tf_message, TF_STATIC_TOPIC, on_static, qos_static)
+        # A transient-local subscription does not match a volatile publisher (a /tf_static publisher that is not
+        # tf2_ros's): a volatile one does; a static transform received twice is simply set twice.
+        sub(tf_message, TF_STATIC_TOPIC, on_static, QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                                                               history=HistoryPolicy.KEEP_LAST))
 
     def _sensor_info(self) -> dict[str, str]:
         """Diagnostics entries naming the update in use."""
