@@ -131,6 +131,23 @@ def test_pose_source_options_and_refusals(tmp_path: Path) -> None:
     assert list(src.frames()) == [] and src.skips["tf_extrapolation_into_the_past"] == 18
 
 
+def test_pose_source_tf_on_a_bag_without_tf_and_bad_tf_options_are_refused(tmp_path: Path, capsys) -> None:
+    from css_ros.errors import ConfigError
+    from css_ros.evaluation.cli import main as replay_main
+
+    demo = Path(__file__).resolve().parents[1] / "bags" / "demo" / "bag"
+    with pytest.raises(BagError, match="pose_source tf needs /tf or /tf_static"):
+        _source(demo, tmp_path, "--pose-source", "tf")
+    assert _source(demo, tmp_path).pose_source == "topic"   # auto: the bag's pose topic
+    params = tmp_path / "p.yaml"
+    params.write_text("css_node:\n  ros__parameters:\n    tf_buffer_s: -1.0\n")
+    with pytest.raises(ConfigError, match="tf_buffer_s must be"):
+        _source(demo, tmp_path, "--params", str(params))
+    params.write_text("css_node:\n  ros__parameters:\n    pose_source: odometry\n")
+    assert replay_main([str(demo), "--params", str(params), "--quiet"]) == 1   # a CssError: one line, exit 1
+    assert "pose_source 'odometry': expected auto or one of topic, tf" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_tf_robot_demo_replays_like_the_pose_topic_robot_demo(tmp_path: Path) -> None:
     for name, tf in (("pose", False), ("tf", True)):
