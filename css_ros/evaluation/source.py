@@ -194,10 +194,9 @@ class FrameSource:
             for m in bag.messages(list(routes)):
                 now = m.log_time_ns * 1e-9
                 out: list[GateFrame] = []
-                if m.topic == TF_TOPIC and self.pose_source == "tf":
-                    out += gate.on_tf(m.msg, now)
                 for cam, kind in routes[m.topic]:
-                    if kind == "tf":
+                    if kind == "tf":  # a TFMessage has no header of its own
+                        out += gate.on_tf(m.msg, now)
                         continue
                     try:
                         m.msg.header.stamp.sec  # noqa: B018 - a header is needed by every kind
