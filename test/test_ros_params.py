@@ -74,6 +74,8 @@ def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, defa
                                           ("camera_extrinsics", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
                                           ("splat_to_map", [-1.0, 0, 0, 0, 0, 0, 0, 1]),
                                           ("pose_type", "odom"), ("pose_buffer", 0.0),
+                                          ("pose_source", "tf2"), ("tf_buffer_s", 0.0),
+                                          ("tf_buffer_s", float("inf")),
                                           ("cameras", ["cam1", "cäm2"]),
                                           ("camera_extrinsics", [1e308, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
                                           ("splat_to_map", [1.0, 0, 2e7, 0, 0, 0, 0, 1]),
@@ -86,6 +88,15 @@ def test_check_params_rejects(field, value):
     setattr(p, field, value)
     with pytest.raises(ConfigError, match=field):
         check_params(p)
+
+
+def test_pose_source_tf_refuses_pose_per_camera_and_an_empty_map_frame():
+    for field, value in (("pose_per_camera", True), ("map_frame", "/")):
+        p = NodeParams(pose_source="tf")
+        setattr(p, field, value)
+        with pytest.raises(ConfigError, match=field):
+            check_params(p)
+    check_params(NodeParams(pose_source="tf", cameras=["front", "left"]))
 
 
 def test_params_from_values_coerces_checks_and_refuses_unknown_names():

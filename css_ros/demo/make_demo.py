@@ -390,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the robot-like demo: nav_msgs/Odometry of base_link at 100 Hz, two cameras (front, left) "
                         "with extrinsics and their own stamps, segmentation 0.25 s late, the splat in its own "
                         "scaled and rotated frame, and a css_node.yaml with the matching parameters")
+    p.add_argument("--tf", action="store_true",
+                   help="with --robot: poses on /tf and /tf_static (map -> odom -> base_link -> <camera>_link -> "
+                        "<camera>_optical) instead of the Odometry topic, and pose_source: tf in css_node.yaml")
     p.add_argument("--num-gaussians", type=int, default=None, metavar="N",
                    help=f"Gaussians in the room ({DEFAULTS['num_gaussians']})")
     p.add_argument("--frames", type=int, default=None, metavar="F",
@@ -438,6 +441,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             setattr(args, name, defaults[name])
     if args.out is None:
         args.out = Path("bags") / ("robot_demo" if args.robot else "demo")
+    if args.tf and not args.robot:
+        print("css_make_demo: error: --tf needs --robot", file=sys.stderr)
+        return 2
     if args.robot and (args.scene != SCENES[0] or args.errors != ERROR_MODELS[0]):
         print("css_make_demo: error: --robot supports only --scene room --errors frame", file=sys.stderr)
         return 2
@@ -445,12 +451,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             info = make_robot_demo(args.out, num_gaussians=args.num_gaussians, frames=args.frames,
                                    width=args.width, height=args.height, seed=args.seed, overwrite=args.overwrite,
-                                   progress=not args.quiet)
+                                   progress=not args.quiet, tf=args.tf)
         except (CssError, ValueError) as exc:
             print(f"css_make_demo: error: {exc}", file=sys.stderr)
             return 2
         print(f"wrote {args.out}: {info['frames_per_camera']} frames per camera ({', '.join(info['cameras'])}), "
-              f"{info['odometry_messages']} odometry messages over {info['duration_s']:.0f} s; replay it with "
+              f"{info['odometry_messages']} {'/tf' if args.tf else 'odometry'} messages "
+              f"over {info['duration_s']:.0f} s; replay it with "
               f"css_replay {args.out / 'bag'}")
         return 0
     if not args.quiet:

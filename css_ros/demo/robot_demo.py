@@ -14,6 +14,12 @@ What differs from the plain demo (and what css_node's pose, camera and frame par
 
 ``OUT/css_node.yaml`` holds the matching node parameters (pose_type, cameras, camera_extrinsics, splat_to_map);
 ``css_replay OUT/bag`` picks it up, ``css_node --ros-args --params-file OUT/css_node.yaml`` takes it.
+
+``--tf``: the same robot on TF instead of a pose topic, as REP 105 stacks publish it: ``/tf`` carries
+``odom -> base_link`` (the odometry samples, same stamps) and ``map -> odom`` (identity, :data:`MAP_ODOM_RATE_HZ`),
+``/tf_static`` the chain ``base_link -> <ns>_link -> <ns>_optical`` of each camera (lever arm and yaw/pitch, then
+the body-to-optical rotation; composed they are the extrinsics); css_node.yaml says ``pose_source: tf``. Every other
+message is the same, so its replay gives the poses and maps of the pose-topic bag.
 """
 from __future__ import annotations
 
@@ -31,7 +37,7 @@ from ..engine.similarity import Similarity
 from ..errors import CssError
 from ..io.bag import BagWriter
 from ..io.params_file import PARAMS_FILE_NAME, write_params_file
-from ..io.topics import BAG_START_NS, BAG_TOPICS, POSE_TYPES
+from ..io.topics import BAG_START_NS, BAG_TOPICS, POSE_TYPES, TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE
 from .renderer import DemoRenderer, bag_in_place, camera_k, systematic_rule_masks
 
 #: Odometry rate [Hz] and the delay [s] between an odometry sample's stamp and its log time.
@@ -50,6 +56,9 @@ CAMERAS: dict[str, tuple[float, float, float, float, float]] = {
 }
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
+MAP_FRAME = "map"
+#: Rate [Hz] of map -> odom on /tf in the --tf variant (a localiser's rate; every 5th odometry stamp).
+MAP_ODOM_RATE_HZ = 20.0
 #: Defaults of ``css_make_demo --robot`` (per camera frames over the ~80 s path).
 ROBOT_DEFAULTS = {"num_gaussians": 50_000, "frames": 60, "width": 160, "height": 120}
 
@@ -79,6 +88,15 @@ def camera_extrinsics(ns: str) -> list[float]:
     # yaw about base z, then pitch about the camera body's y (negative pitch = looking down)
     R = _rot_z(yaw) @ _rot_y(-pitch) @ _BODY_TO_OPTICAL
     return [x, y, z, *(float(v) for v in matrix_to_quaternion_xyzw(R))]
+
+
+def camera_static_transforms(ns: str) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """The /tf_static chain of camera ``ns`` (--tf): (parent, child, translation (3,) [m], quaternion xyzw) of
+    ``<ns>_link`` in base_link (lever arm, yaw then pitch; body axes) and ``<ns>_optical`` in ``<ns>_link``."""
+    x, y, z, yaw, pitch = CAMERAS[ns]
+    link = (BASE_FRAME, f"{ns}_link", np.array([x, y, z]), matrix_to_quaternion_xyzw(_rot_z(yaw) @ _rot_y(-pitch)))
+    optical = (f"{ns}_link", f"{ns}_optical", np.zeros(3), matrix_to_quaternion_xyzw(_BODY_TO_OPTICAL))
+    return [link, optical]
 
 
 def splat_to_map() -> Similarity:
@@ -111,8 +129,11 @@ def base_path(seed: int = 0) -> BasePath:
     return BasePath(spline, float(t_wp[-1]))
 
 
-def robot_params() -> dict[str, Any]:
-    """The css_node parameters of the robot demo."""
+def robot_params(tf: bool = False) -> dict[str, Any]:
+    """The css_node parameters of the robot demo (``tf``: of its TF variant)."""
+    if tf:
+        return {"pose_source": "tf", "map_frame": MAP_FRAME, "cameras": list(CAMERAS),
+                "splat_to_map": splat_to_map().to_params()}
     return {"pose_type": "odometry", "cameras": list(CAMERAS),
             "camera_extrinsics": [v for ns in CAMERAS for v in camera_extrinsics(ns)],
             "splat_to_map": splat_to_map().to_params()}
@@ -135,13 +156,29 @@ def write_odometry(writer: BagWriter, topic: str, stamp_ns: int, log_ns: int, po
     writer.write(topic, POSE_TYPES["odometry"], msg, log_ns)
 
 
+def write_tf(writer: BagWriter, topic: str, log_ns: int,
+             transforms: list[tuple[str, str, int, np.ndarray, np.ndarray]]) -> None:
+    """A tf2_msgs/TFMessage of (parent, child, stamp [ns], translation (3,) [m], quaternion xyzw) entries."""
+    T = writer.store.types
+    out = []
+    for parent, child, stamp, p, q in transforms:
+        out.append(T["geometry_msgs/msg/TransformStamped"](
+            header=writer.header(stamp, parent), child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                           w=float(q[3])))))
+    writer.write(topic, TF_TYPE, T[TF_TYPE](transforms=out), log_ns)
+
+
 def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_gaussians"],
                     frames: int = ROBOT_DEFAULTS["frames"], width: int = ROBOT_DEFAULTS["width"],
                     height: int = ROBOT_DEFAULTS["height"], seed: int = 0, overwrite: bool = False,
-                    progress: bool = True) -> dict[str, Any]:
+                    progress: bool = True, tf: bool = False) -> dict[str, Any]:
     """Write the robot demo into ``out`` (bag/, model.ply, classes.yaml, css_node.yaml); returns a summary.
 
     ``frames`` per camera, equally spaced over the path; the left camera's stamps are offset by half a period.
+    ``tf``: poses on /tf and /tf_static instead of /pose (see the module docstring).
     """
     from .scene import CLASS_NAMES, build_scene_arrays, demo_class_set
     from .segmentation_noise import DEFAULT_SYSTEMATIC, SegmentationNoise
@@ -187,8 +224,18 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
                                                            "width": width, "height": height, "seed": seed,
                                                            "num_gaussians": num_gaussians}, sort_keys=True))
         with writer:
+            if tf:
+                write_tf(writer, TF_STATIC_TOPIC, BAG_START_NS,
+                         [(a, b, BAG_START_NS, p, q) for ns in CAMERAS for a, b, p, q in camera_static_transforms(ns)])
+            every = int(round(ODOM_RATE_HZ / MAP_ODOM_RATE_HZ))
             for log_ns, _, ev in iterator:
-                if ev[0] == "odom":
+                if ev[0] == "odom" and tf:
+                    _, stamp, p, q = ev
+                    entries = [(ODOM_FRAME, BASE_FRAME, stamp, p, q)]
+                    if round((stamp - BAG_START_NS) * 1e-9 * ODOM_RATE_HZ) % every == 0:
+                        entries.insert(0, (MAP_FRAME, ODOM_FRAME, stamp, np.zeros(3), np.array([0.0, 0, 0, 1])))
+                    write_tf(writer, TF_TOPIC, log_ns, entries)
+                elif ev[0] == "odom":
                     _, stamp, p, q = ev
                     write_odometry(writer, BAG_TOPICS["pose"], stamp, log_ns, p, q)
                 elif ev[0] == "camera":
@@ -215,9 +262,15 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
     to_map.inverse().transform_model(model).to_ply(out / "model.ply",
                                                     extra_fields={"class_id": scene.class_ids.astype(np.uint8)})
     classes.to_yaml(out / "classes.yaml")
-    write_params_file(out / PARAMS_FILE_NAME, robot_params(),
-                      comment="css_node parameters of the robot demo (css_make_demo --robot): Odometry of base_link,\n"
-                              "two cameras with their extrinsics, the splat in its own frame (splat_to_map).")
+    if tf:
+        write_params_file(out / PARAMS_FILE_NAME, robot_params(tf=True),
+                          comment="css_node parameters of the robot demo on TF (css_make_demo --robot --tf): camera\n"
+                                  "poses from /tf and /tf_static, two cameras, the splat in its own frame.")
+    else:
+        write_params_file(out / PARAMS_FILE_NAME, robot_params(),
+                          comment="css_node parameters of the robot demo (css_make_demo --robot): Odometry of "
+                                  "base_link,\ntwo cameras with their extrinsics, the splat in its own frame "
+                                  "(splat_to_map).")
     return {"frames_per_camera": frames, "cameras": list(CAMERAS), "odometry_messages": n_odom,
             "duration_s": path.duration}
 

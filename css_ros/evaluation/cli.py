@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -17,7 +18,8 @@ from ..engine.similarity import Similarity, parse_extrinsics
 from ..io.params_file import PARAMS_FILE_NAME, read_params_file
 from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
                                DEFAULT_POSE_WAIT_S, PosePolicy)
-from ..io.topics import BAG_TOPICS, POSE_TYPES, REQUIRED_BAG_KINDS
+from ..io.tf_buffer import DEFAULT_TF_BUFFER_S
+from ..io.topics import BAG_TOPICS, POSE_SOURCES, POSE_TYPES, REQUIRED_BAG_KINDS
 from ..engine.classes import ClassSet
 from .config import DEFAULT_SYNC_QUEUE, DEFAULT_SYNC_SLOP_S, OUT_OF_RANGE_MAX_SHARE, ReplayConfig
 from .replay import default_out_dir, headline, run
@@ -84,6 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "directory when present); options given here win")
     g.add_argument("--pose-type", choices=("auto", *POSE_TYPES), default=None,
                    help="pose message type (default auto: from the bag's pose topic)")
+    g.add_argument("--pose-source", choices=("auto", *POSE_SOURCES), default=None,
+                   help="camera poses from the pose topic or from /tf and /tf_static (the lookup map_frame <- the "
+                        "segmentation's frame_id); default auto: the pose topic when the bag has it, else TF")
+    g.add_argument("--map-frame", default=None, metavar="FRAME",
+                   help="the map frame: frame of the published poses and target of the TF lookups (default map)")
+    g.add_argument("--tf-buffer-s", type=float, default=None, metavar="S",
+                   help=f"TF history kept per transform [s] (default {DEFAULT_TF_BUFFER_S:g})")
     g.add_argument("--pose-buffer", type=float, default=None, metavar="S",
                    help=f"pose history [s] (default {DEFAULT_POSE_BUFFER_S:g})")
     g.add_argument("--pose-wait", type=float, default=None, metavar="S",
@@ -205,7 +214,8 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
 
 
 #: css_node parameters css_replay takes from a parameter file (the node's names) -> ReplayConfig field.
-FRAME_PARAMS = ("pose_type", "pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap", "cameras",
+FRAME_PARAMS = ("pose_source", "tf_buffer_s",
+                "pose_type", "pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap", "cameras",
                 "pose_per_camera", "camera_extrinsics", "splat_to_map", "map_frame", "sync_slop")
 
 
@@ -244,6 +254,15 @@ def resolve_frame_options(args: argparse.Namespace, base: Path) -> dict:
     pose_type = values.get("pose_type", "auto")
     if pose_type not in ("auto", *POSE_TYPES):
         raise ConfigError(f"pose_type {pose_type!r}: expected auto or one of {', '.join(POSE_TYPES)}")
+    if values.get("pose_source", "auto") not in ("auto", *POSE_SOURCES):
+        raise ConfigError(f"pose_source {values['pose_source']!r}: expected auto or one of {', '.join(POSE_SOURCES)}")
+    if "tf_buffer_s" in values:
+        try:
+            values["tf_buffer_s"] = float(values["tf_buffer_s"])
+        except (TypeError, ValueError):
+            raise ConfigError(f"tf_buffer_s: expected a number, got {values['tf_buffer_s']!r}") from None
+        if not (math.isfinite(values["tf_buffer_s"]) and values["tf_buffer_s"] > 0):
+            raise ConfigError(f"tf_buffer_s must be a finite number > 0 s, got {values['tf_buffer_s']!r}")
     try:
         PosePolicy(**{k: float(values[n]) for k, n in (("buffer", "pose_buffer"), ("wait", "pose_wait"),
                                                        ("max_extrapolation", "max_pose_extrapolation"),

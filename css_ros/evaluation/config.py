@@ -10,6 +10,7 @@ from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIO
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
 from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
                                DEFAULT_POSE_WAIT_S)
+from ..io.tf_buffer import DEFAULT_TF_BUFFER_S
 from ..io.topics import BAG_TOPICS, NODE_NAME
 
 #: Default sync tolerance [s] between a segmentation and its pose/image/GT (the node's ``sync_slop``).
@@ -57,6 +58,10 @@ class ReplayConfig:
     allow_out_of_range: bool = False
     # --- poses, cameras and frames: the node's parameters of the same names (README "On your robot")
     pose_type: str = "auto"  # auto: from the bag's pose topic type
+    #: "topic", "tf" (the TF lookup map_frame <- segmentation frame_id from /tf and /tf_static), or "auto": the
+    #: pose topic when the bag has it, else TF when the bag has /tf or /tf_static
+    pose_source: str = "auto"
+    tf_buffer_s: float = DEFAULT_TF_BUFFER_S  # s
     pose_buffer: float = DEFAULT_POSE_BUFFER_S  # s
     pose_wait: float = DEFAULT_POSE_WAIT_S  # s (bag log time)
     max_pose_extrapolation: float = DEFAULT_MAX_POSE_EXTRAPOLATION_S  # s

@@ -16,7 +16,8 @@ from ..io.bag import InputBag
 from ..io.frame_gate import FrameGate, GateConfig, GateFrame
 from ..io.frames import FrameRejected, Intrinsics, decode_camera_info, resample_to
 from ..io.pose_history import PosePolicy
-from ..io.topics import INPUT_TYPES, POSE_TYPES, REQUIRED_BAG_KINDS, camera_bag_topics
+from ..io.topics import (INPUT_TYPES, POSE_TYPES, REQUIRED_BAG_KINDS, TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE,
+                         camera_bag_topics)
 from .metrics import LabelRangeCounter
 
 if TYPE_CHECKING:
@@ -56,8 +57,9 @@ class Frame:
 
 
 def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str, ...],
-                       wait_for: tuple[str, ...]) -> GateConfig:
-    """The node's gate configuration from css_replay's options (the same names as the node parameters)."""
+                       wait_for: tuple[str, ...], pose_source: str = "topic") -> GateConfig:
+    """The node's gate configuration from css_replay's options (the same names as the node parameters);
+    ``pose_source``: "topic" or "tf" (the bag's, found by :meth:`FrameSource.check`)."""
     cams = tuple(c.strip("/") for c in cfg.cameras)
     return GateConfig(cameras=cams, pose_type=pose_type, pose_per_camera=cfg.pose_per_camera,
                       extrinsics=tuple(parse_extrinsics(cfg.camera_extrinsics, len(cams))),
@@ -65,7 +67,8 @@ def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str
                       pose_policy=PosePolicy(buffer=cfg.pose_buffer, wait=cfg.pose_wait,
                                              max_extrapolation=cfg.max_pose_extrapolation, max_gap=cfg.max_pose_gap),
                       sync_slop=cfg.sync_slop, queue_size=cfg.sync_queue, map_frame=cfg.map_frame,
-                      max_image_pixels=cfg.max_image_pixels, extra_label_kinds=extra_kinds, wait_for=wait_for)
+                      max_image_pixels=cfg.max_image_pixels, extra_label_kinds=extra_kinds, wait_for=wait_for,
+                      pose_source=pose_source, tf_buffer=cfg.tf_buffer_s)
 
 
 class FrameSource:
@@ -90,6 +93,8 @@ class FrameSource:
         self.present: dict[str, bool] = {}
         self.anchor_count = 0
         self.pose_type = cfg.pose_type
+        #: "topic" or "tf" once the bag was opened (cfg.pose_source "auto" resolved; None before)
+        self.pose_source: str | None = None
         self.camera_info_refused: Counter[str] = Counter()  # invalid camera_info messages (previous one kept)
         self.non_finite_confidence = 0  # confidence pixels that were NaN/inf and counted as 0
         self.topics = camera_bag_topics(cfg.cameras, cfg.topics, cfg.pose_per_camera)
@@ -99,6 +104,7 @@ class FrameSource:
         with InputBag(self.cfg.bag) as bag:
             topics = bag.topics()
             pose_topics = {t["pose"] for t in self.topics}
+            self.pose_source = self._pose_source(bag, topics, pose_topics)
             if self.pose_type == "auto":
                 found = {topics[t][0] for t in pose_topics if t in topics}
                 by_type = {v: k for k, v in POSE_TYPES.items()}
@@ -112,12 +118,28 @@ class FrameSource:
                         have = ", ".join(sorted(topics)) or "none"
                         raise BagError(f"{self.TOPIC_OPTIONS.get(kind, kind)} {topic}: no such topic in bag "
                                        f"{self.cfg.bag}; topics in the bag: {have} ('' disables it)")
-                    required = kind in REQUIRED_BAG_KINDS
+                    required = kind in REQUIRED_BAG_KINDS and not (kind == "pose" and self.pose_source == "tf")
+                    if kind == "pose" and self.pose_source == "tf":
+                        present[kind] = False
+                        continue
                     msgtype = POSE_TYPES[self.pose_type] if kind == "pose" else INPUT_TYPES[kind]
                     ok = bool(topic) and bag.check_topic(topic, msgtype, required)
                     present[kind] = present.get(kind, True) and ok
             self.present = present
             self.anchor_count = sum(topics[t["segmentation"]][1] for t in self.topics)
+
+    def _pose_source(self, bag: InputBag, topics: dict[str, tuple[str, int]], pose_topics: set[str]) -> str:
+        """"topic" or "tf" for this bag (``--pose-source auto``: the pose topic if the bag has it, else TF);
+        raises BagError when TF is chosen and the bag has neither /tf nor /tf_static of type TFMessage."""
+        source = self.cfg.pose_source
+        has_tf = [bag.check_topic(t, TF_TYPE, required=False) for t in (TF_TOPIC, TF_STATIC_TOPIC)]
+        if source == "auto":
+            source = "tf" if any(has_tf) and not any(t in topics for t in pose_topics) else "topic"
+        if source == "tf" and not any(has_tf):
+            have = ", ".join(sorted(topics)) or "none"
+            raise BagError(f"bag {self.cfg.bag}: pose_source tf needs {TF_TOPIC} or {TF_STATIC_TOPIC} ({TF_TYPE}); "
+                           f"topics in the bag: {have}")
+        return source
 
     def frames(self) -> Iterator[Frame]:
         """Yield the usable frames (call :meth:`check` first)."""
@@ -136,17 +158,22 @@ class FrameSource:
 
     def _iterate(self) -> Iterator[Frame]:
         cfg = self.cfg
+        if self.pose_source is None:  # a second pass that copied check()'s results without calling it
+            with InputBag(cfg.bag) as bag:
+                self.pose_source = self._pose_source(bag, bag.topics(), {t["pose"] for t in self.topics})
         extra = ("gt",) if self.present.get("gt") else ()
         wait_for = tuple(k for k in ("image", "gt") if self.present.get(k))
-        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for), self._warn,
-                                     self._count, lambda cam: bool(self.present.get("confidence")))
+        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for, self.pose_source),
+                                     self._warn, self._count, lambda cam: bool(self.present.get("confidence")))
         routes: dict[str, list[tuple[int, str]]] = {}
         for cam, cam_topics in enumerate(self.topics):
             for kind, topic in cam_topics.items():
                 if topic and (self.present.get(kind) or kind in REQUIRED_BAG_KINDS):
-                    if kind == "pose" and not cfg.pose_per_camera and cam > 0:
+                    if kind == "pose" and (self.pose_source == "tf" or (not cfg.pose_per_camera and cam > 0)):
                         continue
                     routes.setdefault(topic, []).append((cam, kind))
+        if self.pose_source == "tf":
+            routes[TF_TOPIC] = [(0, "tf")]
         index = 0
         with InputBag(cfg.bag) as bag:
             self.undecodable = bag.undecodable  # shared dict, filled while reading
@@ -161,10 +188,16 @@ class FrameSource:
                 if intrinsics is None:
                     raise BagError(f"bag {cfg.bag}: no valid message on {cam_topics['camera_info']}")
                 gate.set_camera_info(cam, intrinsics)
+            if self.pose_source == "tf":  # static transforms hold at every time: all of the bag's first
+                for m in bag.messages([TF_STATIC_TOPIC]):
+                    gate.on_tf(m.msg, m.log_time_ns * 1e-9, static=True)
             for m in bag.messages(list(routes)):
                 now = m.log_time_ns * 1e-9
                 out: list[GateFrame] = []
                 for cam, kind in routes[m.topic]:
+                    if kind == "tf":  # a TFMessage has no header of its own
+                        out += gate.on_tf(m.msg, now)
+                        continue
                     try:
                         m.msg.header.stamp.sec  # noqa: B018 - a header is needed by every kind
                     except AttributeError:

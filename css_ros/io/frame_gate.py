@@ -12,6 +12,10 @@ the pose describes) and taken from the map into the splat frame by ``splat_to_ma
 pose is not yet bracketed (or whose confidence has not arrived) waits up to ``pose_wait`` s; frames of a camera
 are emitted in stamp order.
 
+With ``pose_source`` "tf" the pose stream is not used: the pose is the TF lookup ``map_frame <- frame_id`` of the
+segmentation's header at its stamp (:mod:`css_ros.io.tf_buffer`, fed by :meth:`FrameGate.on_tf`), with the same
+interpolation, wait and extrapolation rules; extrinsics, when given, then compose onto that frame's pose.
+
 Every refusal goes through ``warn(topic, reason, detail, dropped)`` with a short stable reason; the node logs
 and counts them (rate-limited), css_replay counts them as skipped frames.
 """
@@ -30,8 +34,9 @@ from ..errors import CameraError
 from .frames import (FrameRejected, Intrinsics, decode_camera_info, decode_confidence, decode_image, decode_labels,
                      decode_pose)
 from .messages import stamp_to_ns
-from .pose_history import LookupStatus, PoseHistory, PosePolicy
-from .topics import INPUT_TOPICS, POSE_TYPES
+from .pose_history import LookupStatus, PoseHistory, PoseLookup, PosePolicy
+from .tf_buffer import DEFAULT_TF_BUFFER_S, TfBuffer
+from .topics import INPUT_TOPICS, POSE_SOURCES, POSE_TYPES, TF_STATIC_TOPIC, TF_TOPIC
 
 #: Consecutive segmentations older than the camera's last frame after which the clock is taken as reset.
 STAMP_RESET_COUNT = 5
@@ -105,6 +110,10 @@ class GateConfig:
     #: optional kinds ("image", extra kinds) a frame waits for (up to pose_wait) before it is emitted without
     #: them (css_replay: those its bag has, so that log-time order does not decide what a frame gets)
     wait_for: tuple[str, ...] = ()
+    #: "topic": poses from the pose stream(s); "tf": the TF lookup map_frame <- segmentation frame_id
+    pose_source: str = "topic"
+    #: history [s] every dynamic TF edge keeps (pose_source "tf")
+    tf_buffer: float = DEFAULT_TF_BUFFER_S
 
 
 @dataclass
@@ -174,6 +183,8 @@ class FrameGate:
             raise ValueError(f"unknown pose_type '{config.pose_type}' (expected one of {', '.join(POSE_TYPES)})")
         if len(config.extrinsics) != len(config.cameras):
             raise ValueError("one extrinsics entry (or None) per camera")
+        if config.pose_source not in POSE_SOURCES:
+            raise ValueError(f"unknown pose_source '{config.pose_source}' (expected one of {', '.join(POSE_SOURCES)})")
         self.cfg = config
         self.warn = warn
         self.count = count
@@ -190,6 +201,13 @@ class FrameGate:
         self._slop_ns = int(round(config.sync_slop * 1e9))
         self._wait_ns = int(round(config.pose_policy.wait * 1e9))
         self.frames_by_how: Counter[str] = Counter()
+        #: the TF tree (pose_source "tf"; its edges follow the pose policy with buffer = tf_buffer)
+        self.tf: TfBuffer | None = None
+        if config.pose_source == "tf":
+            self.tf = TfBuffer(PosePolicy(buffer=config.tf_buffer, wait=config.pose_policy.wait,
+                                          max_extrapolation=config.pose_policy.max_extrapolation,
+                                          max_gap=config.pose_policy.max_gap,
+                                          max_samples=config.pose_policy.max_samples))
 
     # ------------------------------------------------------------------ naming
     def topic(self, cam: int, kind: str) -> str:
@@ -268,6 +286,17 @@ class FrameGate:
         for c in self._cams_of_history(h):
             out += self._poll(c, now)
         return out
+
+    def on_tf(self, msg: Any, now: float, static: bool = False) -> list[GateFrame]:
+        """A tf2_msgs/TFMessage of ``/tf`` (or ``/tf_static`` when ``static``) into the TF tree (pose_source tf;
+        ignored otherwise); frames that waited for it are released."""
+        if self.tf is None:
+            return []
+        topic = TF_STATIC_TOPIC if static else TF_TOPIC
+        for reason, detail, dropped in self.tf.add_message(msg, static):
+            self.warn(topic, reason, detail, dropped=dropped)
+        self.count("tf_static_messages" if static else "tf_messages")
+        return self.poll(now)
 
     def on_image(self, cam: int, msg: Any, now: float) -> list[GateFrame]:
         """Colour image (colour render / PSNR only): kept for the frame with the nearest stamp."""
@@ -409,7 +438,7 @@ class FrameGate:
                 continue
             if not waited and any(self._nearest(st.buffers[k], fr.stamp_ns) is None for k in self.cfg.wait_for):
                 break
-            look = history.lookup(fr.stamp_ns, waited)
+            look = self._lookup(history, fr, waited)
             if look.status is LookupStatus.WAIT:
                 break
             st.pending.popleft()
@@ -421,6 +450,16 @@ class FrameGate:
             if frame is not None:
                 out.append(frame)
         return out
+
+    def _lookup(self, history: PoseHistory, fr: _Pending, waited: bool) -> PoseLookup:
+        """The pose of the frame's camera in the map at its stamp: from the pose history, or from TF (the pose of
+        the segmentation's frame_id in map_frame)."""
+        if self.tf is None:
+            return history.lookup(fr.stamp_ns, waited)
+        if not fr.frame_id.strip().lstrip("/"):
+            return PoseLookup(LookupStatus.REFUSED, reason="no frame_id",
+                              detail="the segmentation's header.frame_id is empty: nothing to look up in TF")
+        return self.tf.lookup(self.cfg.map_frame, fr.frame_id, fr.stamp_ns, waited)
 
     def _build(self, st: _CameraState, fr: _Pending, confidence: np.ndarray | None, position: np.ndarray,
                quat: np.ndarray, how: str) -> GateFrame | None:

@@ -19,6 +19,15 @@ POSE_TYPES: dict[str, str] = {
     "odometry": "nav_msgs/msg/Odometry",
 }
 
+#: Where a camera pose comes from (node parameter ``pose_source``, css_replay ``--pose-source``): a pose topic
+#: (``pose_type``, composed with ``camera_extrinsics``), or the TF lookup ``map_frame <- header.frame_id`` of each
+#: segmentation at its stamp from ``/tf`` and ``/tf_static``.
+POSE_SOURCES = ("topic", "tf")
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+#: Absolute TF topics (never namespaced, as every robot stack publishes them).
+TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
+
 NODE_NAME = "css_node"
 
 #: kind -> relative topic name the node subscribes to (remap with ``--ros-args -r``).

@@ -7,7 +7,8 @@ interpolated poses and drop the others for the same reasons (the keys of the war
 ``warn[topic: reason]`` in diagnostics).
 
 Policies (docs/reliability.md): camera_info latest valid one per camera; poses interpolated at the segmentation
-stamp (pose_buffer, pose_wait, max_pose_extrapolation, max_pose_gap); inputs stamped more than
+stamp (pose_buffer, pose_wait, max_pose_extrapolation, max_pose_gap), from the pose topic or, with pose_source tf,
+from the TF tree (tf_buffer_s); inputs stamped more than
 ``max_stamp_future`` s ahead of the node clock are dropped; a segmentation not newer than its camera's last frame
 is dropped as out of order, except that :data:`STAMP_RESET_COUNT` consecutive ones are taken as a clock reset.
 Candidate poses and query points arrive in the map frame and are taken into the splat frame here.
@@ -40,7 +41,8 @@ def gate_config(p: NodeParams) -> GateConfig:
                       extrinsics=tuple(parse_extrinsics(p.camera_extrinsics, len(cams))),
                       splat_to_map=Similarity.from_params(p.splat_to_map), pose_policy=pose_policy(p),
                       sync_slop=p.sync_slop, queue_size=p.queue_size, map_frame=p.map_frame,
-                      max_image_pixels=p.max_image_pixels, max_stamp_future=p.max_stamp_future)
+                      max_image_pixels=p.max_image_pixels, max_stamp_future=p.max_stamp_future,
+                      pose_source=p.pose_source, tf_buffer=p.tf_buffer_s)
 
 
 @dataclass
@@ -118,6 +120,10 @@ class InputGate:
 
     def on_pose(self, msg: Any, cam: int = 0) -> list[FrameJob]:
         return self._jobs(self.frames.on_pose(msg, self.monotonic(), cam))
+
+    def on_tf(self, msg: Any, static: bool = False) -> list[FrameJob]:
+        """A tf2_msgs/TFMessage of /tf (or /tf_static): frames waiting for their transforms are released."""
+        return self._jobs(self.frames.on_tf(msg, self.monotonic(), static))
 
     def poll(self) -> list[FrameJob]:
         """Frames whose wait for a pose or confidence ended (called on a timer)."""

@@ -14,14 +14,14 @@ from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from diagnostic_msgs.msg import DiagnosticArray
 
 from ..engine.similarity import Similarity
-from ..errors import MapError
-from ..io.topics import INPUT_TOPICS, NODE_NAME
+from ..errors import ConfigError, MapError
+from ..io.topics import INPUT_TOPICS, NODE_NAME, TF_STATIC_TOPIC, TF_TOPIC
 from .diagnostics import Stats, StatusReporter
 from .evidence import EvidenceLink
 from .model_swap import ModelWatcher
@@ -41,8 +41,21 @@ WORKER_STOP_TIMEOUT_S = 10.0
 #: pose_type -> rclpy message class.
 POSE_MESSAGES = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                  "odometry": Odometry}
+#: Depth of the /tf and /tf_static subscriptions (tf2_ros's listener QoS).
+TF_QOS_DEPTH = 100
 #: Period [s] of the timer that releases frames whose wait for a pose has ended (at most pose_wait / 4).
 POSE_POLL_PERIOD_S = 0.05
+
+
+def tf_message_class() -> Any:
+    """tf2_msgs/msg/TFMessage (ConfigError saying how to get it when tf2_msgs is not importable)."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError as exc:
+        raise ConfigError(f"pose_source tf needs the tf2_msgs messages ({exc}): source a ROS install that has them, "
+                          "or build them into this environment with msg_packages/build_tf2_msgs.py (README, "
+                          "command 1)") from None
+    return TFMessage
 
 
 def declare_params(node: Node) -> NodeParams:
@@ -82,6 +95,8 @@ class CssNode(Node):
         self.p = p = declare_params(self)
         for name in undeclared_params(self):
             log.warning(f"unknown parameter '{name}' ignored (see css_node --help for the parameters)")
+        # pose_source tf without tf2_msgs: a start-up error before the model is loaded
+        self._tf_message = tf_message_class() if p.pose_source == "tf" else None
         self.warn = WarnLimiter(log.warning, p.warn_period)
         self.stats = Stats()
 
@@ -134,7 +149,9 @@ class CssNode(Node):
         pose_msg = POSE_MESSAGES[p.pose_type]
         for i in range(len(p.cameras)):
             sub(CameraInfo, frames.topic(i, "camera_info"), lambda m, i=i: self.gate.on_camera_info(m, i), qos_in)
-        if p.pose_per_camera:
+        if p.pose_source == "tf":
+            self._subscribe_tf(sub)
+        elif p.pose_per_camera:
             for i in range(len(p.cameras)):
                 sub(pose_msg, frames.topic(i, "pose"), self._enqueue(lambda m, i=i: self.gate.on_pose(m, i)), qos_in)
         else:
@@ -165,6 +182,22 @@ class CssNode(Node):
         self._log_start()
 
     # ------------------------------------------------------------------ wiring
+    def _subscribe_tf(self, sub: Any) -> None:
+        """/tf and /tf_static with tf2_ros's listener QoS (reliable, depth 100; /tf_static transient-local, so the
+        static transforms published before the node started arrive too, and once more volatile)."""
+        tf_message = self._tf_message
+        qos_tf = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                            history=HistoryPolicy.KEEP_LAST)
+        qos_static = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                                durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+        sub(tf_message, TF_TOPIC, self._enqueue(self.gate.on_tf), qos_tf)
+        on_static = self._enqueue(lambda m: self.gate.on_tf(m, static=True))
+        sub(tf_message, TF_STATIC_TOPIC, on_static, qos_static)
+        # A transient-local subscription does not match a volatile publisher (a /tf_static publisher that is not
+        # tf2_ros's): a volatile one does; a static transform received twice is simply set twice.
+        sub(tf_message, TF_STATIC_TOPIC, on_static, QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                                                               history=HistoryPolicy.KEEP_LAST))
+
     def _sensor_info(self) -> dict[str, str]:
         """Diagnostics entries naming the update in use."""
         text = describe_sensor_model(self.smap.sensor_model)
@@ -263,10 +296,13 @@ class CssNode(Node):
         p, m = self.p, self.smap.model
         names = ", ".join(f"{i}:{n}" for i, n in enumerate(self.classes.names))
         frames = self.gate.frames
-        in_names = [frames.topic(0, "pose")] if not p.pose_per_camera else []
+        if p.pose_source == "tf":
+            in_names = [TF_TOPIC, TF_STATIC_TOPIC]
+        else:
+            in_names = [frames.topic(0, "pose")] if not p.pose_per_camera else []
         for i in range(len(p.cameras)):
             in_names += [frames.topic(i, k) for k in ("camera_info", "image", "segmentation", "confidence")]
-            in_names += [frames.topic(i, "pose")] if p.pose_per_camera else []
+            in_names += [frames.topic(i, "pose")] if p.pose_per_camera and p.pose_source == "topic" else []
         in_names += [INPUT_TOPICS["candidates"], INPUT_TOPICS["point_queries"]]
         ins = ", ".join(self.resolve_topic_name(t) for t in in_names)
         outs = ", ".join(self.resolve_topic_name(t) for t in self.outputs.topic_names())
@@ -280,7 +316,9 @@ class CssNode(Node):
         if sm is not None and self.evidence.enabled:
             log.warning("evidence exchange with a sensor model: every node of the exchange must use the same "
                         "sensor model (evidence packets do not carry its fingerprint)")
-        log.info(f"inputs ({p.input_qos} QoS; candidates reliable): {ins}; pose_type {p.pose_type}, poses "
+        source = (f"poses from TF: {p.map_frame} <- each segmentation's frame_id (tf_buffer_s {p.tf_buffer_s:g} s)"
+                  if p.pose_source == "tf" else f"pose_type {p.pose_type}, poses")
+        log.info(f"inputs ({p.input_qos} QoS; candidates reliable; TF reliable): {ins}; {source} "
                  f"interpolated at the segmentation stamp (pose_buffer {p.pose_buffer:g} s, pose_wait "
                  f"{p.pose_wait:g} s); {len(p.cameras)} camera(s)"
                  + ("" if not p.camera_extrinsics else " with extrinsics")

@@ -19,7 +19,8 @@ from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsic
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
 from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
                                DEFAULT_POSE_WAIT_S, PosePolicy)
-from ..io.topics import POSE_TYPES
+from ..io.tf_buffer import DEFAULT_TF_BUFFER_S
+from ..io.topics import POSE_SOURCES, POSE_TYPES
 
 DEFAULT_MODEL = "bags/demo/model.ply"
 DEFAULT_CLASSES = "bags/demo/classes.yaml"
@@ -70,6 +71,12 @@ class NodeParams:
                                "larger ones are refused (the previous one stays)")
     use_confidence: bool = _p(True, "", "synchronise segmentation_confidence whenever it has a publisher")
     # --- poses, cameras and frames (docs/reliability.md "Poses by time"; README "On your robot")
+    pose_source: str = _p("topic", "", "where camera poses come from: topic (the pose topic, pose_type, composed "
+                          "with camera_extrinsics) or tf (/tf and /tf_static: the pose of each segmentation's "
+                          "header.frame_id in map_frame at its stamp, then camera_extrinsics if given; the pose topic "
+                          "is not subscribed)")
+    tf_buffer_s: float = _p(DEFAULT_TF_BUFFER_S, "s", "TF history kept per transform (pose_source tf); the "
+                            "pose_wait, max_pose_extrapolation and max_pose_gap rules apply to every transform")
     pose_type: str = _p("pose_stamped", "", "message type on pose: pose_stamped (geometry_msgs/PoseStamped), "
                         "pose_with_covariance (geometry_msgs/PoseWithCovarianceStamped) or odometry "
                         "(nav_msgs/Odometry, its pose.pose)")
@@ -91,7 +98,8 @@ class NodeParams:
     splat_to_map: list[float] = _p(list(IDENTITY_SIMILARITY), "scale, m, quaternion", "8 numbers (s x y z qx qy "
                                    "qz qw): the similarity x_map = s R x_splat + t taking splat coordinates into "
                                    "the map frame (css_align estimates it)")
-    map_frame: str = _p("map", "", "frame of poses, requests and 3D outputs; frame_id of ~/view_uncertainty")
+    map_frame: str = _p("map", "", "frame of poses, requests and 3D outputs; frame_id of ~/view_uncertainty; "
+                        "with pose_source tf the target of the TF lookups")
     # --- processing and outputs
     max_pending_frames: int = _p(2, "frames", "synchronised frames waiting for the worker; the oldest is "
                                  "dropped when full (newest wins)")
@@ -312,6 +320,14 @@ def check_params(p: NodeParams) -> None:
         raise bad("evidence_max_frame_rate", "must be finite and > 0")
     if p.pose_type not in POSE_TYPES:
         raise bad("pose_type", f"expected one of {', '.join(POSE_TYPES)}")
+    if p.pose_source not in POSE_SOURCES:
+        raise bad("pose_source", f"expected one of {', '.join(POSE_SOURCES)}")
+    if not (math.isfinite(p.tf_buffer_s) and p.tf_buffer_s > 0):
+        raise bad("tf_buffer_s", "must be finite and > 0")
+    if p.pose_source == "tf" and p.pose_per_camera:
+        raise bad("pose_per_camera", "has no meaning with pose_source tf (each camera's frame_id names its pose)")
+    if p.pose_source == "tf" and not p.map_frame.strip().lstrip("/"):
+        raise bad("map_frame", "must name the TF frame of the map with pose_source tf")
     for name in ("pose_buffer", "pose_wait", "max_pose_extrapolation", "max_pose_gap"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) >= 0):
             raise bad(name, "must be finite and >= 0")
