@@ -40,7 +40,7 @@ def test_simulated_kernels():
     """Every check of test_cuda_sim.py (brute-force reference and numba path) under the simulator."""
     out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                           str(ROOT / "test" / "test_cuda_sim.py")],
-                         env=_env(True), cwd=ROOT, capture_output=True, text=True, timeout=300)
+                         env=_env(True), cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-3000:]
     assert " passed" in out.stdout and "skipped" not in out.stdout.splitlines()[-1], out.stdout[-2000:]
 
