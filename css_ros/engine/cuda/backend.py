@@ -124,7 +124,7 @@ class CudaBackend(RasterBackend):
         try:
             conc = self.ops.upload(np.ones((1, 2)), np.float64)
             out = self.ops.empty((1, 5), np.float32)
-            self.k.moments_kernel[1, 1](conc, self.ops.upload(np.zeros(1, np.int32)), out)
+            self.k.moments_kernel[1, 2](conc, self.ops.upload(np.zeros(1, np.int32)), out)
             got = self.ops.download(out)
         except Exception as exc:  # any failure of the CUDA stack: reported in one line
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
@@ -302,7 +302,7 @@ class CudaBackend(RasterBackend):
         r = int(frame.rows.shape[0])
         mom = ops.empty((max(r, 1), 2 * int(conc.shape[1]) + 1), np.float32)
         if r:
-            blocks, threads = self._launch_1d(r)
+            blocks, threads = self._launch_1d(r * int(conc.shape[1]))  # a thread per (row, class)
             self.k.moments_kernel[blocks, threads](conc, frame.rows, mom)
         return mom
 

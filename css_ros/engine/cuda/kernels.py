@@ -176,22 +176,27 @@ def emit_keys_kernel(bbox, view, by_depth, first, num_pairs, tile, tiles_x, tile
 @cuda.jit
 def moments_kernel(concentrations, rows, out):  # pragma: no cover
     """out[r] = (E_0..E_{C-1}, Var_0..Var_{C-1}, S) in float32 for Gaussian rows[r] (SPEC §4):
-    S = sum_c alpha^c, E = alpha / S, Var = E (1 - E) / (1 + S) (computed in float64)."""
+    S = sum_c alpha^c, E = alpha / S, Var = E (1 - E) / (1 + S) (computed in float64).
+
+    One thread per (row, class), the classes of a row on neighbouring lanes: each thread sums its row's C
+    concentrations (the lanes of a row read the same addresses: broadcast, one or two cache lines per row) and
+    writes its class's E and Var next to its neighbours' (coalesced), the row's first lane S. A thread per row would
+    read and write C strided values per lane (uncoalesced: each warp instruction touching 32 rows' cache lines)."""
     num_classes = concentrations.shape[1]
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
-    for r in range(start, rows.shape[0], stride):
+    for flat in range(start, rows.shape[0] * num_classes, stride):
+        r = flat // num_classes
+        c = flat - r * num_classes
         n = rows[r]
         total = 0.0
-        for c in range(num_classes):
-            total += concentrations[n, c]
-        inv = 1.0 / total
-        denom = 1.0 / (1.0 + total)
-        for c in range(num_classes):
-            e = concentrations[n, c] * inv
-            out[r, c] = e
-            out[r, num_classes + c] = e * (1.0 - e) * denom
-        out[r, 2 * num_classes] = total
+        for k in range(num_classes):
+            total += concentrations[n, k]
+        e = concentrations[n, c] / total
+        out[r, c] = e
+        out[r, num_classes + c] = e * (1.0 - e) / (1.0 + total)
+        if c == 0:
+            out[r, 2 * num_classes] = total
 
 
 def batch_size(bytes_per_gaussian: int, threads: int, budget: int) -> int:
