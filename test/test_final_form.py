@@ -110,3 +110,33 @@ def test_only_requested_outputs_are_delivered_and_views_stay_valid():
 def test_no_confidence_map_gives_no_confidence_image():
     smap, cam = _map(with_confidence=False)
     assert smap.render(cam).confidence is None
+
+
+def test_colorize_is_the_palette_with_black_for_invalid_ids():
+    from css_ros.engine.classes import ClassSet
+
+    classes = ClassSet.default(5)
+    labels = np.array([[0, 4, 5, -1], [255, 2, 3, 1000]])
+    got = classes.colorize(labels, ignore_label=255)
+    assert got.dtype == np.uint8 and got.shape == (2, 4, 3)
+    for (v, u), lab in np.ndenumerate(labels):
+        want = classes.palette[lab] if 0 <= lab < 5 else np.zeros(3)
+        np.testing.assert_array_equal(got[v, u], want)
+    # an ignore label inside 0..C-1 is black too
+    np.testing.assert_array_equal(classes.colorize(np.array([[2]]), ignore_label=2)[0, 0], [0, 0, 0])
+
+
+def test_node_image_messages_only_for_the_wanted_topics():
+    from css_ros.engine.classes import ClassSet
+    from css_ros.io.outputs import frame_output_images
+
+    smap, cam = _map()
+    view = smap.render(cam)
+    classes = ClassSet.default(C)
+    allowed = frame_output_images(view, classes, 255)
+    assert list(allowed) == ["semantic", "semantic_color", "expectation", "variance", "rendered_image", "confidence"]
+    some = frame_output_images(view, classes, 255, {"semantic_color", "variance"})
+    assert list(some) == ["semantic_color", "variance"]
+    np.testing.assert_array_equal(some["semantic_color"][0], allowed["semantic_color"][0])
+    part = smap.render(cam, outputs=("labels",))
+    assert list(frame_output_images(part, classes, 255)) == ["semantic", "semantic_color"]

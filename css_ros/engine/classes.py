@@ -75,7 +75,8 @@ class ClassSet:
     def colorize(self, labels: np.ndarray, ignore_label: int = 255) -> np.ndarray:
         """Map an (H, W) label image to (H, W, 3) uint8 RGB; ignore/out-of-range ids are black."""
         labels = np.asarray(labels)
-        out = np.zeros(labels.shape + (3,), dtype=np.uint8)
+        # one gather through the palette with a black row appended for every invalid id (a masked assignment costs
+        # several passes: 10+ ms at 1241 x 376)
+        lut = np.concatenate([self.palette.astype(np.uint8), np.zeros((1, 3), dtype=np.uint8)])
         valid = (labels >= 0) & (labels < self.num_classes) & (labels != ignore_label)
-        out[valid] = self.palette[labels[valid]]
-        return out
+        return lut[np.where(valid, labels, self.num_classes)]

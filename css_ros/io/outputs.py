@@ -6,6 +6,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from collections.abc import Collection
+
     from ..engine.classes import ClassSet
     from ..engine.semantic_map import RenderedView
 
@@ -27,23 +29,27 @@ TOPIC_IMAGES: dict[str, tuple[str, ...]] = {
 }
 
 
-def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label: int) -> dict[str, tuple[np.ndarray, str]]:
+def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label: int,
+                        names: "Collection[str] | None" = None) -> dict[str, tuple[np.ndarray, str]]:
     """Output name -> (array, encoding) of one rendered frame, in publishing order (SPEC §8):
     ``semantic`` (label ids), ``semantic_color`` (class colours, rgb8), ``expectation`` and ``variance``
     (32FC1, of the argmax class), ``rendered_image`` (rgb8) and, when the map's sensor model holds a calibrated
     confidence map, ``confidence`` (32FC1: probability that ``semantic`` is right; 0 where it is the ignore label).
-    Images the view does not hold (not requested from the engine) give no entry."""
+    Only the outputs in ``names`` (None: all) are made; images the view does not hold (not requested from the
+    engine) give no entry."""
+    def want(name: str) -> bool:
+        return names is None or name in names
+
     labels = view.labels
     out: dict[str, tuple[np.ndarray, str]] = {}
     if labels is not None:  # images the caller did not ask the engine for are None (RenderedView)
-        out["semantic"] = (labels, label_encoding(classes.num_classes, ignore_label))
-        out["semantic_color"] = (classes.colorize(labels, ignore_label=ignore_label), "rgb8")
-    if view.expectation is not None:
-        out["expectation"] = (view.expectation, "32FC1")
-    if view.variance is not None:
-        out["variance"] = (view.variance, "32FC1")
-    if view.rgb is not None:
-        out["rendered_image"] = (view.rgb, "rgb8")
-    if view.confidence is not None:
-        out["confidence"] = (view.confidence, "32FC1")
+        if want("semantic"):
+            out["semantic"] = (labels, label_encoding(classes.num_classes, ignore_label))
+        if want("semantic_color"):
+            out["semantic_color"] = (classes.colorize(labels, ignore_label=ignore_label), "rgb8")
+    for name, field, encoding in (("expectation", "expectation", "32FC1"), ("variance", "variance", "32FC1"),
+                                  ("rendered_image", "rgb", "rgb8"), ("confidence", "confidence", "32FC1")):
+        array = getattr(view, field)
+        if array is not None and want(name):
+            out[name] = (array, encoding)
     return out

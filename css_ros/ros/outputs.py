@@ -93,7 +93,7 @@ class OutputPublisher:
         wanted = [n for n in ("semantic", "semantic_color", "expectation", "variance", "rendered_image",
                               "confidence") if n in pubs]
         if wanted:
-            images = frame_output_images(view, self.classes, self.p.ignore_label)
+            images = frame_output_images(view, self.classes, self.p.ignore_label, wanted)
             for name in wanted:
                 if name not in images:  # confidence: only views of a map with a calibrated confidence map
                     continue
