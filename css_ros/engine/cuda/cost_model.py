@@ -44,7 +44,7 @@ NUMBA_LAUNCH_MS = 0.2     # per numba-cuda kernel launch, host side: its argumen
 LAUNCH_MS = 0.015         # per array-library call issued from Python (torch's dispatch: allocation from its
 #                           caching allocator, a sort, a scan, a copy), host side
 SYNC_MS = 0.02            # one device -> host synchronisation
-HOST_VIEW_MS = 0.1        # the host's work on a frame's copy: numpy views into it (benchmarks/bench_host.py: 0.06-0.09 ms)
+HOST_VIEW_MS = 0.1        # the host's work on a frame's copy: numpy views into it (benchmarks/bench_host.py: 0.05-0.08 ms)
 #: bytes per pixel of a view's outputs in final form: int32 label, five float32 images (E, Var, kappa_b, evidence,
 #: depth), the float32 confidence, uint8 colour (css_ros.engine.cuda.layout)
 OUTPUT_BYTES_PER_PIXEL = 4 + 5 * 4 + 4 + 3
