@@ -357,3 +357,37 @@ def test_palette_png_index_is_the_class_id(tmp_path):
     img.putpalette([0, 0, 0, 10, 10, 10, 20, 20, 20] + [0] * (253 * 3))
     img.save(tmp_path / "p.png")
     np.testing.assert_array_equal(LabelDecoder().read(tmp_path / "p.png"), [[0, 1], [2, 255]])
+
+
+@pytest.mark.skipif(not (DEMO / "bag").is_dir(), reason="demo bag not available")
+def test_import_with_poses_on_tf_replays_like_the_pose_topic(tmp_path, capsys):
+    """css_import --poses-on tf writes the camera poses as map -> camera_optical on /tf (no /pose); css_replay takes
+    them from TF and gets the same frames, poses and metrics as from the pose-topic import."""
+    from css_ros.evaluation.cli import main as replay
+    from css_ros.io.topics import TF_TOPIC
+
+    src = _export_demo_frames(tmp_path)
+    common = [str(src / "sparse"), "--model", str(DEMO / "model.ply"), "--classes", str(DEMO / "classes.yaml"),
+              "--labels", str(src / "labels"), "--gt", str(src / "gt"), "--rate", "5", "--quiet"]
+    assert main([*common, "--out", str(tmp_path / "topic")]) == 0
+    assert main([*common, "--poses-on", "tf", "--out", str(tmp_path / "tf")]) == 0
+    with InputBag(tmp_path / "tf" / "bag") as bag:
+        topics = bag.topics()
+        assert BAG_TOPICS["pose"] not in topics and topics[TF_TOPIC][1] == N_E2E
+    with InputBag(tmp_path / "topic" / "bag") as a, InputBag(tmp_path / "tf" / "bag") as b:
+        poses = [m.msg.pose for m in a.messages([BAG_TOPICS["pose"]])]
+        tfs = [m.msg.transforms[0] for m in b.messages([TF_TOPIC])]
+        assert [t.header.frame_id for t in tfs] == ["map"] * N_E2E
+        for p, t in zip(poses, tfs):
+            assert (p.position.x, p.position.y, p.position.z) == (t.transform.translation.x,
+                                                                  t.transform.translation.y,
+                                                                  t.transform.translation.z)
+            assert (p.orientation.x, p.orientation.w) == (t.transform.rotation.x, t.transform.rotation.w)
+    args = ["--no-output-bag", "--quiet", "--examples", "0"]
+    assert replay([str(tmp_path / "topic" / "bag"), "--out", str(tmp_path / "r_topic"), *args]) == 0
+    assert replay([str(tmp_path / "tf" / "bag"), "--out", str(tmp_path / "r_tf"), *args]) == 0
+    a = json.loads((tmp_path / "r_topic" / "metrics.json").read_text())
+    b = json.loads((tmp_path / "r_tf" / "metrics.json").read_text())
+    assert a["frames"]["processed"] == b["frames"]["processed"] == N_E2E
+    for key in ("input", "css"):
+        assert a["segmentation"][key]["miou"] == b["segmentation"][key]["miou"]

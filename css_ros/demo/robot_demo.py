@@ -37,7 +37,7 @@ from ..engine.similarity import Similarity
 from ..errors import CssError
 from ..io.bag import BagWriter
 from ..io.params_file import PARAMS_FILE_NAME, write_params_file
-from ..io.topics import BAG_START_NS, BAG_TOPICS, POSE_TYPES, TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE
+from ..io.topics import BAG_START_NS, BAG_TOPICS, POSE_TYPES, TF_STATIC_TOPIC, TF_TOPIC
 from .renderer import DemoRenderer, bag_in_place, camera_k, systematic_rule_masks
 
 #: Odometry rate [Hz] and the delay [s] between an odometry sample's stamp and its log time.
@@ -156,21 +156,6 @@ def write_odometry(writer: BagWriter, topic: str, stamp_ns: int, log_ns: int, po
     writer.write(topic, POSE_TYPES["odometry"], msg, log_ns)
 
 
-def write_tf(writer: BagWriter, topic: str, log_ns: int,
-             transforms: list[tuple[str, str, int, np.ndarray, np.ndarray]]) -> None:
-    """A tf2_msgs/TFMessage of (parent, child, stamp [ns], translation (3,) [m], quaternion xyzw) entries."""
-    T = writer.store.types
-    out = []
-    for parent, child, stamp, p, q in transforms:
-        out.append(T["geometry_msgs/msg/TransformStamped"](
-            header=writer.header(stamp, parent), child_frame_id=child,
-            transform=T["geometry_msgs/msg/Transform"](
-                translation=T["geometry_msgs/msg/Vector3"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]),
-                                                           w=float(q[3])))))
-    writer.write(topic, TF_TYPE, T[TF_TYPE](transforms=out), log_ns)
-
-
 def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_gaussians"],
                     frames: int = ROBOT_DEFAULTS["frames"], width: int = ROBOT_DEFAULTS["width"],
                     height: int = ROBOT_DEFAULTS["height"], seed: int = 0, overwrite: bool = False,
@@ -225,7 +210,7 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
                                                            "num_gaussians": num_gaussians}, sort_keys=True))
         with writer:
             if tf:
-                write_tf(writer, TF_STATIC_TOPIC, BAG_START_NS,
+                writer.write_tf(TF_STATIC_TOPIC, BAG_START_NS,
                          [(a, b, BAG_START_NS, p, q) for ns in CAMERAS for a, b, p, q in camera_static_transforms(ns)])
             every = int(round(ODOM_RATE_HZ / MAP_ODOM_RATE_HZ))
             for log_ns, _, ev in iterator:
@@ -234,7 +219,7 @@ def make_robot_demo(out: str | Path, num_gaussians: int = ROBOT_DEFAULTS["num_ga
                     entries = [(ODOM_FRAME, BASE_FRAME, stamp, p, q)]
                     if round((stamp - BAG_START_NS) * 1e-9 * ODOM_RATE_HZ) % every == 0:
                         entries.insert(0, (MAP_FRAME, ODOM_FRAME, stamp, np.zeros(3), np.array([0.0, 0, 0, 1])))
-                    write_tf(writer, TF_TOPIC, log_ns, entries)
+                    writer.write_tf(TF_TOPIC, log_ns, entries)
                 elif ev[0] == "odom":
                     _, stamp, p, q = ev
                     write_odometry(writer, BAG_TOPICS["pose"], stamp, log_ns, p, q)

@@ -78,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "poses are written in a z-up map frame and OUT/css_node.yaml holds the splat_to_map that "
                         "takes the splat there; none = keep the trainer's frame")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frame rate of the bag stamps (default 10)")
+    p.add_argument("--poses-on", choices=("topic", "tf"), default="topic",
+                   help="how the bag carries the camera poses: topic (default) = geometry_msgs/PoseStamped on /pose; "
+                        "tf = the transform map -> camera_optical on /tf at each frame's stamp, as a TF robot "
+                        "records it (css_replay and css_calibrate read either)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="import the first N labelled frames")
     p.add_argument("--link-model", action="store_true", help="symlink the model into OUT instead of copying it")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
@@ -150,7 +154,7 @@ def run(args: argparse.Namespace) -> str:
     with tqdm(total=len(frames), desc="css_import", unit="frame", disable=args.quiet, file=sys.stderr) as bar:
         s = write_dataset(args.out, frames, args.model, classes, classes_file, decoder, rate_hz=args.rate,
                           ignore_label=args.ignore_label, link_model=args.link_model, progress=bar.update,
-                          node_params={"splat_to_map": [float(x) for x in up.to_params()]})
+                          node_params={"splat_to_map": [float(x) for x in up.to_params()]}, poses_on=args.poses_on)
     lines = [f"imported {s.frames} frames of {len(views)} cameras ({s.segmentation_encoding} labels) -> {s.bag}"]
     if pairing.without_labels:
         lines.append(f"note: {len(pairing.without_labels)} cameras have no label file and were left out "

@@ -27,7 +27,7 @@ from ..engine.classes import ClassSet
 from ..errors import BagError, CssError
 from ..io.bag import BagWriter
 from ..io.params_file import PARAMS_FILE_NAME, write_params_file
-from ..io.topics import BAG_CAMERA_FRAME, BAG_MAP_FRAME, BAG_START_NS, BAG_TOPICS
+from ..io.topics import BAG_CAMERA_FRAME, BAG_MAP_FRAME, BAG_START_NS, BAG_TOPICS, POSE_SOURCES, TF_TOPIC
 from .labels import LabelDecoder, read_confidence, read_rgb
 from .pairing import ImportFrame
 from .views import ImportFormatError, PosedView
@@ -61,7 +61,7 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
                   classes_file: str | Path | None, decoder: LabelDecoder, rate_hz: float = 10.0,
                   ignore_label: int = 255, link_model: bool = False,
                   progress: Callable[[int], None] | None = None,
-                  node_params: dict | None = None) -> ImportSummary:
+                  node_params: dict | None = None, poses_on: str = "topic") -> ImportSummary:
     """Write OUT/model.ply, OUT/classes.yaml and OUT/bag (see the module docstring).
 
     Args:
@@ -76,12 +76,16 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
         link_model: symlink the model instead of copying it.
         progress: called with 1 after each frame.
         node_params: css_node parameters (e.g. ``splat_to_map``) written to ``OUT/css_node.yaml``.
+        poses_on: "topic" (a geometry_msgs/PoseStamped on ``/pose`` per frame) or "tf" (the camera's pose as the
+            transform map -> camera_optical on ``/tf`` at each frame's stamp, as a TF robot records it).
 
     Raises:
         ImportFormatError: an image whose size differs from its camera, ids that do not fit the encoding.
     """
     out = Path(out)
     model = Path(model)
+    if poses_on not in POSE_SOURCES:
+        raise ImportFormatError(f"poses_on must be one of {', '.join(POSE_SOURCES)}, got {poses_on!r}")
     if not model.is_file():
         raise ImportFormatError(f"model not found: {model}")
     if out.exists() and not out.is_dir():
@@ -96,7 +100,7 @@ def write_dataset(out: str | Path, frames: Sequence[ImportFrame], model: str | P
         raise CssError(f"cannot create the output folder beside {out}: {exc.strerror or exc}") from None
     try:
         summary = _write_into(tmp, out, frames, model, classes, classes_file, decoder, rate_hz, ignore_label,
-                              link_model, progress, node_params)
+                              link_model, progress, node_params, poses_on)
         # No SIGINT/SIGTERM between the renames: OUT never holds a mix of the old and the new import.
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
         try:
@@ -133,7 +137,7 @@ def _move_into(tmp: Path, out: Path) -> None:
 def _write_into(tmp: Path, out: Path, frames: Sequence[ImportFrame], model: Path, classes: ClassSet,
                 classes_file: str | Path | None, decoder: LabelDecoder, rate_hz: float, ignore_label: int,
                 link_model: bool, progress: Callable[[int], None] | None,
-                node_params: dict | None = None) -> ImportSummary:
+                node_params: dict | None = None, poses_on: str = "topic") -> ImportSummary:
     """Write the import into the empty folder ``tmp``; the summary names the final paths in ``out``."""
     C = classes.num_classes
     wide = C > 255 or ignore_label > 255
@@ -149,7 +153,10 @@ def _write_into(tmp: Path, out: Path, frames: Sequence[ImportFrame], model: Path
             labelled += int(valid.sum())
             out_of_range += int((valid & (seg >= C)).sum())
             bag.write_camera_info(BAG_TOPICS["camera_info"], v.K, v.width, v.height, s, BAG_CAMERA_FRAME)
-            bag.write_pose(BAG_TOPICS["pose"], v.position, v.quaternion_xyzw, s, BAG_MAP_FRAME)
+            if poses_on == "tf":
+                bag.write_tf(TF_TOPIC, s, [(BAG_MAP_FRAME, BAG_CAMERA_FRAME, s, v.position, v.quaternion_xyzw)])
+            else:
+                bag.write_pose(BAG_TOPICS["pose"], v.position, v.quaternion_xyzw, s, BAG_MAP_FRAME)
             if f.image is not None:
                 bag.write_image(BAG_TOPICS["image"], _sized(read_rgb(f.image), v, f.image), "rgb8", s, BAG_CAMERA_FRAME)
             bag.write_image(BAG_TOPICS["segmentation"], seg, enc, s, BAG_CAMERA_FRAME)

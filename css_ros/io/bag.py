@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from ..errors import BagError
 from .messages import array_to_image_fields, ns_to_sec_nanosec, pack_view_points
-from .topics import CAMERA_INFO_TYPE, IMAGE_TYPE, POINTCLOUD2_TYPE, POSE_STAMPED_TYPE
+from .topics import CAMERA_INFO_TYPE, IMAGE_TYPE, POINTCLOUD2_TYPE, POSE_STAMPED_TYPE, TF_TYPE
 
 if TYPE_CHECKING:
     from rosbags.interfaces import Connection
@@ -256,6 +256,21 @@ class BagWriter:
                                                           z=float(quat_xyzw[2]), w=float(quat_xyzw[3])))
         self.write(topic, POSE_STAMPED_TYPE, T[POSE_STAMPED_TYPE](header=self.header(stamp_ns, frame_id), pose=pose),
                    stamp_ns)
+
+    def write_tf(self, topic: str, log_ns: int,
+                 transforms: "list[tuple[str, str, int, np.ndarray, np.ndarray]]") -> None:
+        """A tf2_msgs/TFMessage of (parent, child, stamp [ns], translation (3,) [m], quaternion x, y, z, w)
+        entries (``/tf`` or ``/tf_static``), logged at ``log_ns``."""
+        T = self.store.types
+        out = []
+        for parent, child, stamp, p, q in transforms:
+            out.append(T["geometry_msgs/msg/TransformStamped"](
+                header=self.header(stamp, parent), child_frame_id=child,
+                transform=T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                    rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                               w=float(q[3])))))
+        self.write(topic, TF_TYPE, T[TF_TYPE](transforms=out), log_ns)
 
     def write_view_points(self, topic: str, positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray,
                           u_exp: np.ndarray, stamp_ns: int, frame_id: str) -> None:
