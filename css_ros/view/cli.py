@@ -17,7 +17,7 @@ from ..engine.semantic_map import SemanticMap
 from ..engine.similarity import Similarity
 from ..errors import CssError
 from .data import build_view_data, classes_for_map
-from .opening import AXIS_NAMES, axis_label
+from .opening import UP_CHOICES, axis_label, up_vector
 from ..io.trajectory import load_trajectory
 
 EXAMPLES = """\
@@ -127,17 +127,6 @@ def map_frame_query(smap: SemanticMap, to_map: Similarity):
         q = smap.query_points(to_splat.apply(np.asarray(xyz, np.float64).reshape(-1, 3)))
         return q.labels, q.expectation, q.variance
     return query
-
-
-#: ``--up`` values: the six axis names of :data:`AXIS_NAMES` and x, y, z for their + ones
-UP_CHOICES = sorted(AXIS_NAMES) + ["x", "y", "z"]
-
-
-def up_vector(name: str | None) -> np.ndarray | None:
-    """The ``--up`` axis as a (3,) vector, None when not given."""
-    if name is None:
-        return None
-    return np.asarray(AXIS_NAMES[name if name[0] in "+-" else "+" + name], np.float64)
 
 
 def opening_line(view) -> str:

@@ -184,7 +184,7 @@ class LiveFollower:
 def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
                stop: threading.Event | None = None) -> int:
     """Follow ``args.node`` and serve the page until interrupted (or ``--exit-after`` seconds, or ``stop``)."""
-    from .cli import up_vector
+    from .opening import up_vector
     from .server import MapView, check_port_free
 
     check_port_free(args.host, args.port)

@@ -44,6 +44,15 @@ MIN_OPACITY = 0.1                    # fainter Gaussians neither show nor hide a
 
 AXIS_NAMES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
               "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
+#: ``--up`` values: the six axis names of :data:`AXIS_NAMES` and x, y, z for their + ones
+UP_CHOICES = sorted(AXIS_NAMES) + ["x", "y", "z"]
+
+
+def up_vector(name: str | None) -> np.ndarray | None:
+    """The ``--up`` axis as a (3,) vector, None when not given."""
+    if name is None:
+        return None
+    return np.asarray(AXIS_NAMES[name if name[0] in "+-" else "+" + name], np.float64)
 
 
 @dataclass(frozen=True)
