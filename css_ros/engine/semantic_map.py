@@ -18,6 +18,7 @@ from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD, VAR_FLOOR)
+from .spec import MAX_FRAMES
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -186,6 +187,8 @@ def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarr
         ev[r] = values[start:start + r.size]
         total += ev
         epoch, seq, frames, in_step = (int(v) for v in state[k])
+        if frames > MAX_FRAMES:
+            raise MapError(f"map file {path}: received source {name!r} claims {frames} frames (> {MAX_FRAMES})")
         out[name] = SourceEvidence(ev, epoch, seq, frames, bool(in_step))
         start += r.size
     if np.any(total > (conc - prior) + 1e-9 * conc):
@@ -743,8 +746,8 @@ class SemanticMap:
         for name, value in (("prior", prior), ("background", background)):
             if not (np.isfinite(value) and 0 < value <= MAX_CONCENTRATION):
                 raise MapError(f"map file {path}: {name}={value!r} outside (0, {MAX_CONCENTRATION:g}]")
-        if frames < 0:
-            raise MapError(f"map file {path}: frames_observed={frames} < 0")
+        if not 0 <= frames <= MAX_FRAMES:
+            raise MapError(f"map file {path}: frames_observed={frames} outside [0, {MAX_FRAMES}]")
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
         has_evidence = bool(np.any(conc != prior))
         if "sensor_model" in kwargs and fused_sm != smap.sensor_fingerprint and has_evidence:
