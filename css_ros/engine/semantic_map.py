@@ -19,6 +19,7 @@ from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semanti
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD, VAR_FLOOR)
 from .spec import MAX_FRAMES
+from . import view_args
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -513,6 +514,7 @@ class SemanticMap:
         """
         from .info_gain import MomentSums, view_gain
 
+        cameras = view_args.check_cameras(cameras, "score_views")
         imp = self._check_importance(importance)
         cams = list(cameras)
         e_b, v_b, s_b = self._background_moments()
@@ -531,9 +533,7 @@ class SemanticMap:
 
     @staticmethod
     def _check_pixel_scale(pixel_scale: float) -> float:
-        if not (np.isfinite(pixel_scale) and pixel_scale > 0):
-            raise MapError(f"pixel_scale must be finite and > 0, got {pixel_scale}")
-        return float(pixel_scale)
+        return view_args.check_pixel_scale(pixel_scale)
 
     def select_views(self, cameras: Sequence["Camera"], k: int, importance: np.ndarray | None = None,
                      pixel_scale: float = 1.0) -> "SelectedViews":
@@ -546,11 +546,15 @@ class SemanticMap:
         Returns:
             :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
             one's gain when chosen). Fewer than ``k`` when there are fewer cameras.
+        At most ``view_args.MAX_SELECT_CANDIDATES`` (1024) cameras per call: each candidate's visible Gaussians and
+        evidence are kept for the greedy re-scoring (memory linear in the candidates); more are refused (CameraError).
+
         Raises:
-            MapError: on a backend without the evidence mass (cuda).
+            MapError: on a backend without the evidence mass (cuda); bad k, importance or pixel_scale (named).
         """
         from .info_gain import MomentSums, SelectedViews, view_gain
 
+        cameras, k = view_args.check_cameras(cameras, "select_views", view_args.MAX_SELECT_CANDIDATES), view_args.check_k(k)
         imp = self._check_importance(importance)
         cams = list(cameras)
         scale = self._check_pixel_scale(pixel_scale)
@@ -579,6 +583,7 @@ class SemanticMap:
     def task_importance(self, task_cameras: Sequence["Camera"]) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = its kappa mass summed over ``task_cameras`` (the views a robot
         will later take or act from), for ``score_views`` / ``select_views``: surfaces no task view sees count 0."""
+        task_cameras = view_args.check_cameras(task_cameras, "task_importance")
         imp = np.zeros(self.model.num_gaussians)
         unit = (np.array([0.0, 1.0]), np.ones(self.num_classes))
         for ids, mass in self._view_masses(list(task_cameras), unit, "task_importance"):
@@ -603,18 +608,12 @@ class SemanticMap:
     def class_importance(self, class_id: int) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = E[theta_n^c], the map's probability that Gaussian n is of class
         ``class_id`` (views of surfaces likely to be that class score higher)."""
-        if not 0 <= int(class_id) < self.num_classes:
-            raise MapError(f"class_id {class_id} outside 0..{self.num_classes - 1}")
+        class_id = view_args.check_class_id(class_id, self.num_classes)
         conc = self.concentrations_readonly
         return conc[:, int(class_id)] / conc.sum(axis=1)
 
     def _check_importance(self, importance: np.ndarray | None) -> np.ndarray | None:
-        if importance is None:
-            return None
-        imp = np.asarray(importance, dtype=np.float64)
-        if imp.shape != (self.model.num_gaussians,) or not np.all(np.isfinite(imp)) or np.any(imp < 0):
-            raise MapError(f"importance must be ({self.model.num_gaussians},) finite and >= 0, got shape {imp.shape}")
-        return imp
+        return view_args.check_importance(importance, self.model.num_gaussians)
 
     def _mass_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """(depth-bin edges in splat units, net vote weight per (label, bin)) of one more observation: without a
