@@ -236,13 +236,20 @@ class RosClient:
         return cond()
 
     def wait_connected(self, timeout: float = 30.0) -> bool:
-        """Wait until the node subscribes to our inputs and publishes the outputs we listen to."""
+        """Wait until the node subscribes to our inputs and publishes the outputs we listen to, matched at both ends:
+        our readers have matched its writers, and its diagnostics (published by the node whenever a subscriber of an
+        output matches) count at least as many subscribers of each output as this client knows of. Without the
+        node's side, an output published before its writer matched this reader is lost on a loaded host."""
+        outputs = ("semantic", "view_uncertainty", "candidate_scores")
+
         def ok() -> bool:
             subs = all(p.get_subscription_count() > 0 for p in self.pub.values())
             # matched (not only discovered): css_node's outputs come from another participant than its inputs
-            pubs = all(self.subs[n].get_publisher_count() > 0 for n in ("semantic", "view_uncertainty",
-                                                                         "candidate_scores"))
-            return subs and pubs and self.save_client.service_is_ready()
+            pubs = all(self.subs[n].get_publisher_count() > 0 for n in outputs)
+            diag = self.diagnostics()
+            heard = all(int(diag.get(f"subscribers[{n}]", 0)) >= self.node.count_subscribers(f"{self.node_ns}/{n}")
+                        for n in outputs)
+            return subs and pubs and heard and self.save_client.service_is_ready()
         return bool(self.wait_until(ok, timeout, 0.05))
 
     def wait_stamp(self, name: str, stamp_ns: int, timeout: float = 20.0) -> Any:
