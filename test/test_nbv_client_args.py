@@ -39,3 +39,9 @@ def test_good_arguments_parse_to_their_values():
                                       "--node", "/robot1/css_node", "--seed", "7", "--yaw-range", "180"])
     assert (args.period, args.timeout, args.num_candidates, args.node, args.seed, args.yaw_range) == \
         (0.05, 3600.0, MAX_NUM_CANDIDATES, "/robot1/css_node", 7, 180.0)
+
+
+def test_bad_ros_arguments_are_one_line_not_a_traceback(capsys):
+    assert main(["--once", "--ros-args", "-r"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("css_nbv_client: error: cannot initialise ROS"), err

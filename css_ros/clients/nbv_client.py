@@ -256,7 +256,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(remove_ros_args(argv)[1:])
     except SystemExit as exc:   # argparse printed the usage and the option at fault
         return int(exc.code or 0)
-    rclpy.init(args=argv)
+    except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
+        print(f"css_nbv_client: error: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=argv)
+    except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
+        print(f"css_nbv_client: error: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
+        return 2
     client = NbvClient(args)
     code = 0
     try:
