@@ -327,5 +327,10 @@ class CssNode(Node):
             self.get_logger().error("worker did not stop in time: no final checkpoint")
             return False
         self.outputs.flush(1.0)  # answers published while stopping reach their clients
+        waiting = self.gate.frames.waiting()   # the inputs thread has stopped: nothing adds to it now
+        if waiting:   # every frame not answered is counted and said
+            self.stats.count("frames_dropped_stopping", waiting)
+            self.warn("segmentation", "node stopping", f"{waiting} frame(s) still waiting for a pose or confidence "
+                                                       "not processed")
         self.worker.save_checkpoint("shutdown")
         return True
