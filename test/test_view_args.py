@@ -98,7 +98,7 @@ def test_class_importance_refuses_a_bad_class_id(smap, class_id, says):
 
 def test_select_views_takes_at_most_the_documented_number_of_candidates(smap, cams):
     """More than MAX_SELECT_CANDIDATES cameras are refused before any is rendered (the greedy batch keeps every
-    candidate's evidence: 10^4 candidates grew the process by ~0.9 GB); exactly that many are accepted."""
+    candidate's evidence, memory linear in the candidates); exactly that many are accepted."""
     many = [cams[0]] * (view_args.MAX_SELECT_CANDIDATES + 1)
     with pytest.raises(CameraError, match=f"more than {view_args.MAX_SELECT_CANDIDATES} cameras"):
         smap.select_views(many, 2)

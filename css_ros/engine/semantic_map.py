@@ -541,20 +541,20 @@ class SemanticMap:
         each next one the largest gain given the views before it were observed (their evidence added to the map's
         moments as the expected observation would add it: alpha_n += m_n E[theta_n]), so views that see the same
         surfaces as an earlier pick lose their shared gain. The map is not changed. ``pixel_scale`` as in
-        :meth:`score_views`.
+        :meth:`score_views`. At most ``view_args.MAX_SELECT_CANDIDATES`` (1024) cameras per call: each candidate's
+        visible Gaussians and evidence are kept for the greedy re-scoring (memory linear in the candidates); more are
+        refused (CameraError).
 
         Returns:
             :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
             one's gain when chosen). Fewer than ``k`` when there are fewer cameras.
-        At most ``view_args.MAX_SELECT_CANDIDATES`` (1024) cameras per call: each candidate's visible Gaussians and
-        evidence are kept for the greedy re-scoring (memory linear in the candidates); more are refused (CameraError).
-
         Raises:
             MapError: on a backend without the evidence mass (cuda); bad k, importance or pixel_scale (named).
         """
         from .info_gain import MomentSums, SelectedViews, view_gain
 
-        cameras, k = view_args.check_cameras(cameras, "select_views", view_args.MAX_SELECT_CANDIDATES), view_args.check_k(k)
+        cameras = view_args.check_cameras(cameras, "select_views", view_args.MAX_SELECT_CANDIDATES)
+        k = view_args.check_k(k)
         imp = self._check_importance(importance)
         cams = list(cameras)
         scale = self._check_pixel_scale(pixel_scale)
