@@ -86,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
 #: Seconds css_demo waits for css_node's diagnostics (which say its outputs reach the player) once the node has
 #: subscribed to every played topic; a node without diagnostics is trusted after that.
 DIAGNOSTICS_GRACE_S = 15.0
+#: Longest wait for the answers after the last frame was played [s] (while the node shows progress).
+WAIT_RESULTS_MAX_S = 300.0
 
 
 def start_node(args: argparse.Namespace, bag: Path) -> subprocess.Popen:
@@ -326,16 +328,22 @@ class DemoPlayer:
         return played
 
     def wait_results(self, timeout: float) -> None:
-        """Wait until the last frame's result arrives (or ``timeout`` s pass without any new result)."""
-        last_count, last_change = -1, time.monotonic()
-        while time.monotonic() - last_change < timeout:
+        """Wait until the last frame's result arrives, or ``timeout`` s pass without a new result while the node's
+        diagnostics show no progress either (frames processed, frames pending: a first frame that compiles the
+        kernels on a loaded host takes longer than ``timeout``); at most WAIT_RESULTS_MAX_S in all."""
+        start = time.monotonic()
+        last_progress: tuple[Any, ...] = ()
+        last_change = start
+        while time.monotonic() - last_change < timeout and time.monotonic() - start < WAIT_RESULTS_MAX_S:
             with self.lock:
                 done = sum(r.done for r in self.frames.values())
                 last = max(self.frames.values(), key=lambda r: r.index, default=None)
+                diag = self.node_diagnostics or {}
             if last is not None and last.done:
                 return
-            if done != last_count:
-                last_count, last_change = done, time.monotonic()
+            progress = (done, diag.get("frames_processed"), diag.get("segmentations_received"))
+            if progress != last_progress or diag.get("pending_frames", "0") not in ("0", "0.0"):
+                last_progress, last_change = progress, time.monotonic()
             time.sleep(0.1)
 
     def summary(self, elapsed: float) -> str:
