@@ -314,8 +314,9 @@ class SensorModel:
         """Read and check a sensor-model YAML file (and, given ``class_names``, that it fits the map's classes).
 
         Raises:
-            SensorModelError: one line naming the file: missing, too large, not YAML, not a sensor model,
-                or any failed check of :meth:`validate` / :meth:`check_classes`.
+            SensorModelError: one line naming the file: missing, too large, not YAML, YAML beyond what
+                :func:`read_plain_yaml` reads (aliases, deep nesting, huge integers, too many values), not a sensor
+                model, or any failed check of :meth:`validate` / :meth:`check_classes` / the confidence map.
         """
         path = Path(path)
         if not path.is_file():
