@@ -236,14 +236,31 @@ class RosClient:
         return cond()
 
     def wait_connected(self, timeout: float = 30.0) -> bool:
-        """Wait until the node subscribes to our inputs and publishes the outputs we listen to."""
+        """Wait until the node subscribes to our inputs and publishes the outputs we listen to, matched at both ends:
+        our readers have matched its writers, and its diagnostics (published by the node whenever a subscriber of an
+        output matches) count at least as many subscribers of each output as this client knows of. Without the
+        node's side, an output published before its writer matched this reader is lost on a loaded host."""
+        outputs = ("semantic", "view_uncertainty", "candidate_scores")
+
         def ok() -> bool:
             subs = all(p.get_subscription_count() > 0 for p in self.pub.values())
             # matched (not only discovered): css_node's outputs come from another participant than its inputs
-            pubs = all(self.subs[n].get_publisher_count() > 0 for n in ("semantic", "view_uncertainty",
-                                                                         "candidate_scores"))
-            return subs and pubs and self.save_client.service_is_ready()
+            pubs = all(self.subs[n].get_publisher_count() > 0 for n in outputs)
+            return subs and pubs and self.outputs_heard(outputs) and self.save_client.service_is_ready()
         return bool(self.wait_until(ok, timeout, 0.05))
+
+    def outputs_heard(self, outputs: tuple[str, ...]) -> bool:
+        """The node's writers of ``outputs`` (names below the node, e.g. ``view_uncertainty``) have matched every
+        subscriber of them this client knows of (its own included): its diagnostics ``subscribers[<output>]``,
+        published by the node whenever one matches, count at least that many."""
+        diag = self.diagnostics()
+        return all(int(diag.get(f"subscribers[{n}]", 0)) >= self.node.count_subscribers(f"{self.node_ns}/{n}")
+                   for n in outputs)
+
+    def wait_outputs_heard(self, outputs: tuple[str, ...], timeout: float = 30.0) -> bool:
+        """Wait until :meth:`outputs_heard` (after creating a subscriber of an output, before the frames it must
+        see: an answer published before the node's writer matched it is lost)."""
+        return bool(self.wait_until(lambda: self.outputs_heard(outputs), timeout, 0.05))
 
     def wait_stamp(self, name: str, stamp_ns: int, timeout: float = 20.0) -> Any:
         """The first message on output ``name`` whose header stamp equals ``stamp_ns`` (or None)."""

@@ -108,8 +108,8 @@ def test_calibrate_refuses_too_few_pixels_and_writes_nothing(bags, tmp_path, cap
     assert list(tmp_path.iterdir()) == []
     assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(out), "--quiet", "--gt-topic", "/nope"]) == 1
     assert list(tmp_path.iterdir()) == []
-    assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(tmp_path / "x.txt")]) == 1
-    assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(out), "--heldout-every", "1"]) == 1
+    assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(tmp_path / "x.txt")]) == 2
+    assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(out), "--heldout-every", "1"]) == 2
 
 
 def test_replay_with_the_sensor_model_reports_both_updates(bags, tmp_path, monkeypatch):

@@ -47,7 +47,7 @@ def test_bursts_of_200_point_queries_and_candidates_are_all_answered(tmp_path):
         pub_c = client.node.create_publisher(PoseArray, "candidates", deep)
         assert client.wait_until(lambda: pub_q.get_subscription_count() > 0 and pub_c.get_subscription_count() > 0
                                  and sub_points.get_publisher_count() > 0, 20.0)   # matched, both participants
-        time.sleep(0.5)  # the node's answer writer matches our reader too
+        assert client.wait_outputs_heard(("point_query_results", "candidate_scores"))   # its writers matched ours too
         xyz = np.array([[0.0, 0.0, 3.0], [100.0, 0.0, 0.0]])
         pose = (np.zeros((1, 3)), np.array([[0.0, 0.0, 0.0, 1.0]]))
         for i in range(1, BURST + 1):  # back to back, no pause

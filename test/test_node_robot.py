@@ -130,6 +130,7 @@ def test_robot_stream_with_default_parameters_maps_the_frames_with_interpolated_
         got = _view_points(client, "/css_node/view_uncertainty")
         assert client.wait_until(lambda: node.wait_log("inputs (", 0.1) and all(
             p.get_subscription_count() > 0 for pair in pubs for p in pair), 60.0), node.log()
+        assert client.wait_outputs_heard(("view_uncertainty",)), (client.diagnostics(), node.log()[-3000:])
         time.sleep(0.5)
         stamps = stream(client, duration=8.0, fps=5.0, pose_rate=200.0, latency=0.3, send_pose=send_pose,
                         seg_publishers=pubs)

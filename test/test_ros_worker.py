@@ -267,3 +267,19 @@ def test_load_map_replaces_the_state_and_refuses_another_model(model, tmp_path):
     with pytest.raises(MapError, match="this map belongs to model [0-9a-f]{16}, not "):
         w.load_map(tmp_path / "other.npz")
     np.testing.assert_array_equal(w.smap.concentrations, saved)
+
+
+def test_frames_pending_at_stop_are_counted_and_said(model):
+    """Frames still queued when the node stops are not processed: each is counted (frames_dropped_stopping) and one
+    warning names them; none is published half-done and none vanishes unsaid."""
+    w, sink, lines, stats = make_worker(model, max_pending_frames=8)
+    for k in range(3):
+        assert w.queue.put_frame(frame(10**9 * (k + 1))) is None
+    w.stop_flag.set()   # stopped before the worker thread took any frame
+    w.run()
+    assert sink.frames == []
+    counts, _, _ = stats.snapshot()
+    assert counts["frames_dropped_stopping"] == 3
+    said = [ln for ln in lines if "node stopping" in ln]
+    assert len(said) == 1 and "3 pending frame(s) not processed" in said[0] and "1000000000" in said[0], lines
+    assert w.queue.frames == []

@@ -7,7 +7,9 @@ file is written atomically, the YAML last: a failed run leaves no partial file.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -18,7 +20,7 @@ from ..console import run_console
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
-from ..engine.sensor_model import SensorModel, uniform_edges
+from ..engine.sensor_model import MAX_DEPTH_BINS, SensorModel, uniform_edges
 from ..errors import ConfigError, CssError
 from ..evaluation import cli as replay_cli
 from ..evaluation.calibration_metrics import ReliabilityBins
@@ -30,6 +32,27 @@ from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOU
                     right_rates)
 
 PROG = "css_calibrate"
+#: Largest --max-depth and --bin-width [m] (a segmenter's labels are not judged beyond a kilometre).
+MAX_DEPTH_M = 1000.0
+#: Largest --pseudo-count [pixels] (a smoothing weight of a billion pixels outweighs any bag).
+MAX_PSEUDO_COUNT = 1e9
+#: Largest --heldout-every [frames].
+MAX_HELDOUT_EVERY = 1_000_000
+
+
+def _number(lo: float, hi: float, lo_open: bool = False, integer: bool = False) -> Any:
+    """An argparse ``type``: a finite number in [lo, hi] ((lo, hi] with ``lo_open``), an integer with ``integer``;
+    argparse names the option in its refusal (exit 2)."""
+    def parse(text: str) -> float | int:
+        try:
+            value: float | int = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
+        if not (math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi):
+            raise argparse.ArgumentTypeError(f"{text} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
+        return value
+    parse.__name__ = "integer" if integer else "number"
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,23 +69,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="splat model (only with one bag; default: <bag parent>/model.ply)")
     p.add_argument("--classes", default=None, metavar="YAML",
                    help="class file (default: <bag parent>/classes.yaml; every bag must have the same classes)")
-    p.add_argument("--bin-width", type=float, default=DEFAULT_BIN_WIDTH, metavar="M",
-                   help=f"depth-bin width in metres (default {DEFAULT_BIN_WIDTH:g})")
-    p.add_argument("--max-depth", type=float, default=DEFAULT_MAX_DEPTH, metavar="M",
-                   help=f"last bin edge in metres; deeper pixels fall in the last bin (default {DEFAULT_MAX_DEPTH:g})")
+    p.add_argument("--bin-width", type=_number(0.0, MAX_DEPTH_M, lo_open=True), default=DEFAULT_BIN_WIDTH,
+                   metavar="M", help=f"depth-bin width in metres, in (0, {MAX_DEPTH_M:g}] (default "
+                                     f"{DEFAULT_BIN_WIDTH:g}); at most {MAX_DEPTH_BINS} bins up to --max-depth")
+    p.add_argument("--max-depth", type=_number(0.0, MAX_DEPTH_M, lo_open=True), default=DEFAULT_MAX_DEPTH,
+                   metavar="M", help=f"last bin edge in metres, in (0, {MAX_DEPTH_M:g}]; deeper pixels fall in the "
+                                     f"last bin (default {DEFAULT_MAX_DEPTH:g})")
     p.add_argument("--votes", choices=VOTE_KINDS, default=DEFAULT_VOTES,
                    help="how a vote is spread over the classes: symmetric (default: p on the label, the rest evenly "
                         "on the others), onehot (the label only) or confusion (the rows p(true class | label, depth))")
     p.add_argument("--per-class", action="store_true",
                    help="weights per label and depth (default: per depth, the same for every label)")
-    p.add_argument("--pseudo-count", type=float, default=DEFAULT_PSEUDO_COUNT, metavar="N",
+    p.add_argument("--pseudo-count", type=_number(0.0, MAX_PSEUDO_COUNT), default=DEFAULT_PSEUDO_COUNT, metavar="N",
                    help="smoothing of sparse (label, depth) bins toward their neighbours and the class rate, in "
-                        f"pixels (default {DEFAULT_PSEUDO_COUNT:g})")
-    p.add_argument("--weight-floor", type=float, default=DEFAULT_WEIGHT_FLOOR, metavar="W",
-                   help=f"vote weight of labels no better than chance (default {DEFAULT_WEIGHT_FLOOR:g})")
-    p.add_argument("--heldout-every", type=int, default=DEFAULT_HELDOUT_EVERY, metavar="K",
-                   help=f"hold out every K-th frame of each bag for the before/after calibration (default "
-                        f"{DEFAULT_HELDOUT_EVERY}; 0 = none)")
+                        f"pixels, in [0, {MAX_PSEUDO_COUNT:g}] (default {DEFAULT_PSEUDO_COUNT:g})")
+    p.add_argument("--weight-floor", type=_number(0.0, 1.0), default=DEFAULT_WEIGHT_FLOOR, metavar="W",
+                   help=f"vote weight of labels no better than chance, in [0, 1] (default {DEFAULT_WEIGHT_FLOOR:g})")
+    p.add_argument("--heldout-every", type=_number(0, MAX_HELDOUT_EVERY, integer=True), default=DEFAULT_HELDOUT_EVERY,
+                   metavar="K", help=f"hold out every K-th frame of each bag for the before/after calibration, 0 "
+                                     f"(none) or 2..{MAX_HELDOUT_EVERY} (default {DEFAULT_HELDOUT_EVERY})")
     p.add_argument("--no-confidence", action="store_true",
                    help="skip the second pass that fits the calibrated confidence map (~/confidence)")
     p.add_argument("--gt-topic", default=None, metavar="TOPIC", help="ground-truth topic (default /segmentation_gt)")
@@ -89,43 +114,116 @@ def bag_config(args: argparse.Namespace, bag: Path) -> ReplayConfig:
     return cfg
 
 
-def check_options(args: argparse.Namespace) -> None:
+def option_error(args: argparse.Namespace) -> str | None:
+    """What is wrong with the options together (each alone was checked by its ``type``), or None. Checked right
+    after parsing, before any file is read: a usage error (exit 2)."""
     if args.model is not None and len(args.bags) > 1:
-        raise ConfigError("--model applies to one bag; with several, each bag's parent holds its model.ply")
-    if not (args.bin_width > 0 and args.max_depth > args.bin_width):
-        raise ConfigError("--bin-width must be > 0 and --max-depth larger than it")
-    if not 0 <= args.weight_floor <= 1:
-        raise ConfigError("--weight-floor must be in [0, 1]")
-    if not args.pseudo_count >= 0:
-        raise ConfigError("--pseudo-count must be >= 0")
-    if args.heldout_every < 0 or args.heldout_every == 1:
-        raise ConfigError("--heldout-every must be 0 (none) or >= 2")
+        return "--model applies to one bag; with several, each bag's parent holds its model.ply"
+    if not args.max_depth > args.bin_width:
+        return f"--max-depth {args.max_depth:g} must be larger than --bin-width {args.bin_width:g}"
+    bins = math.ceil(args.max_depth / args.bin_width - 1e-9)
+    if bins > MAX_DEPTH_BINS:
+        return (f"--max-depth {args.max_depth:g} / --bin-width {args.bin_width:g} gives {bins} depth bins, more than "
+                f"{MAX_DEPTH_BINS}: widen the bins")
+    if args.heldout_every == 1:
+        return "--heldout-every must be 0 (none) or >= 2 (1 would hold out every frame)"
     if args.out.suffix.lower() not in (".yaml", ".yml"):
-        raise ConfigError(f"--out {args.out}: expected a .yaml file")
+        return f"--out {args.out}: expected a .yaml file"
+    return None
 
 
-def _frames(cfg: ReplayConfig, what: str, quiet: bool) -> Any:
-    source = FrameSource(cfg)
+def check_options(args: argparse.Namespace) -> None:
+    """:func:`option_error` as a ConfigError (for callers that build the namespace themselves)."""
+    error = option_error(args)
+    if error is not None:
+        raise ConfigError(error)
+
+
+#: How the skip reasons of the frame reader that name no image read in css_calibrate's report.
+_READER_REASONS = {"size_mismatch_with_camera_info": "a ground truth or colour image of another aspect ratio than "
+                                                     "the segmentation"}
+
+
+class _Source(FrameSource):
+    """The frame reader, keeping the first detail of each reason it drops a message for (the skip report)."""
+
+    def __init__(self, cfg: ReplayConfig) -> None:
+        super().__init__(cfg)
+        self.first_detail: dict[str, str] = {}
+
+    def _warn(self, topic: str, reason: str, detail: str = "", dropped: bool = True) -> None:
+        super()._warn(topic, reason, detail, dropped)
+        if dropped and detail:
+            self.first_detail.setdefault(reason.replace(" ", "_"), f"{topic}: {detail}"[:200])
+
+
+def _frames(cfg: ReplayConfig, what: str, quiet: bool, skipped: Counter[str] | None = None) -> Any:
+    """The bag's frames (a progress bar); after the last one, what the reader dropped is added to ``skipped``
+    (reason -> count)."""
+    source = _Source(cfg)
     source.check()
     if not source.present.get("gt"):
         raise CssError(f"{cfg.bag} has no ground-truth topic {cfg.topics['gt'] or '(none)'}: css_calibrate needs "
                        "labelled frames")
-    return tqdm(source.frames(), total=source.anchor_count, desc=f"{what} {cfg.bag.parent.name or cfg.bag.name}",
+
+    def frames() -> Any:
+        yield from source.frames()
+        if skipped is not None:
+            for key, n in source.skips.items():
+                detail = source.first_detail.get(key)
+                text = _READER_REASONS.get(key, key.replace("_", " ")) + (f", e.g. {detail}" if detail else "")
+                skipped[f"messages dropped while reading ({text})"] += n
+
+    return tqdm(frames(), total=source.anchor_count, desc=f"{what} {cfg.bag.parent.name or cfg.bag.name}",
                 unit="frame", disable=quiet, file=sys.stderr, dynamic_ncols=True)
 
 
+def unusable(labels: np.ndarray, gt: np.ndarray, depth: np.ndarray, num_classes: int) -> str | None:
+    """Why a frame adds no labelled pixel to the counts (None when it adds some): labels, gt (H, W) ids, depth (H, W)
+    metres (NaN: none). The rule of :meth:`LabelDepthCounts.add`: ids in [0, C) in both, a finite depth."""
+    if gt.shape != labels.shape:
+        return "ground truth of another size than the segmentation"
+    tru = (gt >= 0) & (gt < num_classes)
+    lab = (labels >= 0) & (labels < num_classes)
+    if not tru.any():
+        return f"ground truth holds no class id below {num_classes} (ids {_ids(gt)})"
+    if not lab.any():
+        return f"segmentation holds no class id below {num_classes} (ids {_ids(labels)})"
+    if not (tru & lab).any():
+        return "no pixel labelled in both the segmentation and the ground truth"
+    if not np.isfinite(depth[tru & lab]).any():
+        return "no rendered depth on the labelled pixels (the splat does not cover them)"
+    return None
+
+
+def _ids(a: np.ndarray) -> str:
+    values = np.unique(a)
+    return ", ".join(str(int(v)) for v in values[:5]) + (", ..." if values.size > 5 else "")
+
+
+def skip_summary(skipped: Counter[str]) -> str:
+    """``n reason; n reason`` (most first) of the frames that added nothing, '' when none."""
+    return "; ".join(f"{n} {reason}" for reason, n in skipped.most_common())
+
+
 def collect(configs: list[ReplayConfig], edges: np.ndarray, num_classes: int, heldout_every: int,
-            quiet: bool) -> LabelDepthCounts:
-    """Pass 1: (label, depth bin, ground truth) counts of every labelled frame of every bag."""
+            quiet: bool, skipped: Counter[str] | None = None) -> LabelDepthCounts:
+    """Pass 1: (label, depth bin, ground truth) counts of every labelled frame of every bag. ``skipped`` gets, per
+    reason, the frames that added no labelled pixel and the messages the reader dropped."""
     counts = LabelDepthCounts(num_classes, edges)
+    skipped = Counter() if skipped is None else skipped
     for cfg in configs:
         model = GaussianModel.from_ply(cfg.model)
         smap = SemanticMap(model, num_classes, ignore_label=cfg.ignore_label, depth_scale=float(cfg.splat_to_map[0]))
-        for frame in _frames(cfg, "statistics", quiet):
+        for frame in _frames(cfg, "statistics", quiet, skipped):
             if frame.gt is None:
+                skipped["frames without a ground-truth image (none matched, or it was dropped)"] += 1
                 continue
             depth = smap.render(frame.camera, outputs=("depth",)).depth
             assert depth is not None  # the numba backend always renders depth
+            why = unusable(frame.labels, frame.gt, depth, num_classes)
+            if why is not None:
+                skipped[f"frames: {why}"] += 1
             counts.add(frame.labels, frame.gt, depth, is_heldout(frame.index, heldout_every))
     return counts
 
@@ -158,11 +256,15 @@ def calibrate(args: argparse.Namespace) -> int:
         if other.names != classes.names:
             raise ConfigError(f"{cfg.bag} uses the classes of {cfg.classes}, which differ from {configs[0].classes}")
     edges = uniform_edges(args.max_depth, args.bin_width)
-    counts = collect(configs, edges, classes.num_classes, args.heldout_every, args.quiet)
+    skipped: Counter[str] = Counter()
+    counts = collect(configs, edges, classes.num_classes, args.heldout_every, args.quiet, skipped)
     fit_pixels = int(counts.fit.sum())
     if fit_pixels < MIN_LABELLED_PIXELS:
+        why = f"; skipped: {skip_summary(skipped)}" if skipped else ""
         raise CssError(f"too few labelled pixels to calibrate: {fit_pixels} with a ground truth and a rendered depth "
-                       f"in {counts.frames_fit} fitting frames (need {MIN_LABELLED_PIXELS})")
+                       f"in {counts.frames_fit} fitting frames (need {MIN_LABELLED_PIXELS}){why}")
+    if skipped:
+        print(f"{PROG}: skipped: {skip_summary(skipped)}")
     sensor = fit_sensor_model(counts, classes.names, votes=args.votes, per_class=args.per_class,
                               pseudo_count=args.pseudo_count, weight_floor=args.weight_floor)
     conf, ok = label_samples(counts.heldout if counts.frames_heldout else counts.fit,
@@ -237,6 +339,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
+        error = option_error(args)
+        if error is not None:
+            parser.error(error)
     except SystemExit as exc:
         return int(exc.code or 0)
     return run_console(PROG, lambda: calibrate(args))

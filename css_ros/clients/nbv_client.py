@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import threading
 import time
@@ -19,6 +20,35 @@ from ..io.topics import POSE_TYPES
 
 #: --metric choices: the candidate with the largest value is the next best view.
 METRICS = ("info_gain", "u_var", "u_exp")
+#: Most candidates per request (css_node answers larger requests than its max_candidates, default 256, with NaN).
+MAX_NUM_CANDIDATES = 4096
+#: Largest --period / --timeout [s]; the smallest --period [s] (the loop spins at 20 Hz).
+MAX_SECONDS = 3600.0
+MIN_PERIOD_S = 0.05
+#: Largest --position-std / --vertical-std [m].
+MAX_STD_M = 100.0
+_NODE_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+
+
+def _number(lo: float, hi: float, lo_open: bool = False, integer: bool = False) -> Any:
+    """An argparse ``type``: a finite number in [lo, hi] ((lo, hi] with ``lo_open``), an int with ``integer``
+    (argparse then names the option: exit 2)."""
+    def parse(text: str) -> float | int:
+        try:
+            value: float | int = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
+        if not (math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi):
+            raise argparse.ArgumentTypeError(f"{text} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
+        return value
+    return parse
+
+
+def _node_name(text: str) -> str:
+    """--node: a fully qualified ROS node name (/namespace/name)."""
+    if not _NODE_NAME.match(text.rstrip("/") or "/"):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a node name like /css_node or /robot1/css_node")
+    return text
 
 
 def yaw_about_map_z(angle: float) -> np.ndarray:
@@ -61,23 +91,32 @@ def build_parser() -> argparse.ArgumentParser:
                     "NODE/candidate_scores (matched by the request stamp) and publish the candidate with the "
                     "largest --metric (default: expected information gain) as a PoseStamped on "
                     "'next_best_view'. Topic names are relative (remappable with --ros-args -r).")
-    p.add_argument("--node", default="/css_node", help="css_node's name with namespace (default /css_node)")
-    p.add_argument("--num-candidates", type=int, default=16, help="candidates per request, incl. the current "
-                   "pose (default 16)")
-    p.add_argument("--yaw-range", type=float, default=90.0, help="max yaw offset [deg] (default 90)")
-    p.add_argument("--position-std", type=float, default=0.3, help="horizontal position noise [m] (default 0.3)")
-    p.add_argument("--vertical-std", type=float, default=0.0, help="vertical position noise [m] (default 0)")
+    p.add_argument("--node", type=_node_name, default="/css_node",
+                   help="css_node's name with namespace (default /css_node)")
+    p.add_argument("--num-candidates", type=_number(1, MAX_NUM_CANDIDATES, integer=True), default=16,
+                   help=f"candidates per request, incl. the current pose, 1..{MAX_NUM_CANDIDATES} (default 16; "
+                        "css_node scores at most its max_candidates, default 256)")
+    p.add_argument("--yaw-range", type=_number(0.0, 180.0), default=90.0,
+                   help="max yaw offset [deg], in [0, 180] (default 90)")
+    p.add_argument("--position-std", type=_number(0.0, MAX_STD_M), default=0.3,
+                   help=f"horizontal position noise [m], in [0, {MAX_STD_M:g}] (default 0.3)")
+    p.add_argument("--vertical-std", type=_number(0.0, MAX_STD_M), default=0.0,
+                   help=f"vertical position noise [m], in [0, {MAX_STD_M:g}] (default 0)")
     p.add_argument("--metric", choices=METRICS, default="info_gain",
                    help="score to maximise: info_gain (expected reduction of the map's uncertainty if the view "
                         "were observed), u_var or u_exp (the most uncertain view); NaN rows are never chosen "
                         "(default info_gain)")
-    p.add_argument("--period", type=float, default=2.0, help="seconds between requests (default 2)")
-    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for an answer (default 10)")
+    p.add_argument("--period", type=_number(MIN_PERIOD_S, MAX_SECONDS), default=2.0,
+                   help=f"seconds between requests, in [{MIN_PERIOD_S:g}, {MAX_SECONDS:g}] (default 2)")
+    p.add_argument("--timeout", type=_number(0.0, MAX_SECONDS, lo_open=True), default=10.0,
+                   help=f"seconds to wait for an answer (and, with --once, for a pose), in (0, {MAX_SECONDS:g}] "
+                        "(default 10)")
     p.add_argument("--once", action="store_true", help="one request, print the result, exit (0 on success)")
     p.add_argument("--json", action="store_true", help="also print each chosen view as one JSON line on stdout "
                    "(index, yaw_deg, position, quat_xyzw, metric, u_var, u_exp, info_gain, current_*, stamp_ns, "
                    "latency_ms; NaN as null)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the position noise")
+    p.add_argument("--seed", type=_number(0, 2**63 - 1, integer=True), default=0,
+                   help="random seed of the position noise, >= 0 (default 0)")
     p.add_argument("--pose-type", choices=tuple(POSE_TYPES), default="pose_stamped",
                    help="message type on 'pose', as css_node's pose_type (default pose_stamped); candidates are "
                         "poses of the same frame (css_node applies its camera 0 extrinsics)")
@@ -171,7 +210,9 @@ class NbvClient:
             return None
         best = best_candidate(pts[metric])
         if best is None:
-            self.log.warning(f"every candidate scored NaN on {metric} (no camera_info at the node yet?)")
+            self.log.warning(f"every candidate scored NaN on {metric}: css_node answers NaN before its first "
+                             f"camera_info and for requests above its max_candidates (this one: {len(positions)}); "
+                             "its log and /diagnostics say which")
             return None
         out = PoseStamped(header=header_msg(stamp, frame), pose=pose_msg(positions[best], quats[best]))
         self.pub_nbv.publish(out)
@@ -216,8 +257,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.utilities import remove_ros_args
 
     argv = list(sys.argv if argv is None else ["css_nbv_client", *argv])
-    args = build_parser().parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
+    try:
+        args = build_parser().parse_args(remove_ros_args(argv)[1:])
+    except SystemExit as exc:   # argparse printed the usage and the option at fault
+        return int(exc.code or 0)
+    except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
+        print(f"css_nbv_client: error: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=argv)
+    except Exception as exc:  # noqa: BLE001 - rcl reports bad --ros-args as a generic RCLError
+        print(f"css_nbv_client: error: cannot initialise ROS (check the --ros-args): {exc}", file=sys.stderr)
+        return 2
     client = NbvClient(args)
     code = 0
     try:

@@ -83,6 +83,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 
+#: Seconds css_demo waits for css_node's diagnostics (which say its outputs reach the player) once the node has
+#: subscribed to every played topic; a node without diagnostics is trusted after that.
+DIAGNOSTICS_GRACE_S = 15.0
+#: Longest wait for the answers after the last frame was played [s] (while the node shows progress).
+WAIT_RESULTS_MAX_S = 300.0
+
+
 def start_node(args: argparse.Namespace, bag: Path) -> subprocess.Popen:
     """Start css_node as a child process (same Python, same ROS_DOMAIN_ID) on the model next to the bag.
 
@@ -119,6 +126,7 @@ class DemoPlayer:
     def __init__(self, args: argparse.Namespace) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
+        from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import Image, PointCloud2
         from std_srvs.srv import Trigger
@@ -133,8 +141,10 @@ class DemoPlayer:
         node = args.node.rstrip("/")
         # semantic first: when both are ready the executor handles it first, so the accuracy is known
         # when the uncertainty line is printed.
-        self.node.create_subscription(Image, f"{node}/semantic", self._on_semantic, 100)
-        self.node.create_subscription(PointCloud2, f"{node}/view_uncertainty", self._on_uncertainty, 100)
+        self.outputs = {name: self.node.create_subscription(typ, f"{node}/{name}", cb, 100) for name, typ, cb in (
+            ("semantic", Image, self._on_semantic), ("view_uncertainty", PointCloud2, self._on_uncertainty))}
+        self.node_diagnostics: dict[str, str] | None = None   # the node's latest diagnostics entries
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
         if args.save_frames:
             self.frames_dir = Path(args.save_frames)
             self.frames_dir.mkdir(parents=True, exist_ok=True)
@@ -159,6 +169,25 @@ class DemoPlayer:
         if topic not in self.pubs:
             self.pubs[topic] = self.node.create_publisher(type(msg), self.args.prefix.rstrip("/") + topic, self.qos)
         return self.pubs[topic]
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for st in msg.status:
+            if st.name == f"{self.args.node.rstrip('/')}: semantic map":
+                with self.lock:
+                    self.node_diagnostics = {kv.key: kv.value for kv in st.values}
+
+    def outputs_reach_us(self) -> bool | None:
+        """True when css_node's outputs reach this player: our readers matched its writers, and its diagnostics
+        (published whenever a subscriber of an output matches) count at least the subscribers we know of; None while
+        the node has published no diagnostics (publish_diagnostics off, or not heard yet)."""
+        if not all(sub.get_publisher_count() > 0 for sub in self.outputs.values()):
+            return False
+        with self.lock:
+            diag = self.node_diagnostics
+        if diag is None:
+            return None
+        return all(int(diag.get(f"subscribers[{name}]", 0)) >= self.node.count_subscribers(sub.topic_name)
+                   for name, sub in self.outputs.items())
 
     # ---------------------------------------------------------------- results
     def _on_uncertainty(self, msg: Any) -> None:
@@ -228,12 +257,18 @@ class DemoPlayer:
         return [pub.topic_name for pub in self.pubs.values() if pub.get_subscription_count() == 0]
 
     def wait_for_node(self, timeout: float) -> bool:
-        """Wait until css_node subscribes to every played topic."""
+        """Wait until css_node subscribes to every played topic (our writers matched its readers: reliable, so what we
+        publish then reaches it) and its outputs reach us (see :meth:`outputs_reach_us`; an answer published before
+        its writer matched our reader would be lost). A node that publishes no diagnostics within
+        DIAGNOSTICS_GRACE_S of the inputs matching is trusted after that wait."""
         end = time.monotonic() + timeout
+        inputs_at = None
         while time.monotonic() < end:
             if self.pubs and all(pub.get_subscription_count() > 0 for pub in self.pubs.values()):
-                time.sleep(0.5)  # let both ends of every reader/writer pair finish matching
-                return True
+                inputs_at = inputs_at or time.monotonic()
+                reach = self.outputs_reach_us()
+                if reach or (reach is None and time.monotonic() - inputs_at > DIAGNOSTICS_GRACE_S):
+                    return True
             time.sleep(0.1)
         return False
 
@@ -293,16 +328,22 @@ class DemoPlayer:
         return played
 
     def wait_results(self, timeout: float) -> None:
-        """Wait until the last frame's result arrives (or ``timeout`` s pass without any new result)."""
-        last_count, last_change = -1, time.monotonic()
-        while time.monotonic() - last_change < timeout:
+        """Wait until the last frame's result arrives, or ``timeout`` s pass without a new result while the node's
+        diagnostics show no progress either (frames processed, frames pending: a first frame that compiles the
+        kernels on a loaded host takes longer than ``timeout``); at most WAIT_RESULTS_MAX_S in all."""
+        start = time.monotonic()
+        last_progress: tuple[Any, ...] = ()
+        last_change = start
+        while time.monotonic() - last_change < timeout and time.monotonic() - start < WAIT_RESULTS_MAX_S:
             with self.lock:
                 done = sum(r.done for r in self.frames.values())
                 last = max(self.frames.values(), key=lambda r: r.index, default=None)
+                diag = self.node_diagnostics or {}
             if last is not None and last.done:
                 return
-            if done != last_count:
-                last_count, last_change = done, time.monotonic()
+            progress = (done, diag.get("frames_processed"), diag.get("segmentations_received"))
+            if progress != last_progress or diag.get("pending_frames", "0") not in ("0", "0.0"):
+                last_progress, last_change = progress, time.monotonic()
             time.sleep(0.1)
 
     def summary(self, elapsed: float) -> str:

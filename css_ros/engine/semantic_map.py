@@ -19,6 +19,8 @@ from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
+from .spec import MAX_FRAMES
+from . import view_args
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -187,6 +189,8 @@ def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarr
         ev[r] = values[start:start + r.size]
         total += ev
         epoch, seq, frames, in_step = (int(v) for v in state[k])
+        if frames > MAX_FRAMES:
+            raise MapError(f"map file {path}: received source {name!r} claims {frames} frames (> {MAX_FRAMES})")
         out[name] = SourceEvidence(ev, epoch, seq, frames, bool(in_step))
         start += r.size
     if np.any(total > (conc - prior) + 1e-9 * conc):
@@ -512,6 +516,7 @@ class SemanticMap:
             (len(cameras), 3) float64, columns (U_var, U_exp, info_gain), in the order of ``cameras`` (columns 0 and
             1 are what earlier versions returned).
         """
+        cameras = view_args.check_cameras(cameras, "score_views")
         imp = self._check_importance(importance)
         scale = self._check_pixel_scale(pixel_scale)
         e_b, v_b, s_b = self._background_moments()
@@ -520,9 +525,7 @@ class SemanticMap:
 
     @staticmethod
     def _check_pixel_scale(pixel_scale: float) -> float:
-        if not (np.isfinite(pixel_scale) and pixel_scale > 0):
-            raise MapError(f"pixel_scale must be finite and > 0, got {pixel_scale}")
-        return float(pixel_scale)
+        return view_args.check_pixel_scale(pixel_scale)
 
     def select_views(self, cameras: Sequence["Camera"], k: int, importance: np.ndarray | None = None,
                      pixel_scale: float = 1.0) -> "SelectedViews":
@@ -530,12 +533,18 @@ class SemanticMap:
         each next one the largest gain given the views before it were observed (their evidence added to the map's
         moments as the expected observation would add it: alpha_n += m_n E[theta_n]), so views that see the same
         surfaces as an earlier pick lose their shared gain. The map is not changed. ``pixel_scale`` as in
-        :meth:`score_views`.
+        :meth:`score_views`. At most ``view_args.MAX_SELECT_CANDIDATES`` (1024) cameras per call: each candidate's
+        visible Gaussians and evidence are kept for the greedy re-scoring (memory linear in the candidates); more are
+        refused (CameraError).
 
         Returns:
             :class:`~css_ros.engine.info_gain.SelectedViews` (indices into ``cameras`` in the order chosen, and each
             one's gain when chosen). Fewer than ``k`` when there are fewer cameras.
+        Raises:
+            MapError: bad k, importance or pixel_scale, or more than view_args.MAX_SELECT_CANDIDATES cameras (named).
         """
+        cameras = view_args.check_cameras(cameras, "select_views", view_args.MAX_SELECT_CANDIDATES)
+        k = view_args.check_k(k)
         imp = self._check_importance(importance)
         scale = self._check_pixel_scale(pixel_scale)
         e_b, v_b, s_b = self._background_moments()
@@ -545,6 +554,7 @@ class SemanticMap:
     def task_importance(self, task_cameras: Sequence["Camera"]) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = its kappa mass summed over ``task_cameras`` (the views a robot
         will later take or act from), for ``score_views`` / ``select_views``: surfaces no task view sees count 0."""
+        task_cameras = view_args.check_cameras(task_cameras, "task_importance")
         imp = np.zeros(self.model.num_gaussians)
         unit = (np.array([0.0, 1.0]), np.ones(self.num_classes))
         e_b, v_b, s_b = self._background_moments()
@@ -555,18 +565,12 @@ class SemanticMap:
     def class_importance(self, class_id: int) -> np.ndarray:
         """(N,) float64 per-Gaussian importance = E[theta_n^c], the map's probability that Gaussian n is of class
         ``class_id`` (views of surfaces likely to be that class score higher)."""
-        if not 0 <= int(class_id) < self.num_classes:
-            raise MapError(f"class_id {class_id} outside 0..{self.num_classes - 1}")
+        class_id = view_args.check_class_id(class_id, self.num_classes)
         conc = self.concentrations_readonly
         return conc[:, int(class_id)] / conc.sum(axis=1)
 
     def _check_importance(self, importance: np.ndarray | None) -> np.ndarray | None:
-        if importance is None:
-            return None
-        imp = np.asarray(importance, dtype=np.float64)
-        if imp.shape != (self.model.num_gaussians,) or not np.all(np.isfinite(imp)) or np.any(imp < 0):
-            raise MapError(f"importance must be ({self.model.num_gaussians},) finite and >= 0, got shape {imp.shape}")
-        return imp
+        return view_args.check_importance(importance, self.model.num_gaussians)
 
     def _mass_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """(depth-bin edges in splat units, net vote weight per (label, bin)) of one more observation: without a
@@ -698,8 +702,8 @@ class SemanticMap:
         for name, value in (("prior", prior), ("background", background)):
             if not (np.isfinite(value) and 0 < value <= MAX_CONCENTRATION):
                 raise MapError(f"map file {path}: {name}={value!r} outside (0, {MAX_CONCENTRATION:g}]")
-        if frames < 0:
-            raise MapError(f"map file {path}: frames_observed={frames} < 0")
+        if not 0 <= frames <= MAX_FRAMES:
+            raise MapError(f"map file {path}: frames_observed={frames} outside [0, {MAX_FRAMES}]")
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
         has_evidence = bool(np.any(conc != prior))
         if "sensor_model" in kwargs and fused_sm != smap.sensor_fingerprint and has_evidence:

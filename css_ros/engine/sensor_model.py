@@ -27,6 +27,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from yaml import YAMLError
+
 from ..errors import SensorModelError
 from .atomic import atomic_file
 from .pixel_math import E_CLIP, Z_CLIP
@@ -37,6 +39,13 @@ SENSOR_MODEL_VERSION = 1
 MAX_SENSOR_MODEL_BYTES = 32 * 1024 * 1024
 #: Most depth bins a sensor model may have.
 MAX_DEPTH_BINS = 256
+#: Most numbers (YAML scalars) a sensor-model file may hold: 256 classes x 64 bins x 256 classes of confusion
+#: (4.2 M, ~100 MB of YAML, beyond the file cap) fit; the parsed lists then take at most ~140 MB.
+MAX_YAML_SCALARS = 2**22
+#: Deepest nesting of lists / mappings in a sensor-model file (the confusion table is 4 deep).
+MAX_YAML_DEPTH = 16
+#: Most characters of an integer in a sensor-model file (a version, a pixel count: 2^64 has 20 digits).
+MAX_YAML_INT_CHARS = 32
 #: Tolerance on the sum of a confusion row.
 ROW_SUM_TOLERANCE = 1e-6
 #: Fingerprint of the paper's update (no sensor model), as stored in map files.
@@ -95,6 +104,9 @@ class ConfidenceMap:
             raise SensorModelError(f"{where}.coef: expected 3 numbers, got {coef.size}")
         if kx.shape != ky.shape or kx.size < 1:
             raise SensorModelError(f"{where}: knots_x and knots_y must be non-empty and of one length")
+        for name, a in (("coef", coef), ("knots_x", kx), ("knots_y", ky)):
+            if not np.all(np.isfinite(a)):
+                raise SensorModelError(f"{where}.{name} must be finite numbers, got {_short(a)}")
         if np.any(np.diff(kx) <= 0) or kx[0] < 0 or kx[-1] > 1:
             raise SensorModelError(f"{where}.knots_x must be strictly increasing within [0, 1]")
         if np.any(np.diff(ky) < 0) or ky[0] < 0 or ky[-1] > 1:
@@ -311,11 +323,10 @@ class SensorModel:
         """Read and check a sensor-model YAML file (and, given ``class_names``, that it fits the map's classes).
 
         Raises:
-            SensorModelError: one line naming the file: missing, too large, not YAML, not a sensor model,
-                or any failed check of :meth:`validate` / :meth:`check_classes`.
+            SensorModelError: one line naming the file: missing, too large, not YAML, YAML beyond what
+                :func:`read_plain_yaml` reads (aliases, deep nesting, huge integers, too many values), not a sensor
+                model, or any failed check of :meth:`validate` / :meth:`check_classes` / the confidence map.
         """
-        import yaml
-
         path = Path(path)
         if not path.is_file():
             raise SensorModelError(f"sensor model {path} does not exist")
@@ -325,14 +336,82 @@ class SensorModel:
         try:
             with open(path, "rb") as fh:
                 raw = fh.read(MAX_SENSOR_MODEL_BYTES + 1)
-            d = yaml.safe_load(raw.decode("utf-8"))
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+            d = read_plain_yaml(raw.decode("utf-8"), f"sensor model {path}")
+        except (OSError, UnicodeDecodeError, YAMLError, ValueError, OverflowError) as exc:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise SensorModelError(f"sensor model {path} is not a readable YAML file ({first})") from None
         model = cls.from_dict(d, f"sensor model {path}")
         if class_names is not None:
             model.check_classes(class_names)
         return model
+
+
+def read_plain_yaml(text: str, where: str) -> Any:
+    """The one document of ``text`` as plain Python values (dict, list, str, int, float, bool, None), read event by
+    event (no node graph is built; libyaml's parser when installed). Refused with SensorModelError naming ``where``:
+    aliases (``*name``: a few kB of them expand to GBs), nesting deeper than MAX_YAML_DEPTH, more than
+    MAX_YAML_SCALARS scalars, integers of more than MAX_YAML_INT_CHARS characters, other than the standard tags,
+    mappings as keys, several documents. Memory: the text plus ~32 bytes per scalar. yaml.YAMLError: bad syntax."""
+    import yaml
+    from yaml.constructor import SafeConstructor
+    from yaml.resolver import Resolver
+
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)(text)
+    constructor, resolver = SafeConstructor(), Resolver()
+    stack: list[list[Any]] = []   # open collections: [list] or [dict, key or _NO_KEY]
+    result: list[Any] = []
+    scalars = documents = 0
+
+    def add(value: Any) -> None:
+        if not stack:
+            result.append(value)
+        elif isinstance(stack[-1][0], list):
+            stack[-1][0].append(value)
+        elif stack[-1][1] is _NO_KEY:
+            if isinstance(value, (list, dict)):
+                raise SensorModelError(f"{where}: a list or mapping as a mapping key is not accepted")
+            stack[-1][1] = value
+        else:
+            stack[-1][0][stack[-1][1]] = value
+            stack[-1][1] = _NO_KEY
+
+    try:
+        while loader.check_event():
+            event = loader.get_event()
+            if isinstance(event, yaml.AliasEvent):
+                raise SensorModelError(f"{where}: YAML aliases (*{event.anchor}) are not accepted")
+            if isinstance(event, yaml.DocumentStartEvent):
+                documents += 1
+                if documents > 1:
+                    raise SensorModelError(f"{where}: holds more than one YAML document")
+            elif isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                seq = isinstance(event, yaml.SequenceStartEvent)
+                if event.tag not in (None, "!", "tag:yaml.org,2002:" + ("seq" if seq else "map")):
+                    raise SensorModelError(f"{where}: YAML tag {event.tag} is not accepted")
+                if len(stack) >= MAX_YAML_DEPTH:
+                    raise SensorModelError(f"{where}: nested deeper than {MAX_YAML_DEPTH} levels")
+                stack.append([[]] if seq else [{}, _NO_KEY])
+            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                add(stack.pop()[0])
+            elif isinstance(event, yaml.ScalarEvent):
+                scalars += 1
+                if scalars > MAX_YAML_SCALARS:
+                    raise SensorModelError(f"{where}: holds more than {MAX_YAML_SCALARS} values")
+                tag = event.tag if event.tag not in (None, "!") else \
+                    resolver.resolve(yaml.ScalarNode, event.value, event.implicit)
+                if tag == "tag:yaml.org,2002:int" and len(event.value) > MAX_YAML_INT_CHARS:
+                    raise SensorModelError(f"{where}: an integer of {len(event.value)} characters (at most "
+                                           f"{MAX_YAML_INT_CHARS})")
+                construct = SafeConstructor.yaml_constructors.get(tag)
+                if tag is None or construct is None or tag.endswith((":set", ":omap", ":pairs", ":seq", ":map")):
+                    raise SensorModelError(f"{where}: YAML tag {tag} is not accepted")
+                add(construct(constructor, yaml.ScalarNode(tag, event.value, style=event.style)))
+    finally:
+        loader.dispose()
+    return result[0] if result else None
+
+
+_NO_KEY = object()
 
 
 def _row_mode(row: np.ndarray) -> float:
@@ -348,7 +427,7 @@ def _array(value: Any, where: str, ndim: int) -> np.ndarray:
         raise SensorModelError(f"{where} is missing")
     try:
         a = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SensorModelError(f"{where} must be nested lists of numbers of one shape") from None
     if a.ndim != ndim:
         raise SensorModelError(f"{where} must have {ndim} dimension(s), got shape {a.shape}")

@@ -20,6 +20,9 @@ DEFAULT_BACKGROUND = 1e-3         # alpha_b: background Dirichlet concentration 
 DEFAULT_IGNORE_LABEL = 255        # "no label" in inputs, "unknown" in rendered labels
 DEFAULT_UNKNOWN_THRESHOLD = 0.5   # rendered label is ignore_label where kappa_b exceeds this
 VAR_FLOOR = 1e-30                 # variances are floored here before the log of U_var
+# Most frames a map (its frames_observed) or a source of evidence may count: 2^48 is ~89,000 years at 100 frames/s,
+# and sums of thousands of such counts still fit the int64 / uint64 fields of map files and evidence packets.
+MAX_FRAMES = 2**48
 
 # The information gain of a view values evidence on the Dirichlet with this total pseudo-count added, spread evenly
 # over the classes (docs/spec.md "Information gain of a view"): with the map's own tiny prior a Gaussian looks

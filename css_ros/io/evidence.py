@@ -61,6 +61,7 @@ import numpy as np
 from numba import njit
 
 from ..engine.semantic_map import SourceEvidence
+from ..engine.spec import MAX_FRAMES
 from ..errors import InputError
 
 if TYPE_CHECKING:
@@ -97,6 +98,12 @@ BOUND_REASON = "evidence above what its frames can add (max_image_pixels per fra
 LATE_REASON = "sequence gap or late start: waiting for a snapshot"
 SNAPSHOT_REASON = "incomplete snapshot: waiting for the next one"
 NOT_NEEDED_REASON = "return holds no more than this node's evidence"
+FRAMES_REASON = "frame count above what any map holds"
+RETURN_FRAMES_REASON = "return claims more frames than this node could have fused since its checkpoint"
+#: Returns sent to one restarted source: a burst of RETURN_BURST, then one per RETURN_INTERVAL_S seconds (it flags
+#: every snapshot "resumed" for a minute; a forged stream of such snapshots is answered at this pace, not per packet).
+RETURN_INTERVAL_S = 5.0
+RETURN_BURST = 3
 
 
 def new_epoch(previous: int = 0) -> int:
@@ -182,6 +189,8 @@ def decode_packet(data: bytes, max_rows: int) -> EvidencePacket:
         raise InputError("packet size does not match its header")
     if seq < 1 or parts < 1 or part >= parts or lo > hi:
         raise InputError("bad sequence / part / range fields")
+    if frames > MAX_FRAMES:
+        raise InputError(FRAMES_REASON)
     try:
         origin = origin_b.rstrip(b"\0").decode("ascii")
     except UnicodeDecodeError:
@@ -233,8 +242,13 @@ class SourceState(SourceEvidence):
     pending: _Snapshot | None = None
     packets: int = 0
     #: (epoch, frames, evidence) of the source's previous epoch, kept when it restarted "resumed":
-    #: sent back to it as a return on each of its resumed snapshots (dropped at its first unflagged one)
+    #: sent back to it as a return on its resumed snapshots (dropped at its first unflagged one)
     returnable: tuple[int, int, np.ndarray] | None = None
+    #: the source's latest snapshot was flagged "resumed" (evidence it holds only so is never returned)
+    flagged: bool = False
+    #: returns the source may still be sent now, as of time.monotonic() ``returned_at`` (a token bucket)
+    return_tokens: float = float(RETURN_BURST)
+    returned_at: float = -math.inf
 
 
 class EvidenceLedger:
@@ -246,12 +260,17 @@ class EvidenceLedger:
     a loaded map holds, are kept even beyond). A source holding no evidence gives its slot to a new one.
     ``max_frame_evidence``: the most evidence one frame adds (pixels of the largest image);
     ``max_frame_rate``: the most frames per second a source may claim within one epoch.
+    Returns (``returns_due``) go only to a source that held evidence here from unflagged packets, per source at
+    most RETURN_BURST at once and one per ``return_interval`` seconds after: at most ``max_sources`` times that in
+    all.
     """
 
     def __init__(self, own_origin: str, fingerprint: str, num_gaussians: int, num_classes: int, prior: float,
                  max_sources: int, max_concentration: float = 1e15, max_frame_evidence: float = 4096.0 ** 2,
-                 max_frame_rate: float = 100.0, received: Mapping[str, SourceEvidence] | None = None) -> None:
+                 max_frame_rate: float = 100.0, received: Mapping[str, SourceEvidence] | None = None,
+                 return_interval: float = RETURN_INTERVAL_S) -> None:
         self.own_origin = own_origin
+        self.return_interval = float(return_interval)
         self.digest = bytes.fromhex(fingerprint)
         self.n, self.c, self.prior = num_gaussians, num_classes, prior
         self.max_sources = max_sources
@@ -372,7 +391,7 @@ class EvidenceLedger:
         if state is None:
             state = self.sources[pkt.origin] = SourceState(np.zeros((self.n, self.c)))
         if pkt.part == 0:
-            self._note_resumed(state, pkt)
+            self._note_resumed(state, pkt, now)
         conc[lo:hi] = np.maximum(new_alpha, self.prior)
         self._total[lo:hi] += block - old
         state.total += block_total - float(old.sum())
@@ -393,19 +412,26 @@ class EvidenceLedger:
             state.frames = state.frames_base = pkt.frames
         return None
 
-    def _note_resumed(self, state: SourceState, pkt: EvidencePacket) -> None:
+    def _note_resumed(self, state: SourceState, pkt: EvidencePacket, now: float) -> None:
         """Part 0 of a snapshot, before it is applied: keep the source's previous epoch's evidence when it comes back
         "resumed" (a new epoch; the source, which knows its checkpoint, decides whether it holds more), and mark a
-        return due for each of its resumed snapshots; an unflagged snapshot ends that."""
+        return due on its resumed snapshots (a token bucket: RETURN_BURST, then one per ``return_interval``); an
+        unflagged snapshot ends that.
+        Evidence the source stated only in flagged snapshots is never kept for a return (a stream of "resumed"
+        snapshots of new epochs from an origin that never held evidence here is answered by nothing)."""
+        was_flagged, state.flagged = state.flagged, bool(pkt.flags & FLAG_RESUMED)
         if not pkt.flags & FLAG_RESUMED:
             state.returnable = None
             return
         # kept while the source stays resumed (killed again before it took the copy back: the same copy)
         if state.returnable is None and pkt.epoch != state.epoch and state.in_step and state.pending is None \
-                and state.total > 0.0:
+                and state.total > 0.0 and not was_flagged:
             state.returnable = (state.epoch, state.frames, state.evidence.copy())
         if state.returnable is not None and state.returnable[0] != pkt.epoch:
-            self.returns_due.append(pkt.origin)
+            tokens = min(float(RETURN_BURST), state.return_tokens + (now - state.returned_at) / self.return_interval)
+            if tokens >= 1.0:
+                state.return_tokens, state.returned_at = tokens - 1.0, now
+                self.returns_due.append(pkt.origin)
 
     def return_packets(self, subject: str, max_rows: int) -> list[bytes]:
         """The return parts of ``subject``'s kept previous-epoch evidence (empty when none is kept)."""
@@ -447,19 +473,24 @@ class EvidenceRecovery:
     then), for the subject = this node's origin, an epoch at or
     after its checkpoint's (``checkpoint_epoch``; 0: no checkpoint, any earlier epoch) and before its current one,
     and more (epoch, frames) than it holds (the checkpoint's, then the best return adopted); the parts must tile
-    [0, N) and keep the ledger's bounds (P per frame and row, P·F in total). Several peers: the best one wins
+    [0, N) and keep the ledger's bounds (P per frame and row, P·F in total). The frames claimed are at most what
+    this node could have fused since its checkpoint: its checkpoint's frames plus ``max_frame_rate`` times the seconds
+    from the checkpoint's epoch (or, without one, the return's epoch) to the current one, plus FRAME_BURST_S
+    seconds' worth (epochs are wall-clock ns). Several peers: the best one wins
     (equal ones after it are refused as "no more"). ``offer`` returns (reason refused or None, the complete
     (epoch, frames, evidence) to adopt or None)."""
 
     def __init__(self, origin: str, fingerprint: str, num_gaussians: int, num_classes: int, prior: float,
                  checkpoint_epoch: int, checkpoint_frames: int, current_epoch: int, max_frame_evidence: float,
-                 max_sources: int, now: float, window: float = RETURN_WINDOW_S) -> None:
+                 max_sources: int, now: float, window: float = RETURN_WINDOW_S,
+                 max_frame_rate: float = 100.0) -> None:
         self.origin, self.digest = origin, bytes.fromhex(fingerprint)
         self.n, self.c, self.prior = num_gaussians, num_classes, prior
         self.first_epoch, self.current_epoch = checkpoint_epoch, current_epoch
         self.best = (checkpoint_epoch, checkpoint_frames)
         self.max_frame_evidence, self.max_sources = float(max_frame_evidence), max_sources
         self.window, self.until = window, math.inf
+        self.checkpoint_frames, self.max_frame_rate = int(checkpoint_frames), float(max_frame_rate)
         self._pending: dict[str, tuple[int, int, int, int, np.ndarray]] = {}   # sender -> epoch, frames, part, start
 
     def heard(self, now: float) -> None:
@@ -469,6 +500,12 @@ class EvidenceRecovery:
 
     def open(self, now: float) -> bool:
         return now < self.until
+
+    def frames_limit(self, epoch: int) -> float:
+        """The most frames a return of ``epoch`` may claim (see the class docstring)."""
+        start = self.first_epoch or epoch
+        seconds = max(0, self.current_epoch - start) / 1e9
+        return min(float(MAX_FRAMES), self.checkpoint_frames + self.max_frame_rate * (seconds + FRAME_BURST_S))
 
     def offer(self, pkt: EvidencePacket, now: float) -> tuple[str | None, tuple[int, int, np.ndarray] | None]:
         if pkt.kind != RETURN or pkt.subject != self.origin:
@@ -486,6 +523,8 @@ class EvidenceRecovery:
             return "return of an epoch this node did not run last", None
         if (pkt.epoch, pkt.frames) <= self.best:
             return NOT_NEEDED_REASON, None
+        if pkt.frames > self.frames_limit(pkt.epoch):
+            return RETURN_FRAMES_REASON, None
         lo, hi = pkt.range_start, pkt.range_end
         if pkt.part == 0:
             if lo != 0 or pkt.seq != 1:

@@ -114,12 +114,19 @@ class StatusReporter:
                      + (f"; labelled pixels without rendered depth {s['label_pixels_no_depth']}"
                         if s.get("label_pixels_no_depth") else "")
                      + (f"; new input problems: {new}" if new else ""))
-        if self.diag_pub is not None:
-            level = DiagnosticStatus.WARN if new else DiagnosticStatus.OK
-            st = DiagnosticStatus(level=level, name=f"{self.name}: semantic map",
-                                  message="; ".join(new) if new else "ok", hardware_id=self.hardware_id)
-            st.values = [KeyValue(key=str(k), value=f"{v:.6g}" if isinstance(v, float) else str(v))
-                         for k, v in s.items()]
-            arr = DiagnosticArray(status=[st])
-            arr.header.stamp = self.now_msg()
-            self.diag_pub.publish(arr)
+        self.publish(s, new)
+
+    def publish(self, s: dict[str, Any] | None = None, new: dict[str, int] | None = None) -> None:
+        """Publish the diagnostics (``s``: :meth:`status`, taken now when None; WARN level when ``new`` problems
+        appeared) without a log line: the periodic report, and at once whenever a subscriber matches an output."""
+        if self.diag_pub is None:
+            return
+        s = self.status() if s is None else s
+        level = DiagnosticStatus.WARN if new else DiagnosticStatus.OK
+        st = DiagnosticStatus(level=level, name=f"{self.name}: semantic map",
+                              message="; ".join(new) if new else "ok", hardware_id=self.hardware_id)
+        st.values = [KeyValue(key=str(k), value=f"{v:.6g}" if isinstance(v, float) else str(v))
+                     for k, v in s.items()]
+        arr = DiagnosticArray(status=[st])
+        arr.header.stamp = self.now_msg()
+        self.diag_pub.publish(arr)

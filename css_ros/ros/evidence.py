@@ -99,7 +99,8 @@ class EvidenceLink:
                 self.origin, smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes, smap.prior,
                 checkpoint_epoch, self._frames_base, self.outbox.epoch, float(self.p.max_image_pixels),
                 self.p.evidence_max_sources, time.monotonic(),
-                window=max(RETURN_WINDOW_S, 3.0 * self.p.evidence_snapshot_period))
+                window=max(RETURN_WINDOW_S, 3.0 * self.p.evidence_snapshot_period),
+                max_frame_rate=self.p.evidence_max_frame_rate)
         self.logger.info(f"resumed: asking peers for own evidence after epoch {checkpoint_epoch} "
                          f"({self._frames_base} frames held)")
 
@@ -238,6 +239,7 @@ class EvidenceLink:
                 msg.data = data
                 self.pub.publish(msg)
             self.count("evidence_returns_sent")
+            self.count("evidence_return_bytes_sent", sum(len(d) for d in returns))
             self.logger.info(f"sent {len(returns)} return packet(s) of a restarted peer's previous evidence")
         if reason is not None:
             self._refuse(reason, pkt.origin)

@@ -13,6 +13,7 @@ import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -110,7 +111,7 @@ class CssNode(Node):
         self.queue = WorkQueue(p.max_pending_frames)
         sensor_model = self.smap.sensor_model
         self.outputs = OutputPublisher(self, p, self.classes, confidence_available=sensor_model is not None
-                                       and sensor_model.confidence is not None)
+                                       and sensor_model.confidence is not None, on_matched=self._outputs_matched)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
@@ -171,11 +172,12 @@ class CssNode(Node):
         self.create_service(Trigger, "~/save_map", self._on_save_map, qos_profile=qos_srv)
         self.create_service(Trigger, "~/reset_map", self._on_reset_map, qos_profile=qos_srv)
         self.create_service(Trigger, "~/load_map", self._on_load_map, qos_profile=qos_srv)
-        diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10) if p.publish_diagnostics else None
+        diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10, event_callbacks=PublisherEventCallbacks(
+            matched=lambda _status: self._outputs_matched())) if p.publish_diagnostics else None
         self.reporter = StatusReporter(self.stats, self.warn, self.queue.sizes,
                                        lambda: (*self.worker.last_u, self.worker.last_psnr), log.info, diag_pub,
                                        self.get_fully_qualified_name(), str(self.model_path),
-                                       lambda: self.get_clock().now().to_msg(), self._sensor_info)
+                                       lambda: self.get_clock().now().to_msg(), self._diagnostics_info)
         if p.log_period > 0:
             self.create_timer(p.log_period, self.reporter.report)
         self.worker.start()
@@ -197,6 +199,18 @@ class CssNode(Node):
         # tf2_ros's): a volatile one does; a static transform received twice is simply set twice.
         sub(tf_message, TF_STATIC_TOPIC, on_static, QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                                                                history=HistoryPolicy.KEEP_LAST))
+
+    def _outputs_matched(self) -> None:
+        """A subscriber matched (or left) an output or /diagnostics: publish the diagnostics now, so that a client can
+        tell from ``subscribers[<output>]`` that this node's outputs reach it before it sends a frame."""
+        reporter = getattr(self, "reporter", None)
+        if reporter is not None:
+            reporter.publish()
+
+    def _diagnostics_info(self) -> dict[str, str]:
+        """Diagnostics entries beyond the counters: the update in use and ``subscribers[<output>]``."""
+        counts = {f"subscribers[{name}]": str(n) for name, n in self.outputs.subscriber_counts().items()}
+        return {**self._sensor_info(), **counts}
 
     def _sensor_info(self) -> dict[str, str]:
         """Diagnostics entries naming the update in use."""
@@ -351,5 +365,10 @@ class CssNode(Node):
             self.get_logger().error("worker did not stop in time: no final checkpoint")
             return False
         self.outputs.flush(1.0)  # answers published while stopping reach their clients
+        waiting = self.gate.frames.waiting()   # the inputs thread has stopped: nothing adds to it now
+        if waiting:   # every frame not answered is counted and said
+            self.stats.count("frames_dropped_stopping", waiting)
+            self.warn("segmentation", "node stopping", f"{waiting} frame(s) still waiting for a pose or confidence "
+                                                       "not processed")
         self.worker.save_checkpoint("shutdown")
         return True

@@ -1,10 +1,11 @@
 """css_node's publishers: per-frame images and view point, candidate scores (SPEC §8)."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 
@@ -42,7 +43,9 @@ class OutputPublisher:
     """
 
     def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10,
-                 confidence_available: bool = False) -> None:
+                 confidence_available: bool = False, on_matched: Callable[[], None] | None = None) -> None:
+        """``on_matched``: called (on the node's executor) whenever a subscriber matches or leaves an output."""
+        events = PublisherEventCallbacks(matched=lambda _status: on_matched()) if on_matched is not None else None
         self.p = params
         self.classes = classes
         self.clock = node.get_clock()
@@ -57,7 +60,7 @@ class OutputPublisher:
                 continue
             qos = CLOUD_QOS if name == "semantic_cloud" else \
                 params.request_queue_size if name in ANSWER_OUTPUTS else depth  # bursts of answers
-            self.pubs[name] = node.create_publisher(PointCloud2, f"~/{name}", qos)
+            self.pubs[name] = node.create_publisher(PointCloud2, f"~/{name}", qos, event_callbacks=events)
         for ns in params.cameras:
             ns = ns.strip("/")
             pubs = {}
@@ -65,8 +68,18 @@ class OutputPublisher:
                 if not getattr(params, f"publish_{name}") or (name == "confidence" and not confidence_available):
                     continue
                 typ = PointCloud2 if OUTPUT_TOPICS[name] == POINTCLOUD2_TYPE else Image
-                pubs[name] = node.create_publisher(typ, f"~/{ns}/{name}" if ns else f"~/{name}", depth)
+                pubs[name] = node.create_publisher(typ, f"~/{ns}/{name}" if ns else f"~/{name}", depth,
+                                                   event_callbacks=events)
             self.camera_pubs.append(pubs)
+
+    def subscriber_counts(self) -> dict[str, int]:
+        """Subscribers matched by each output publisher now (name relative to the node, e.g. ``semantic`` or
+        ``cam1/semantic``): a frame's outputs reach only these (late subscribers get nothing of earlier frames)."""
+        out = {name: pub.get_subscription_count() for name, pub in self.pubs.items()}
+        for ns, pubs in zip(self.p.cameras, self.camera_pubs):
+            ns = ns.strip("/")
+            out.update({f"{ns}/{n}" if ns else n: pub.get_subscription_count() for n, pub in pubs.items()})
+        return out
 
     def topic_names(self) -> list[str]:
         """Relative names (``~/...``) of every publisher, for the start-up log."""

@@ -226,6 +226,14 @@ class WorkQueue:
             self.requests.clear()
             return out
 
+    def drain_frames(self) -> list[FrameJob]:
+        """Remove and return every pending frame (not processed: the node is stopping)."""
+        with self._cond:
+            out = [j for q in self.camera_frames.values() for j in q]
+            for q in self.camera_frames.values():
+                q.clear()
+            return out
+
     def close(self) -> None:
         with self._cond:
             self.closed = True

@@ -138,6 +138,8 @@ class MapWorker:
             if self.stop_flag.is_set():
                 if isinstance(job, (CandidateJob, PointQueryJob)):
                     self.finish_request(job, "node stopping")
+                elif isinstance(job, FrameJob):
+                    self.queue.put_frame(job)   # counted with the other unprocessed frames below
                 break
             self.run_job(job)
             now = time.monotonic()
@@ -149,6 +151,12 @@ class MapWorker:
                 self.view_stream.tick(now, self.map_version, self.map_lock)
         for job in self.queue.drain_requests():
             self.finish_request(job, "node stopping")
+        unprocessed = self.queue.drain_frames()
+        if unprocessed:   # every frame not answered is counted and said
+            self.stats.count("frames_dropped_stopping", len(unprocessed))
+            self.warn("worker", "node stopping", f"{len(unprocessed)} pending frame(s) not processed (stamps "
+                                                 f"{', '.join(str(j.stamp_ns) for j in unprocessed[:5])}"
+                                                 f"{', ...' if len(unprocessed) > 5 else ''})")
 
     def run_job(self, job: FrameJob | RequestJob | None) -> None:
         """One frame, or one slice of a request (the rest goes back to the queue)."""
