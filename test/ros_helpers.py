@@ -23,6 +23,9 @@ K = np.array([[40.0, 0.0, (WIDTH - 1) / 2], [0.0, 40.0, (HEIGHT - 1) / 2], [0.0,
 NUM_CLASSES = 4
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 
+#: the least time [s] a test waits for a started css_node to be connected (see RosClient.wait_connected)
+NODE_START_S = 180.0
+
 
 def next_domain_id() -> int:
     """A ROS_DOMAIN_ID unique within this process and unlikely to clash with other runs.
@@ -239,7 +242,11 @@ class RosClient:
         """Wait until the node subscribes to our inputs and publishes the outputs we listen to, matched at both ends:
         our readers have matched its writers, and its diagnostics (published by the node whenever a subscriber of an
         output matches) count at least as many subscribers of each output as this client knows of. Without the
-        node's side, an output published before its writer matched this reader is lost on a loaded host."""
+        node's side, an output published before its writer matched this reader is lost on a loaded host.
+
+        A node's start on a fresh clone includes numba's first compiles, which on a loaded 2-core host can take more
+        than a minute: the wait is at least NODE_START_S [s] (it returns as soon as the node is up)."""
+        timeout = max(timeout, NODE_START_S)
         outputs = ("semantic", "view_uncertainty", "candidate_scores")
 
         def ok() -> bool:
