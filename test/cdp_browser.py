@@ -38,7 +38,9 @@ def free_port() -> int:
 class Browser:
     """One headless Chromium with one page, ``width`` × ``height`` CSS pixels (device scale 1)."""
 
-    def __init__(self, width: int = 900, height: int = 600, timeout: float = 20.0) -> None:
+    def __init__(self, width: int = 900, height: int = 600, timeout: float = 90.0) -> None:
+        """``timeout`` [s] bounds the browser's start and each DevTools answer (a software-WebGL screenshot of a
+        large scene on a loaded 2-core host took more than 20 s)."""
         import websocket
 
         exe = find_chromium()

@@ -93,7 +93,9 @@ def test_sensor_model_load_refuses_hostile_files_in_bounded_memory(tmp_path):
               "from css_ros.errors import SensorModelError\n"
               "try:\n    SensorModel.load(sys.argv[1])\n    print('loaded')\n"
               "except SensorModelError as exc:\n    print('refused:', exc)\n"
-              "print('rss_mb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n")
+              # VmHWM: this process's own peak (ru_maxrss would keep the forking pytest worker's size across exec)
+              "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')][0].split()[1]\n"
+              "print('rss_mb', int(hwm) / 1024)\n")
     for case, (path, expect) in cases.items():
         proc = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=120,
                               env=rh.node_env(0), preexec_fn=_capped)
