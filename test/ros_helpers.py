@@ -25,6 +25,8 @@ IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 
 #: the least time [s] a test waits for a started css_node to be connected (see RosClient.wait_connected)
 NODE_START_S = 180.0
+#: seconds a service request may go unanswered before the test client sends it again (RosClient.call)
+SERVICE_ATTEMPT_S = 20.0
 
 
 def next_domain_id() -> int:
@@ -295,18 +297,27 @@ class RosClient:
         self.wait_until(lambda: value() >= at_least, timeout, 0.1)
         return value()
 
-    def call(self, client: Any, timeout: float = 30.0) -> Any:
+    def call(self, client: Any, timeout: float = 90.0) -> Any:
+        """Call a Trigger service of the node (save_map, reset_map, load_map) and return its response. A request
+        whose answer has not come after SERVICE_ATTEMPT_S is sent again: an answer written before the node's response
+        writer matched this client's reader is lost on a loaded host, and each of these services does the same thing
+        when called twice."""
         from std_srvs.srv import Trigger
 
         if not client.wait_for_service(timeout_sec=timeout):
             raise TimeoutError("service not available")
-        future = client.call_async(Trigger.Request())
         end = time.monotonic() + timeout
-        while not future.done() and time.monotonic() < end:
-            time.sleep(0.02)
-        if not future.done():
-            raise TimeoutError("service call timed out")
-        return future.result()
+        while time.monotonic() < end:
+            future = client.call_async(Trigger.Request())
+            attempt_end = min(end, time.monotonic() + SERVICE_ATTEMPT_S)
+            while not future.done() and time.monotonic() < attempt_end:
+                time.sleep(0.02)
+            if future.done():
+                return future.result()
+            remove = getattr(client, "remove_pending_request", None)
+            if remove is not None:
+                remove(future)
+        raise TimeoutError("service call timed out")
 
     # ---------------------------------------------------------------- sending
     def send_camera_info(self, stamp_ns: int = 0, K_: np.ndarray = K, width: int = WIDTH,
