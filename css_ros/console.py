@@ -9,6 +9,7 @@ runs: no half-written output is left. An unexpected exception is also one line (
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sys
@@ -18,6 +19,21 @@ from typing import Any, Callable, Sequence
 from .errors import CssError
 
 DEBUG_ENV = "CSS_DEBUG"
+
+
+def bounded_number(lo: float, hi: float, lo_open: bool = False, integer: bool = False) -> Callable[[str], float | int]:
+    """An argparse ``type``: a finite number in [lo, hi] ((lo, hi] with ``lo_open``), an integer with ``integer``;
+    argparse names the option in its refusal (exit 2)."""
+    def parse(text: str) -> float | int:
+        try:
+            value: float | int = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
+        if not (math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi):
+            raise argparse.ArgumentTypeError(f"{text} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
+        return value
+    parse.__name__ = "integer" if integer else "number"
+    return parse
 
 
 class Terminated(KeyboardInterrupt):

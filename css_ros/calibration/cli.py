@@ -16,7 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from ..console import run_console
+from ..console import bounded_number, run_console
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
@@ -40,19 +40,6 @@ MAX_PSEUDO_COUNT = 1e9
 MAX_HELDOUT_EVERY = 1_000_000
 
 
-def _number(lo: float, hi: float, lo_open: bool = False, integer: bool = False) -> Any:
-    """An argparse ``type``: a finite number in [lo, hi] ((lo, hi] with ``lo_open``), an integer with ``integer``;
-    argparse names the option in its refusal (exit 2)."""
-    def parse(text: str) -> float | int:
-        try:
-            value: float | int = int(text) if integer else float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
-        if not (math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi):
-            raise argparse.ArgumentTypeError(f"{text} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
-        return value
-    parse.__name__ = "integer" if integer else "number"
-    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,10 +56,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="splat model (only with one bag; default: <bag parent>/model.ply)")
     p.add_argument("--classes", default=None, metavar="YAML",
                    help="class file (default: <bag parent>/classes.yaml; every bag must have the same classes)")
-    p.add_argument("--bin-width", type=_number(0.0, MAX_DEPTH_M, lo_open=True), default=DEFAULT_BIN_WIDTH,
+    p.add_argument("--bin-width", type=bounded_number(0.0, MAX_DEPTH_M, lo_open=True), default=DEFAULT_BIN_WIDTH,
                    metavar="M", help=f"depth-bin width in metres, in (0, {MAX_DEPTH_M:g}] (default "
                                      f"{DEFAULT_BIN_WIDTH:g}); at most {MAX_DEPTH_BINS} bins up to --max-depth")
-    p.add_argument("--max-depth", type=_number(0.0, MAX_DEPTH_M, lo_open=True), default=DEFAULT_MAX_DEPTH,
+    p.add_argument("--max-depth", type=bounded_number(0.0, MAX_DEPTH_M, lo_open=True), default=DEFAULT_MAX_DEPTH,
                    metavar="M", help=f"last bin edge in metres, in (0, {MAX_DEPTH_M:g}]; deeper pixels fall in the "
                                      f"last bin (default {DEFAULT_MAX_DEPTH:g})")
     p.add_argument("--votes", choices=VOTE_KINDS, default=DEFAULT_VOTES,
@@ -80,12 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "on the others), onehot (the label only) or confusion (the rows p(true class | label, depth))")
     p.add_argument("--per-class", action="store_true",
                    help="weights per label and depth (default: per depth, the same for every label)")
-    p.add_argument("--pseudo-count", type=_number(0.0, MAX_PSEUDO_COUNT), default=DEFAULT_PSEUDO_COUNT, metavar="N",
+    p.add_argument("--pseudo-count", type=bounded_number(0.0, MAX_PSEUDO_COUNT), default=DEFAULT_PSEUDO_COUNT, metavar="N",
                    help="smoothing of sparse (label, depth) bins toward their neighbours and the class rate, in "
                         f"pixels, in [0, {MAX_PSEUDO_COUNT:g}] (default {DEFAULT_PSEUDO_COUNT:g})")
-    p.add_argument("--weight-floor", type=_number(0.0, 1.0), default=DEFAULT_WEIGHT_FLOOR, metavar="W",
+    p.add_argument("--weight-floor", type=bounded_number(0.0, 1.0), default=DEFAULT_WEIGHT_FLOOR, metavar="W",
                    help=f"vote weight of labels no better than chance, in [0, 1] (default {DEFAULT_WEIGHT_FLOOR:g})")
-    p.add_argument("--heldout-every", type=_number(0, MAX_HELDOUT_EVERY, integer=True), default=DEFAULT_HELDOUT_EVERY,
+    p.add_argument("--heldout-every", type=bounded_number(0, MAX_HELDOUT_EVERY, integer=True), default=DEFAULT_HELDOUT_EVERY,
                    metavar="K", help=f"hold out every K-th frame of each bag for the before/after calibration, 0 "
                                      f"(none) or 2..{MAX_HELDOUT_EVERY} (default {DEFAULT_HELDOUT_EVERY})")
     p.add_argument("--no-confidence", action="store_true",

@@ -12,6 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..console import bounded_number
 from ..engine.camera import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from ..io.clouds import has_field, unpack_scored_views
 from ..io.messages import pose_to_arrays, stamp_to_ns
@@ -30,18 +31,6 @@ MAX_STD_M = 100.0
 _NODE_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
 
-def _number(lo: float, hi: float, lo_open: bool = False, integer: bool = False) -> Any:
-    """An argparse ``type``: a finite number in [lo, hi] ((lo, hi] with ``lo_open``), an int with ``integer``
-    (argparse then names the option: exit 2)."""
-    def parse(text: str) -> float | int:
-        try:
-            value: float | int = int(text) if integer else float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
-        if not (math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi):
-            raise argparse.ArgumentTypeError(f"{text} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
-        return value
-    return parse
 
 
 def _node_name(text: str) -> str:
@@ -93,29 +82,29 @@ def build_parser() -> argparse.ArgumentParser:
                     "'next_best_view'. Topic names are relative (remappable with --ros-args -r).")
     p.add_argument("--node", type=_node_name, default="/css_node",
                    help="css_node's name with namespace (default /css_node)")
-    p.add_argument("--num-candidates", type=_number(1, MAX_NUM_CANDIDATES, integer=True), default=16,
+    p.add_argument("--num-candidates", type=bounded_number(1, MAX_NUM_CANDIDATES, integer=True), default=16,
                    help=f"candidates per request, incl. the current pose, 1..{MAX_NUM_CANDIDATES} (default 16; "
                         "css_node scores at most its max_candidates, default 256)")
-    p.add_argument("--yaw-range", type=_number(0.0, 180.0), default=90.0,
+    p.add_argument("--yaw-range", type=bounded_number(0.0, 180.0), default=90.0,
                    help="max yaw offset [deg], in [0, 180] (default 90)")
-    p.add_argument("--position-std", type=_number(0.0, MAX_STD_M), default=0.3,
+    p.add_argument("--position-std", type=bounded_number(0.0, MAX_STD_M), default=0.3,
                    help=f"horizontal position noise [m], in [0, {MAX_STD_M:g}] (default 0.3)")
-    p.add_argument("--vertical-std", type=_number(0.0, MAX_STD_M), default=0.0,
+    p.add_argument("--vertical-std", type=bounded_number(0.0, MAX_STD_M), default=0.0,
                    help=f"vertical position noise [m], in [0, {MAX_STD_M:g}] (default 0)")
     p.add_argument("--metric", choices=METRICS, default="info_gain",
                    help="score to maximise: info_gain (expected reduction of the map's uncertainty if the view "
                         "were observed), u_var or u_exp (the most uncertain view); NaN rows are never chosen "
                         "(default info_gain)")
-    p.add_argument("--period", type=_number(MIN_PERIOD_S, MAX_SECONDS), default=2.0,
+    p.add_argument("--period", type=bounded_number(MIN_PERIOD_S, MAX_SECONDS), default=2.0,
                    help=f"seconds between requests, in [{MIN_PERIOD_S:g}, {MAX_SECONDS:g}] (default 2)")
-    p.add_argument("--timeout", type=_number(0.0, MAX_SECONDS, lo_open=True), default=10.0,
+    p.add_argument("--timeout", type=bounded_number(0.0, MAX_SECONDS, lo_open=True), default=10.0,
                    help=f"seconds to wait for an answer (and, with --once, for a pose), in (0, {MAX_SECONDS:g}] "
                         "(default 10)")
     p.add_argument("--once", action="store_true", help="one request, print the result, exit (0 on success)")
     p.add_argument("--json", action="store_true", help="also print each chosen view as one JSON line on stdout "
                    "(index, yaw_deg, position, quat_xyzw, metric, u_var, u_exp, info_gain, current_*, stamp_ns, "
                    "latency_ms; NaN as null)")
-    p.add_argument("--seed", type=_number(0, 2**63 - 1, integer=True), default=0,
+    p.add_argument("--seed", type=bounded_number(0, 2**63 - 1, integer=True), default=0,
                    help="random seed of the position noise, >= 0 (default 0)")
     p.add_argument("--pose-type", choices=tuple(POSE_TYPES), default="pose_stamped",
                    help="message type on 'pose', as css_node's pose_type (default pose_stamped); candidates are "
