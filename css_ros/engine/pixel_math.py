@@ -1,4 +1,5 @@
-"""Per-pixel final-form maths, written once for both compiled targets (like :mod:`.splat_math`).
+"""Per-pixel maths, written once for both compiled targets (like :mod:`.splat_math`): the final form of a view and
+the sensor model's depth bin.
 
 Plain scalar Python functions: ``engine/cpu/finalize.py`` compiles them with ``numba.njit(inline="always")``
 and ``engine/cuda/kernels.py`` with ``numba.cuda.jit(device=True, inline=True)``; numpy callers use the
@@ -12,6 +13,16 @@ import math
 E_CLIP = 1e-6
 #: the logistic score's argument is clipped to +-Z_CLIP (ConfidenceMap.score)
 Z_CLIP = 60.0
+
+
+def depth_bin(depth, edges):  # type: ignore[no-untyped-def]
+    """Bin b of ``depth`` with edges[b] <= depth < edges[b + 1]; below edges[1]: 0, beyond the last edge: B - 1
+    (the sensor model's rule, SensorModel.bin_of; B is small, a linear scan). ``edges`` (B + 1,) increasing."""
+    b = 0
+    last = edges.shape[0] - 2
+    while b < last and depth >= edges[b + 1]:
+        b += 1
+    return b
 
 
 def to_byte(x):  # type: ignore[no-untyped-def]

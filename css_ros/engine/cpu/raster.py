@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..buffers import RenderBuffers
+from ..pixel_math import depth_bin
 from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 from .projection import ProjectedGaussians
 
@@ -231,15 +232,7 @@ def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):
         trans[p] = t
 
 
-@njit(inline="always")
-def _depth_bin(depth, edges):  # pragma: no cover
-    """Bin b of ``depth`` with edges[b] <= depth < edges[b + 1]; below edges[1]: 0, beyond the last edge: B - 1
-    (the sensor model's rule, SensorModel.bin_of; B is small, a linear scan)."""
-    b = 0
-    last = edges.shape[0] - 2
-    while b < last and depth >= edges[b + 1]:
-        b += 1
-    return b
+_depth_bin = njit(inline="always")(depth_bin)
 
 
 @njit(parallel=True, cache=True, fastmath=_FAST)

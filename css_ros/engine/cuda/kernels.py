@@ -33,7 +33,7 @@ from typing import Any
 
 from numba import cuda, float32, float64, int32
 
-from ..pixel_math import confidence_score, interp, to_byte
+from ..pixel_math import confidence_score, depth_bin, interp, to_byte
 from ..sh import sh_polynomial
 from .arrays import simulator_enabled
 from .layout import (PL_BG, PL_CONFIDENCE, PL_DEPTH, PL_E, PL_EVIDENCE, PL_LABELS, PL_PROBS, PL_RGB,  # noqa: F401
@@ -58,6 +58,7 @@ _store_splat = cuda.jit(device=True, inline=True)(store_splat)
 _view_direction = cuda.jit(device=True, inline=True)(view_direction)
 _sh_polynomial = cuda.jit(device=True, inline=True)(sh_polynomial)
 _to_byte = cuda.jit(device=True, inline=True)(to_byte)
+_depth_bin = cuda.jit(device=True, inline=True)(depth_bin)
 _interp = cuda.jit(device=True, inline=True)(interp)
 _confidence_score = cuda.jit(device=True, inline=True)(confidence_score)
 
@@ -437,11 +438,7 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
                     ksum += kappa
         row = -1
         if labelled and ksum > float32(0.0):
-            d = float64(zsum) / float64(ksum)
-            b = 0
-            while b < B - 1 and d >= edges[b + 1]:
-                b += 1
-            row = lab * B + b
+            row = lab * B + _depth_bin(float64(zsum) / float64(ksum), edges)
         missing = cuda.syncthreads_count(1 if labelled and row < 0 else 0)  # also: walk 1 is over
         if tid == 0 and missing > 0:
             cuda.atomic.add(no_depth, 0, missing)
@@ -530,17 +527,6 @@ def render_layout(num_classes: int, tile: int, chunk: int = RENDER_CLASS_CHUNK,
 # metres per splat unit, the ignore label and the confidence map's logistic coefficients.
 P_EBG, P_VBG, P_SBG, P_RGB, P_THRESHOLD, P_DEPTH_SCALE, P_IGNORE, P_COEF = 0, 1, 2, 3, 6, 7, 8, 9
 RENDER_PARAMS = 12
-
-
-@cuda.jit(device=True, inline=True)
-def _depth_bin(depth, edges):  # pragma: no cover
-    """Bin b of ``depth`` with edges[b] <= depth < edges[b + 1]; below edges[1]: 0, beyond the last edge: B - 1 (the
-    sensor model's rule, as the CPU's)."""
-    b = 0
-    last = edges.shape[0] - 2
-    while b < last and depth >= edges[b + 1]:
-        b += 1
-    return b
 
 
 @cuda.jit(device=True, inline=True)
