@@ -409,16 +409,17 @@ class CudaBackend(RasterBackend):
             groups.setdefault((int(cam.width), int(cam.height)), []).append(i)
         return groups
 
-    def _score_settings(self, e_bg: float, v_bg: float, s_bg: float) -> "RenderSettings":
-        return RenderSettings(e_bg, v_bg, s_bg, (0.0, 0.0, 0.0), float("inf"), -1, 1.0, None, frozenset(), False)
+    def _score_settings(self, e_bg: float, v_bg: float, s_bg: float,
+                        outputs: frozenset[str] = frozenset()) -> "RenderSettings":
+        """Settings of a scored view: no colour, no threshold, no confidence; ``outputs`` the images wanted."""
+        return RenderSettings(e_bg, v_bg, s_bg, (0.0, 0.0, 0.0), float("inf"), -1, 1.0, None, outputs, False)
 
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None
                      ) -> Iterator[tuple[np.ndarray, np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]]:
         """(expectation, variance, mass) of the views one by one (the contract's image form; the batched device
         paths are :meth:`score_views`, :meth:`view_masses` and :meth:`select_views`)."""
-        settings = RenderSettings(e_bg, v_bg, s_bg, (0.0, 0.0, 0.0), float("inf"), -1, 1.0, None,
-                                  frozenset({"expectation", "variance"}), False)
+        settings = self._score_settings(e_bg, v_bg, s_bg, frozenset({"expectation", "variance"}))
         cams = list(cameras)
         masses = list(self.view_masses(cams, concentrations, e_bg, v_bg, s_bg, mass_weights)) \
             if mass_weights is not None else [None] * len(cams)
@@ -435,15 +436,18 @@ class CudaBackend(RasterBackend):
         conc = self._device_concentrations_for_read(concentrations)
         settings = self._score_settings(e_bg, v_bg, s_bg)
         no_planes = np.full(NUM_PLANES, -1, dtype=np.int64)
+        weights_dev = edges_dev = None
+        if mass_weights is not None:
+            edges_dev = self.ops.upload(mass_weights[0], np.float64)
+            weights_dev = self.ops.upload(mass_weights[1], np.float64)
         for idx in self._groups(cameras).values():
             frame = self.prepare_views([cameras[i] for i in idx], want_color=False)
             scores = self.ops.zeros((len(idx), 2), np.float64)
             mass = None
-            if mass_weights is not None:
+            if weights_dev is not None:
                 mass = self.ops.zeros(max(frame.num_pairs, 1), np.float64)
-                edges, weights = mass_weights
                 self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True,
-                                    (self.ops.upload(weights, np.float64), self.ops.upload(edges, np.float64), mass))
+                                    (weights_dev, edges_dev, mass))
             else:
                 self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True)
             yield idx, frame, scores, mass
