@@ -17,7 +17,14 @@ if os.environ.get("NUMBA_ENABLE_CUDASIM", "0") in ("", "0"):
                 allow_module_level=True)
 pytest.importorskip("numba.cuda", reason="numba-cuda is not installed (pip install -e '.[cuda]')")
 
+import sys  # noqa: E402
+
 from numba import cuda  # noqa: E402
+
+# Each simulated GPU thread is a Python thread, and a barrier or warp exchange waits for 32-256 of them to be
+# scheduled in turn: at the default 5 ms GIL switch interval that waiting, not the kernels' work, set the pace
+# (a score_views of one 16 x 12 view took 89 s; 6 s at 0.5 ms).
+sys.setswitchinterval(5e-4)
 
 from css_ros import GaussianModel, SemanticMap  # noqa: E402
 from css_ros.engine.cuda import kernels  # noqa: E402
@@ -490,3 +497,24 @@ def test_float32_precull_keeps_exactly_the_cpu_pairs():
         assert np.all(culled[n - 100:n - 50])     # behind the camera
         if cam.position[0] < 100:                 # 5-8 x the image's half width beside it (near the origin: far
             assert np.all(culled[n - 50:])        # from it float32 cannot place z to 0.1 %, the float64 path decides)
+
+
+@cuda.jit
+def _both_warp_sums(x, fast, shuffles):  # pragma: no cover
+    i = cuda.grid(1)
+    fast[i] = kernels.warp_sum(x[i])
+    shuffles[i] = kernels.warp_sum_shuffles(x[i])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_one_exchange_warp_sum_equals_the_five_shuffles(dtype):
+    """The simulator's one-exchange warp_sum gives every lane the bit-identical sum of the five-shuffle butterfly
+    the GPU runs, which itself is the float sum of the warp's 32 values (to rounding)."""
+    x = (np.random.default_rng(3).standard_normal(64) * 100.0).astype(dtype)
+    fast, shuffles = np.zeros_like(x), np.zeros_like(x)
+    _both_warp_sums[1, 64](x, fast, shuffles)
+    np.testing.assert_array_equal(fast, shuffles)
+    for w in range(2):
+        assert np.all(fast[32 * w:32 * w + 32] == fast[32 * w])
+        np.testing.assert_allclose(fast[32 * w], x[32 * w:32 * w + 32].astype(np.float64).sum(),
+                                   rtol=1e-6 if dtype == np.float32 else 1e-14)
