@@ -113,15 +113,18 @@ class Browser:
                 raise TimeoutError(f"waited {timeout:.0f} s for {what}")
             time.sleep(poll)
 
-    def stable_screenshot(self, timeout: float, accept=lambda img: True) -> np.ndarray:
-        """A screenshot equal to the one before it (the page stopped changing) that ``accept`` takes."""
+    def stable_screenshot(self, timeout: float, accept=lambda img: True, repeats: int = 3) -> np.ndarray:
+        """A screenshot equal to the ``repeats`` - 1 taken before it, 0.3 s apart (the page stopped changing), that
+        ``accept`` takes. One repeat is not enough on a loaded host: software WebGL may skip a frame or two while
+        it takes in new splats, and two equal screenshots then show the old scene."""
         last: list[np.ndarray] = []
 
         def probe():
             img = self.screenshot()
-            ok = bool(last) and img.shape == last[0].shape and np.array_equal(img, last[0]) and accept(img)
-            last[:] = [img]
-            return img if ok else None
+            if not last or img.shape != last[-1].shape or not np.array_equal(img, last[-1]):
+                last.clear()
+            last.append(img)
+            return img if len(last) >= repeats and accept(img) else None
 
         return self.wait_for(probe, timeout, "the page to settle", poll=0.3)
 

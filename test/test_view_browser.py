@@ -173,8 +173,12 @@ def region_mask(width: int, height: int) -> np.ndarray:
     return m
 
 
-def settle(browser: Browser, width: int, view, timeout: float = 30.0) -> np.ndarray:
+def settle(browser: Browser, width: int, view, timeout: float = 60.0) -> np.ndarray:
+    """A settled screenshot of the page once it has taken in the server's latest redraw: its status line shows
+    that redraw's number (sent after the splats, on the same ordered websocket), and the canvas stopped changing."""
     status = view.redraws
+    browser.wait_for(lambda: browser.evaluate(f"document.body.innerText.includes('update {status} ·')"), timeout,
+                     f"the page to show update {status}")
     return browser.stable_screenshot(timeout, accept=lambda img: view.redraws == status)
 
 
