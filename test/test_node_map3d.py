@@ -112,6 +112,7 @@ def test_semantic_cloud_point_queries_and_load_map(tmp_path):
         client.node.create_subscription(PointCloud2, "/css_node/point_query_results", answers.append, 10)
         pub = client.node.create_publisher(PointCloud2, "point_queries", 10)
         assert client.wait_until(lambda: pub.get_subscription_count() > 0, 20.0)
+        assert client.wait_outputs_heard(("point_query_results",)), node.log()[-3000:]
         first = int(np.flatnonzero(observed)[0])
         xyz = np.array([model.means[first], [100.0, 100.0, 100.0], [np.nan, 0.0, 0.0]])
         pub.publish(_cloud_msg(77, xyz))

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -92,7 +91,7 @@ def test_node_fuses_with_the_sensor_model_and_publishes_confidence(tmp_path: Pat
     try:
         assert client.wait_connected(60.0), node.log()
         assert client.wait_until(lambda: sub_conf.get_publisher_count() > 0, 20.0)
-        time.sleep(0.5)
+        assert client.wait_outputs_heard(("confidence",)), node.log()[-3000:]   # its writer matched ours too
         log = node.log()
         assert f"fingerprint {sm.fingerprint[:12]}" in log and "calibrated confidence" in log, log
         assert "sensor model sensor model" not in log

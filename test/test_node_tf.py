@@ -57,10 +57,12 @@ class TfClient:
                           node.create_publisher(Image, f"{ns + '/' if ns else ''}segmentation", qos))
                      for ns in cameras}
         self.poses: dict[str, dict[int, np.ndarray]] = {ns: {} for ns in cameras}
+        self.results: list = []   # the subscriptions of each camera's view_uncertainty
+        self.result_names = [f"{ns + '/' if ns else ''}view_uncertainty" for ns in cameras]
         for ns in cameras:
             topic = f"/css_node/{ns + '/' if ns else ''}view_uncertainty"
-            node.create_subscription(PointCloud2, topic, self._recorder(ns),
-                                     QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+            self.results.append(node.create_subscription(PointCloud2, topic, self._recorder(ns),
+                                                         QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)))
         self.dynamic: dict[str, list] = {}
         self.static: dict[str, np.ndarray] = {}
         self.parents: dict[str, str] = {}
@@ -126,8 +128,12 @@ def map_odom(jumped: bool) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _wait_ready(client: rh.RosClient, node: rh.NodeProcess, tfc: TfClient) -> None:
+    """The node is up, has matched every input publisher of ``tfc``, and its view_uncertainty writers have matched
+    ``tfc``'s readers (its diagnostics say so: a result published before that is lost on a loaded host)."""
     assert client.wait_until(lambda: node.wait_log("inputs (", 0.1) and all(
-        p.get_subscription_count() > 0 for p in tfc.publishers()), 90.0), node.log()[-3000:]
+        p.get_subscription_count() > 0 for p in tfc.publishers()) and all(
+        r.get_publisher_count() > 0 for r in tfc.results) and client.outputs_heard(tuple(tfc.result_names)),
+        rh.NODE_START_S), node.log()[-3000:]
 
 
 def test_robot_tf_stream_with_a_map_odom_jump_and_late_segmentation(tmp_path):
