@@ -6,8 +6,9 @@ State on the device: the model (means, 3D covariances, opacities, largest std, S
 concentrations (N, C) float64. SemanticMap's host array is kept coherent lazily: the backend
 uploads it when the host side may have changed (first use, after ``host_view`` handed it out, or a
 different array) and downloads the device copy when the host asks for it (``host_view``). Per
-observed frame the only transfers are the labels/weights in and one (H, W, 9) float32 array out (with a
-sensor model, also its tables once and the update's no-depth count: one more synchronisation).
+observed frame the only transfers are the labels/weights in, the pair and key counts of the projection (the sizes of
+the sorts: one synchronisation) and one copy out of the requested images in final form (:mod:`.layout`'s planes and
+header; with a sensor model, also its tables once and the update's no-depth count: one more synchronisation).
 """
 from __future__ import annotations
 
