@@ -1,10 +1,18 @@
 """Shared pytest setup: make the test helpers importable and register markers."""
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+# A suite started in the background by a non-interactive shell (`cmd &` without job control, as in scripts and
+# some CI runners) inherits SIGINT ignored, and so would every css_node / css_import the tests start: the tests
+# that stop them with SIGINT (Ctrl-C's signal) would then wait forever. A handler (unlike SIG_IGN) is reset to the
+# default at exec, so the children get SIGINT as a terminal would give it to them.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_configure(config):
