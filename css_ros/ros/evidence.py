@@ -71,19 +71,24 @@ class EvidenceLink:
         self._update_sources()
 
     def rebind(self) -> None:
-        """(Re)start the bookkeeping for the worker's current map (at start and after a model swap)."""
+        """(Re)start the bookkeeping for the worker's current map (at start)."""
         with self.worker.map_lock:
-            smap = self.worker.smap
-            fp, n, c = smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes
-            self._adopt_locked()
-            self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows) \
-                if self.p.publish_evidence else None   # 8 N C bytes: only when publishing
-            self._next_snapshot = 0.0
-            self.recovery: EvidenceRecovery | None = None
-            self._own_base: np.ndarray | None = None
-            self._frames_base, self._adopted = 0, False
-            if self.outbox is not None:
-                smap.evidence_epoch = self.outbox.epoch
+            self.rebind_locked()
+
+    def rebind_locked(self) -> None:
+        """Under the map lock, in the same critical section that replaced the worker's map (a model swap): the
+        ledger and outbox are sized for the new splat before any timer can see the new map with the old ones."""
+        smap = self.worker.smap
+        fp, n, c = smap.model.fingerprint, smap.model.num_gaussians, smap.num_classes
+        self._adopt_locked()
+        self.outbox = EvidenceOutbox(self.origin, fp, n, c, smap.prior, self.p.evidence_max_rows) \
+            if self.p.publish_evidence else None   # 8 N C bytes: only when publishing
+        self._next_snapshot = 0.0
+        self.recovery: EvidenceRecovery | None = None
+        self._own_base: np.ndarray | None = None
+        self._frames_base, self._adopted = 0, False
+        if self.outbox is not None:
+            smap.evidence_epoch = self.outbox.epoch
 
     def _start_recovery(self, checkpoint_epoch: int) -> None:
         """A resumed start: until the return window (from the first peer packet heard) ends, flag the snapshots

@@ -96,6 +96,7 @@ class ModelWatcher:
                     worker.checkpoint_path = node.checkpoint_path = ckpt
                     worker.map_version += 1
                     worker.policy.changed()
+                    node.evidence.rebind_locked()   # in this critical section: see EvidenceLink.rebind_locked
             what = (f"{path} ({model.num_gaussians} Gaussians, fingerprint {model.fingerprint[:12]}): evidence "
                     f"ratio {report.ratio:.4f} ({report.evidence_new:.4g} of {report.evidence_old:.4g} kept), "
                     f"{report.new_at_prior} new Gaussians at the prior, {report.old_dropped} of "
@@ -107,7 +108,6 @@ class ModelWatcher:
                                  f"{what}; below model_swap_min_ratio {min_ratio:g} (another scene, or a splat "
                                  f"in another frame?)")
                 return
-            node.evidence.rebind()
             if worker.view_stream is not None:
                 worker.view_stream.rebind(moved)
             self._current_mtime = mtime
