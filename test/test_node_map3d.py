@@ -135,13 +135,16 @@ def test_semantic_cloud_point_queries_and_load_map(tmp_path):
         assert answers[-1].width == 0 and answers[-1].header.stamp.nanosec == 78 and len(answers[-1].data) == 0
         assert client.wait_diag("requests_nan[too many points]", 1) == 1
 
-        # load_map: reset, then load the checkpoint back; the next cloud shows the loaded map again.
+        # load_map: reset, then load the checkpoint back; the next cloud shows the loaded map again. The list is
+        # cleared before the reset: the loaded map's cloud may go out before the load's answer arrives, and after
+        # the reset only the reset's (empty) cloud or the loaded one can come.
+        clouds.clear()
         assert client.call(client.reset_client).success
         load = client.node.create_client(Trigger, "/css_node/load_map")
         res = client.call(load)
         assert res.success and res.message.startswith(f"loaded {npz}"), res.message
-        clouds.clear()
-        assert client.wait_until(lambda: clouds and clouds[-1].width == observed.sum(), 20.0)
+        assert client.wait_until(lambda: clouds and clouds[-1].width == observed.sum(), 20.0), (
+            [c.width for c in clouds], int(observed.sum()))
         npz.write_bytes(b"not a map")
         res = client.call(load)
         assert not res.success and "checkpoint refused, map unchanged" in res.message
