@@ -92,12 +92,13 @@ def test_semantic_cloud_point_queries_and_load_map(tmp_path):
         clouds = []
         qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         client.node.create_subscription(PointCloud2, "/css_node/semantic_cloud", clouds.append, qos)
-        assert client.wait_until(lambda: clouds and len(unpack_cloud(clouds[-1])) == observed.sum(), 30.0), (
-            [len(unpack_cloud(c)) for c in clouds], int(observed.sum()), node.log()[-3000:])
+        assert client.wait_until(lambda: clouds and clouds[-1].width == observed.sum(), 30.0), (
+            [c.width for c in clouds], int(observed.sum()), node.log()[-3000:])
         cloud = clouds[-1]
         assert cloud.header.frame_id == "map"
         assert tuple(f.name for f in cloud.fields) == CLOUD_FIELDS
         pts = unpack_cloud(cloud)
+        assert len(pts) == observed.sum()
         means = np.asarray(model.means)[observed]
         np.testing.assert_allclose(np.stack([pts["x"], pts["y"], pts["z"]], 1), means, atol=1e-6)
         np.testing.assert_array_equal(pts["label"], label[observed])

@@ -59,9 +59,8 @@ class TfClient:
         self.poses: dict[str, dict[int, np.ndarray]] = {ns: {} for ns in cameras}
         self.results: list = []   # the subscriptions of each camera's view_uncertainty
         self.result_names = [f"{ns + '/' if ns else ''}view_uncertainty" for ns in cameras]
-        for ns in cameras:
-            topic = f"/css_node/{ns + '/' if ns else ''}view_uncertainty"
-            self.results.append(node.create_subscription(PointCloud2, topic, self._recorder(ns),
+        for ns, name in zip(cameras, self.result_names):
+            self.results.append(node.create_subscription(PointCloud2, f"/css_node/{name}", self._recorder(ns),
                                                          QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)))
         self.dynamic: dict[str, list] = {}
         self.static: dict[str, np.ndarray] = {}

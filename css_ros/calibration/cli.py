@@ -40,8 +40,6 @@ MAX_PSEUDO_COUNT = 1e9
 MAX_HELDOUT_EVERY = 1_000_000
 
 
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,

@@ -31,8 +31,6 @@ MAX_STD_M = 100.0
 _NODE_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
 
-
-
 def _node_name(text: str) -> str:
     """--node: a fully qualified ROS node name (/namespace/name)."""
     if not _NODE_NAME.match(text.rstrip("/") or "/"):
