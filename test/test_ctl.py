@@ -30,6 +30,12 @@ def test_ctl_save_query_candidates_reset(tmp_path):
     client = rh.RosClient(domain)
     try:
         assert client.wait_connected(60.0), node.log()
+        # before any camera_info: every row NaN, and css_ctl says why from the node's own counters (it used to guess
+        # "more than its max_candidates, or no camera_info yet")
+        r = css_ctl(domain, "candidates", "0", "0", "1.5", "-0.5", "0.5", "-0.5", "0.5")
+        assert r.returncode == 1, r.stderr
+        assert "scored none of the 1 views (every row NaN); css_node's status: no camera_info received yet (+1)" \
+            in r.stderr, r.stderr
         assert client.send_frame_until_processed(10**9, output="view_uncertainty"), node.log()[-3000:]
 
         r = css_ctl(domain, "save")
@@ -69,7 +75,8 @@ def test_ctl_save_query_candidates_reset(tmp_path):
         many = tmp_path / "poses.txt"   # one more than the node's max_candidates (256): every row NaN
         many.write_text("\n".join("0 0 0 0 0 0 1" for _ in range(257)) + "\n")
         r = css_ctl(domain, "candidates", "--file", str(many))
-        assert r.returncode == 1 and "scored none of the 257 views" in r.stderr
+        assert r.returncode == 1 and "scored none of the 257 views (every row NaN); css_node's status: too many " \
+            "candidates (+1)" in r.stderr, r.stderr
         assert "<- most uncertain" not in r.stdout and "<- best next view" not in r.stdout
 
         r = css_ctl(domain, "reset")
@@ -99,6 +106,6 @@ def test_candidates_table_marks_finite_maxima_only():
 
 
 def test_timeout_must_be_a_finite_number_of_seconds():
-    for bad in ("nan", "inf", "1e308", "0", "-1"):
+    for bad in ("nan", "inf", "1e308", "0", "-1", "1e-320"):
         r = css_ctl(0, "--timeout", bad, "save", timeout=30)
-        assert r.returncode == 1 and "--timeout must be a number of seconds" in r.stderr, (bad, r.stderr)
+        assert r.returncode == 2 and f"argument --timeout: {bad} is outside [0.01, 86400]" in r.stderr, (bad, r.stderr)

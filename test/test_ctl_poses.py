@@ -66,5 +66,5 @@ def test_yaw_turns_a_level_camera_about_the_map_z(yaw):
 
 
 def test_yaw_poses_come_in_fours(capsys):
-    assert main(["candidates", "--yaw", "0", "0", "1.5"]) == 1
+    assert main(["candidates", "--yaw", "0", "0", "1.5"]) == 2   # a usage error, before ROS starts
     assert "give x y z yaw poses as groups of 4 numbers (got 3)" in capsys.readouterr().err

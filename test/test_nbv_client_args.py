@@ -2,7 +2,10 @@
 starts (css_ros/clients/nbv_client.py)."""
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -23,8 +26,14 @@ from css_ros.clients.nbv_client import MAX_NUM_CANDIDATES, build_parser, main  #
     ("--position-std", "-0.1", "outside [0, 100]"),
     ("--vertical-std", "inf", "outside [0, 100]"),
     ("--seed", "-1", "outside [0, "),
-    ("--node", "not a node", "is not a node name"),
-    ("--node", "css_node", "is not a node name"),
+    ("--node", "/not a node", "is not a node name"),
+    ("--node", "css_node", "is relative (no leading '/')"),
+    ("--node", "", "an empty name"),
+    ("--node", "~", "starts with '~', which names this tool's own private namespace"),
+    ("--node", "/1x", "'1x' is not a ROS name"),
+    # passed the node-name pattern, then rclpy refused the 327-character topic with a traceback (exit 1)
+    ("--node", "/css_node/" + "a" * 300, "/candidate_scores (327 characters), which ROS refuses: longer than the 247 "
+     "characters ROS allows"),
 ])
 def test_bad_arguments_are_usage_errors_naming_the_option(capsys, option, value, says):
     start = time.monotonic()
@@ -45,3 +54,15 @@ def test_bad_ros_arguments_are_one_line_not_a_traceback(capsys):
     assert main(["--once", "--ros-args", "-r"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("css_nbv_client: error: cannot initialise ROS"), err
+
+
+def test_too_long_node_name_is_a_usage_error_of_the_console_script_not_a_traceback():
+    """The installed console script: exit 2 naming --node, no rclpy traceback (it used to exit 1 with one)."""
+    script = Path(sys.executable).with_name("css_nbv_client")
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "css_ros.clients.nbv_client"]
+    r = subprocess.run([*cmd, "--node", "/css_node/" + "a" * 300, "--once", "--timeout", "0.5"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr and "InvalidTopicName" not in r.stderr, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("css_nbv_client: error: argument --node:") and "longer than the 247 characters" in last

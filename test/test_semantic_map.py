@@ -180,8 +180,12 @@ def test_load_refuses_foreign_corrupt_or_invalid(tmp_path):
     with pytest.raises(MapError):
         SemanticMap.load(tmp_path / "missing.npz", model)
     smap.concentrations[0, 0] = np.nan
+    with pytest.raises(MapError, match="must be loadable"):  # save never writes what load refuses
+        smap.save(tmp_path / "nan.npz")
+    assert not (tmp_path / "nan.npz").exists()
+    smap._write(tmp_path / "nan.npz")  # a file written past that check (another writer, a crafted file)
     with pytest.raises(MapError, match="invalid"):
-        SemanticMap.load(smap.save(tmp_path / "nan.npz"), model)
+        SemanticMap.load(tmp_path / "nan.npz", model)
 
 
 def test_crash_during_save_keeps_last_good_file(tmp_path, monkeypatch):
@@ -195,7 +199,7 @@ def test_crash_during_save_keeps_last_good_file(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(np, "savez", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(MapError, match="disk full"):
         smap.save(path)
     assert path.read_bytes() == good
     assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]

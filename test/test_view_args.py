@@ -45,7 +45,7 @@ def test_integral_k_of_any_type_selects_the_same_views(smap, cams):
 @pytest.mark.parametrize("importance, says", [
     ("1e308", "importance must be finite and in \\[0, 1e\\+15\\]"),
     ("nan", "importance must be finite"), ("-1", "importance must be finite"),
-    ("short", "importance must have shape \\(80,\\)"), ("text", "importance must be an array"),
+    ("short", "importance must have shape \\(80,\\)"), ("text", "importance must hold real numbers"),
 ])
 def test_importance_out_of_bounds_is_refused_where_it_gave_inf_or_nan_gains(smap, cams, importance, says):
     """1e308 on one Gaussian turned finite inputs into inf / NaN gains; now every entry point refuses it by name."""

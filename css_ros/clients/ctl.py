@@ -5,21 +5,34 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from types import SimpleNamespace
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..console import run_console
+from ..console import bounded_number, run_console
 from ..engine.camera import body_to_optical_rotation, matrix_to_quaternion_xyzw
 from ..errors import CssError
 from ..io.clouds import pack_cloud, unpack_cloud, unpack_scored_views
+from ..io.frames import FrameRejected, decode_pose
 from ..io.point_queries import ANSWER_FIELDS
 from ..io.topics import INPUT_TOPICS
-from .node_link import NodeLink
+from .node_link import NodeLink, node_name_arg
 
 SERVICES = {"save": "save_map", "load": "load_map", "reset": "reset_map"}
+#: What css_ctl calls under --node (checked as full ROS names when --node is parsed).
+NODE_TOPICS = (*SERVICES.values(), "candidate_scores", "point_query_results")
 DEFAULT_TIMEOUT_S = 10.0
+#: --timeout range [s]: below 10 ms nothing can answer (1e-320 was accepted); beyond one day a typo would hang the
+#: terminal.
+MIN_TIMEOUT_S = 0.01
+MAX_TIMEOUT_S = 86400.0
+#: Largest |coordinate| of a query point: points are sent as float32 (beyond, they would arrive as inf).
+MAX_POINT_COORD = float(np.finfo(np.float32).max)
+#: css_node's status counters (/diagnostics) that say why candidate rows are NaN (docs/reliability.md).
+_NAN_STATUS_KEYS = ("requests_nan[", "warn[candidates: invalid candidate poses]")
 
 EXAMPLES = """\
 examples:
@@ -38,15 +51,24 @@ examples:
                                               # towards +y about the map's z (up): along +x, then along +y
   css_ctl candidates --file poses.txt         # one "x y z qx qy qz qw" per line (with --yaw: "x y z yaw")
 Use ROS_DOMAIN_ID as for the node; --node for another node name.
+Exit codes: 0 done; 1 the node did not answer or refused, or a --file cannot be read; 2 usage: a bad option, or
+numbers that cannot be sent (checked before ROS starts: groups of 3 / 7 / 4, finite; query points within float32;
+poses as css_node checks them: |position| <= 1e6 m, quaternion norm in [0.9, 1.1]).
 """
+
+
+class InputRefused(CssError):
+    """Points or poses css_ctl will not send (a usage error, exit 2): the node could not use them."""
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="css_ctl", description="Control and query a running css_node over DDS.",
                                 epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--node", default="/css_node", help="css_node's full name (default /css_node)")
-    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
-                   help=f"seconds to wait for the node (default {DEFAULT_TIMEOUT_S:g})")
+    p.add_argument("--node", type=node_name_arg(NODE_TOPICS), default="/css_node",
+                   help="css_node's full name with namespace (default /css_node)")
+    p.add_argument("--timeout", type=bounded_number(MIN_TIMEOUT_S, MAX_TIMEOUT_S), default=DEFAULT_TIMEOUT_S,
+                   help=f"seconds to wait for the node, in [{MIN_TIMEOUT_S:g}, {MAX_TIMEOUT_S:g}] "
+                        f"(default {DEFAULT_TIMEOUT_S:g})")
     sub = p.add_subparsers(dest="command", required=True)
     for name, srv in SERVICES.items():
         sub.add_parser(name, help=f"call {srv} (std_srvs/Trigger)")
@@ -63,20 +85,61 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def read_rows(values: Sequence[float], file: Path | None, width: int, what: str) -> np.ndarray:
-    """(M, width) float64 rows from the command line or a text file."""
+    """(M, width) float64 rows from the command line or a text file.
+
+    CssError (exit 1) when the file is missing or not a regular file (a folder, /dev/null); InputRefused (exit 2)
+    when the numbers do not come in groups of ``width``."""
     if file is not None:
         if not file.is_file():
-            raise CssError(f"{what} file not found: {file}")
+            raise CssError(f"{what} file is not a regular file: {file}" if file.exists()
+                           else f"{what} file not found: {file}")
         try:
-            rows = np.loadtxt(file, dtype=np.float64, ndmin=2, comments="#")
+            with warnings.catch_warnings():   # an empty file: "input contained no data", said below in one line
+                warnings.simplefilter("ignore")
+                rows = np.loadtxt(file, dtype=np.float64, ndmin=2, comments="#")
         except ValueError as exc:
-            raise CssError(f"{file}: {exc}") from None
+            raise InputRefused(f"{file}: {exc}") from None
         if rows.size == 0 or rows.shape[1] != width:
-            raise CssError(f"{file}: expected {width} numbers per line")
+            raise InputRefused(f"{file}: expected {width} numbers per line")
         return rows
     if not values or len(values) % width:
-        raise CssError(f"give {what} as groups of {width} numbers (got {len(values)})")
+        raise InputRefused(f"give {what} as groups of {width} numbers (got {len(values)})")
     return np.asarray(values, np.float64).reshape(-1, width)
+
+
+def check_points(xyz: np.ndarray) -> np.ndarray:
+    """``xyz`` (M, 3) unchanged; InputRefused naming the first point with a non-finite coordinate or one beyond
+    float32 (the request carries float32: it would arrive as inf)."""
+    bad = ~np.all(np.isfinite(xyz) & (np.abs(np.nan_to_num(xyz)) <= MAX_POINT_COORD), axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputRefused(f"point {i} ({' '.join(f'{v:g}' for v in xyz[i])}): coordinates must be finite and "
+                           f"within +-{MAX_POINT_COORD:.6g} m (sent as float32)")
+    return xyz
+
+
+def check_poses(poses: np.ndarray) -> np.ndarray:
+    """``poses`` (M, 7) x y z qx qy qz qw unchanged; InputRefused naming the first pose css_node would score NaN
+    and why (its own check, :func:`css_ros.io.frames.decode_pose`: finite, |position| within POSITION_BOUND_M,
+    quaternion norm within QUATERNION_NORM_TOLERANCE)."""
+    for i, row in enumerate(poses):
+        x, y, z, qx, qy, qz, qw = (float(v) for v in row)
+        pose = SimpleNamespace(position=SimpleNamespace(x=x, y=y, z=z),
+                               orientation=SimpleNamespace(x=qx, y=qy, z=qz, w=qw))
+        try:
+            decode_pose(SimpleNamespace(pose=pose))
+        except FrameRejected as exc:
+            raise InputRefused(f"pose {i}: {exc} (css_node would score it NaN)") from None
+    return poses
+
+
+def check_yaws(rows: np.ndarray) -> np.ndarray:
+    """``rows`` (M, 4) x y z yaw unchanged; InputRefused naming the first pose whose yaw is not finite."""
+    bad = ~np.isfinite(rows[:, 3])
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputRefused(f"pose {i}: yaw must be finite, got {rows[i, 3]:g}")
+    return rows
 
 
 def level_poses(rows: np.ndarray) -> np.ndarray:
@@ -115,8 +178,9 @@ def call_service(link: NodeLink, node: str, name: str, timeout: float) -> tuple[
 
 
 def _request(link: NodeLink, node: str, topic: str, msg_type: type, answer_topic: str, msg: Any,
-             timeout: float) -> Any:
-    """Publish ``msg`` (its header stamp is the request id) and return the answer echoing that stamp."""
+             timeout: float, before_send: Callable[[], None] | None = None) -> Any:
+    """Publish ``msg`` (its header stamp is the request id) and return the answer echoing that stamp;
+    ``before_send`` runs once both ends are matched, just before the request goes out."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
@@ -132,6 +196,8 @@ def _request(link: NodeLink, node: str, topic: str, msg_type: type, answer_topic
     # the answer subscription must be matched too before the request goes out (css_node answers from another DDS
     # participant than the one its requests arrive on: the two discover this client independently)
     link.wait(lambda: sub.get_publisher_count() > 0, timeout)
+    if before_send is not None:
+        before_send()
     pub.publish(msg)
     if not link.wait(lambda: key in answers, timeout):
         raise CssError(f"no answer on {node}/{answer_topic} within {timeout:g} s")
@@ -154,7 +220,8 @@ def query(link: NodeLink, node: str, xyz: np.ndarray, timeout: float) -> np.ndar
     return unpack_cloud(ans)
 
 
-def candidates(link: NodeLink, node: str, poses: np.ndarray, timeout: float) -> np.ndarray:
+def candidates(link: NodeLink, node: str, poses: np.ndarray, timeout: float,
+               before_send: Callable[[], None] | None = None) -> np.ndarray:
     """Scored views (css_ros.io.clouds.SCORED_VIEW_DTYPE rows: x y z qx qy qz qw u_var u_exp info_gain; info_gain
     NaN from a node that does not publish it) for poses (M, 7) x y z qx qy qz qw, in request order."""
     from geometry_msgs.msg import PoseArray
@@ -163,7 +230,59 @@ def candidates(link: NodeLink, node: str, poses: np.ndarray, timeout: float) -> 
 
     msg = pose_array_msg(poses[:, :3], poses[:, 3:], header_msg(time.time_ns(), "map"))
     return unpack_scored_views(_request(link, node, INPUT_TOPICS["candidates"], PoseArray, "candidate_scores",
-                                        msg, timeout))
+                                        msg, timeout, before_send))
+
+
+class NanStatusWatch:
+    """Why css_node answered NaN rows: its ``requests_nan[<status>]`` counters on /diagnostics before and after one
+    request (docs/reliability.md). css_node publishes its diagnostics at once whenever a subscriber matches them,
+    so each new subscription asks for the current counters."""
+
+    def __init__(self, link: NodeLink, node: str) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self._link, self._type, self._name = link, DiagnosticArray, f"{node}: semantic map"
+        self._latest: dict[str, int] | None = None
+        self._subs = [self._subscribe()]
+        self.before: dict[str, int] | None = None
+
+    def _subscribe(self) -> Any:
+        return self._link.node.create_subscription(self._type, "/diagnostics", self._on_diagnostics, 10)
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for st in msg.status:
+            if st.name == self._name:
+                counts = {}
+                for kv in st.values:
+                    if kv.key.startswith(_NAN_STATUS_KEYS):
+                        try:
+                            counts[kv.key] = int(float(kv.value))
+                        except ValueError:
+                            pass
+                self._latest = counts
+
+    def take_before(self, timeout: float) -> None:
+        """The counters before the request (up to ``timeout`` s; none from a node without diagnostics)."""
+        self._link.wait(lambda: self._latest is not None, timeout)
+        self.before = self._latest
+
+    def statuses(self, timeout: float) -> list[str]:
+        """The statuses counted since :meth:`take_before` (``name (+n)``); empty when they cannot be known."""
+        before = self.before
+        if before is None:
+            return []
+        self._subs.append(self._subscribe())   # matching again: the node publishes its counters now
+        if not self._link.wait(lambda: self._latest is not None and self._latest != before, timeout):
+            return []
+        after = self._latest or {}
+        return [f"{k[k.index('[') + 1:-1].removeprefix('candidates: ')} (+{v - before.get(k, 0)})"
+                for k, v in sorted(after.items()) if v > before.get(k, 0)]
+
+
+#: Why css_node answers NaN rows when its diagnostics cannot say (docs/reliability.md, "Every candidate request").
+NAN_CAUSES = ("possible causes: no camera_info at the node yet, more views than its max_candidates, invalid poses, "
+              "its candidate_time_budget exceeded or its request queue full; its log and /diagnostics "
+              "(requests_nan[<status>]) say which")
 
 
 def _argmax_finite(values: np.ndarray) -> int:
@@ -198,22 +317,47 @@ def query_table(rows: np.ndarray, ignore_label: int = 255) -> str:
     return format_table(["x", "y", "z", "class", "E", "Var", "top classes (E)"], out)
 
 
-#: Longest --timeout accepted [s] (one day): beyond, a typo would hang the terminal.
-MAX_TIMEOUT_S = 86400.0
+def read_request(args: argparse.Namespace) -> np.ndarray | None:
+    """The points (M, 3) of ``query`` or poses (M, 7) of ``candidates``, checked (InputRefused); None for a
+    service."""
+    if args.command == "query":
+        return check_points(read_rows(args.xyz, args.file, 3, "points"))
+    if args.command == "candidates":
+        if args.yaw:
+            return check_poses(level_poses(check_yaws(read_rows(args.pose, args.file, 4, "x y z yaw poses"))))
+        return check_poses(read_rows(args.pose, args.file, 7, "poses"))
+    return None
+
+
+def numbers_not_options(argv: Sequence[str]) -> list[str]:
+    """``argv`` with the negative numbers after ``query`` / ``candidates`` that argparse would take for unknown
+    options (``-inf``, ``-1e5``) prefixed by a space: then they are positionals, and float() strips the space."""
+    out: list[str] = []
+    for arg in argv:
+        if arg.startswith("-") and any(a in ("query", "candidates") for a in out):
+            try:
+                float(arg)
+                arg = f" {arg}"
+            except ValueError:
+                pass
+        out.append(arg)
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``css_ctl``: 0 on success, 1 with a one-line error (or a refused request), 2 usage."""
-    args = build_parser().parse_args(argv)
+    """Entry point of ``css_ctl``: 0 on success, 1 with a one-line error (or a refused request), 2 usage (a bad
+    option, or points / poses that cannot be sent)."""
+    try:
+        args = build_parser().parse_args(numbers_not_options(sys.argv[1:] if argv is None else argv))
+    except SystemExit as exc:   # argparse printed the usage and the option at fault
+        return int(exc.code or 0)
 
     def work() -> int:
-        if not 0 < args.timeout <= MAX_TIMEOUT_S:
-            raise CssError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S:g}], got {args.timeout}")
-        if args.command == "query":
-            xyz = read_rows(args.xyz, args.file, 3, "points")
-        elif args.command == "candidates":
-            poses = (level_poses(read_rows(args.pose, args.file, 4, "x y z yaw poses")) if args.yaw
-                     else read_rows(args.pose, args.file, 7, "poses"))
+        try:
+            data = read_request(args)
+        except InputRefused as exc:
+            print(f"css_ctl: error: {exc}", file=sys.stderr)
+            return 2
         link = NodeLink()
         try:
             if args.command in SERVICES:
@@ -221,14 +365,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(format_table(["service", "success", "message"],
                                    [[f"{args.node.rstrip('/')}/{SERVICES[args.command]}", ok, message]]))
                 return 0 if ok else 1
+            assert data is not None
             if args.command == "query":
-                print(query_table(query(link, args.node, xyz, args.timeout)))
+                print(query_table(query(link, args.node, data, args.timeout)))
                 return 0
-            scores = candidates(link, args.node, poses, args.timeout)
+            watch = NanStatusWatch(link, args.node)
+            scores = candidates(link, args.node, data, args.timeout,
+                                before_send=lambda: watch.take_before(min(args.timeout, 1.0)))
             print(candidates_table(scores))
-            if len(scores) and not np.any(np.isfinite(scores["u_var"])):
-                raise CssError(f"the node scored none of the {len(scores)} views (every row NaN): more than its "
-                               "max_candidates, or no camera_info yet; its log and /diagnostics say which")
+            nan = int(np.count_nonzero(~np.isfinite(scores["u_var"])))
+            if nan:
+                found = watch.statuses(min(args.timeout, 2.0))
+                why = f"css_node's status: {', '.join(found)}" if found else NAN_CAUSES
+                if nan == len(scores):
+                    raise CssError(f"the node scored none of the {len(scores)} views (every row NaN); {why}")
+                print(f"css_ctl: {nan} of {len(scores)} views not scored (NaN); {why}", file=sys.stderr)
             return 0
         finally:
             link.close()

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import threading
 import time
@@ -18,6 +17,8 @@ from ..io.clouds import has_field, unpack_scored_views
 from ..io.messages import pose_to_arrays, stamp_to_ns
 from ..io.frame_gate import pose_message_pose
 from ..io.topics import POSE_TYPES
+from ..ros.work import WarnLimiter
+from .node_link import node_name_arg
 
 #: --metric choices: the candidate with the largest value is the next best view.
 METRICS = ("info_gain", "u_var", "u_exp")
@@ -28,14 +29,11 @@ MAX_SECONDS = 3600.0
 MIN_PERIOD_S = 0.05
 #: Largest --position-std / --vertical-std [m].
 MAX_STD_M = 100.0
-_NODE_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
-
-
-def _node_name(text: str) -> str:
-    """--node: a fully qualified ROS node name (/namespace/name)."""
-    if not _NODE_NAME.match(text.rstrip("/") or "/"):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a node name like /css_node or /robot1/css_node")
-    return text
+#: Per-request warnings (no pose, nobody subscribes, no answer, ...): the first at once, then at most one per
+#: reason every WARN_PERIOD_S seconds, saying how many were suppressed (a 0.05 s --period would log 20 a second).
+WARN_PERIOD_S = 10.0
+#: The topics css_nbv_client uses under --node (checked as full ROS names when --node is parsed).
+NODE_TOPICS = ("candidate_scores",)
 
 
 def yaw_about_map_z(angle: float) -> np.ndarray:
@@ -78,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "NODE/candidate_scores (matched by the request stamp) and publish the candidate with the "
                     "largest --metric (default: expected information gain) as a PoseStamped on "
                     "'next_best_view'. Topic names are relative (remappable with --ros-args -r).")
-    p.add_argument("--node", type=_node_name, default="/css_node",
+    p.add_argument("--node", type=node_name_arg(NODE_TOPICS), default="/css_node",
                    help="css_node's name with namespace (default /css_node)")
     p.add_argument("--num-candidates", type=bounded_number(1, MAX_NUM_CANDIDATES, integer=True), default=16,
                    help=f"candidates per request, incl. the current pose, 1..{MAX_NUM_CANDIDATES} (default 16; "
@@ -123,6 +121,7 @@ class NbvClient:
         self.args = args
         self.node = rclpy.create_node("css_nbv_client", cli_args=None)
         self.log = self.node.get_logger()
+        self.warn = WarnLimiter(self.log.warning, WARN_PERIOD_S)
         self.rng = np.random.default_rng(args.seed)
         self.lock = threading.Lock()
         self.pose: Any = None
@@ -131,7 +130,7 @@ class NbvClient:
         pose_msg = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                     "odometry": Odometry}[args.pose_type]
         self.node.create_subscription(pose_msg, "pose", self._on_pose, qos_profile_sensor_data)
-        self.sub_scores = self.node.create_subscription(PointCloud2, f"{args.node.rstrip('/')}/candidate_scores",
+        self.sub_scores = self.node.create_subscription(PointCloud2, f"{args.node}/candidate_scores",
                                                         self._on_scores,
                                                         QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.pub_candidates = self.node.create_publisher(PoseArray, "candidates", 10)
@@ -157,14 +156,14 @@ class NbvClient:
             pose = self.pose
         if pose is None:
             within = f" within {self.args.timeout:g} s" if self.args.once else " yet"
-            self.log.warning(f"no pose received{within} on {self.node.resolve_topic_name('pose')} "
-                             f"({POSE_TYPES[self.args.pose_type]}): start what publishes the camera pose (the "
-                             "robot's localisation, or the demo player in another shell: css_demo --loops 10), "
-                             "remap the topic with --ros-args -r pose:=/your/pose, or match its type with "
-                             "--pose-type")
+            self.warn("pose", f"no pose received{within} on {self.node.resolve_topic_name('pose')} "
+                      f"({POSE_TYPES[self.args.pose_type]})", "start what publishes the camera pose (the robot's "
+                      "localisation, or the demo player in another shell: css_demo --loops 10), remap the topic "
+                      "with --ros-args -r pose:=/your/pose, or match its type with --pose-type", dropped=False)
             return None
         if self.pub_candidates.get_subscription_count() == 0:
-            self.log.warning(f"nobody subscribes to {self.pub_candidates.topic_name} (is css_node running?)")
+            self.warn("candidates", f"nobody subscribes to {self.pub_candidates.topic_name}", "is css_node running?",
+                      dropped=False)
             return None
         position, quat = pose_to_arrays(pose_message_pose(pose, self.args.pose_type).pose)
         positions, quats, yaws = sample_candidates(position, quat, self.args.num_candidates,
@@ -184,22 +183,25 @@ class NbvClient:
             if reply is not None:
                 break
         if reply is None:
-            self.log.warning(f"no answer on {self.args.node}/candidate_scores within {self.args.timeout:g} s")
+            self.warn("candidate_scores", f"no answer on {self.args.node}/candidate_scores within "
+                      f"{self.args.timeout:g} s", dropped=False)
             return None
         pts = unpack_scored_views(reply)
         if len(pts) != len(positions):
-            self.log.warning(f"answer has {len(pts)} points for {len(positions)} candidates")
+            self.warn("candidate_scores", "answer of another size than the request",
+                      f"{len(pts)} points for {len(positions)} candidates", dropped=False)
             return None
         metric = self.args.metric
         if not has_field(reply, metric):
-            self.log.warning(f"{self.args.node}/candidate_scores has no field {metric} (a css_node older than "
-                             "it?): use --metric u_var")
+            self.warn("candidate_scores", f"{self.args.node}/candidate_scores has no field {metric}",
+                      "a css_node older than it? use --metric u_var", dropped=False)
             return None
         best = best_candidate(pts[metric])
         if best is None:
-            self.log.warning(f"every candidate scored NaN on {metric}: css_node answers NaN before its first "
-                             f"camera_info and for requests above its max_candidates (this one: {len(positions)}); "
-                             "its log and /diagnostics say which")
+            self.warn("candidate_scores", f"every candidate scored NaN on {metric}",
+                      f"css_node answers NaN before its first camera_info, for requests above its max_candidates "
+                      f"(this one: {len(positions)}), past its candidate_time_budget or with its request queue full; "
+                      "its log and /diagnostics (requests_nan[<status>]) say which", dropped=False)
             return None
         out = PoseStamped(header=header_msg(stamp, frame), pose=pose_msg(positions[best], quats[best]))
         self.pub_nbv.publish(out)

@@ -3,9 +3,57 @@ talk to a running css_node from a plain Python process (no ``rclpy.init`` of the
 links, and the caller's own ROS use, never interfere)."""
 from __future__ import annotations
 
+import argparse
+import re
 import threading
 import time
-from typing import Callable
+from typing import Callable, Sequence
+
+#: One component of a ROS name: a letter or underscore, then letters, digits, underscores.
+_NAME_COMPONENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def node_name_arg(suffixes: Sequence[str]) -> Callable[[str], str]:
+    """An argparse ``type`` for --node: css_node's fully qualified name (/namespace/name, a trailing '/' dropped)
+    whose topics and services ``<name>/<suffix>`` are valid ROS names (rclpy's own check: characters, length).
+
+    Refused with a usage error naming the option (exit 2), before any DDS participant starts: an empty name, a
+    relative one (no leading '/'), '~' (the calling tool's own private namespace, not css_node's), components
+    that are not ROS names (``/css-node``, ``/1x``), and names whose longest topic would be too long.
+    """
+    def parse(text: str) -> str:
+        shown = text if len(text) <= 60 else f"{text[:40]}...({len(text)} characters)"
+        hint = "give css_node's full name like /css_node or /robot1/css_node"
+        name = text.rstrip("/")
+        if not text.strip():
+            raise argparse.ArgumentTypeError(f"an empty name: {hint}")
+        if text.startswith("~"):
+            raise argparse.ArgumentTypeError(f"{shown!r} starts with '~', which names this tool's own private "
+                                             f"namespace, not css_node's: {hint}")
+        if not text.startswith("/"):
+            raise argparse.ArgumentTypeError(f"{shown!r} is relative (no leading '/'): {hint}")
+        bad = [c for c in name.split("/")[1:] if not _NAME_COMPONENT.fullmatch(c)]
+        if not name or bad:
+            raise argparse.ArgumentTypeError(
+                f"{shown!r} is not a node name: {bad[0]!r} is not a ROS name (a letter or '_', then letters, "
+                f"digits, '_')" if bad else f"{shown!r} is not a node name: {hint}")
+        from rclpy.validate_full_topic_name import validate_full_topic_name
+
+        for suffix in sorted(suffixes, key=len, reverse=True):
+            topic = f"{name}/{suffix}"
+            try:
+                validate_full_topic_name(topic)
+            except Exception as exc:  # noqa: BLE001 - rclpy's Invalid*NameException family
+                why = str(exc).splitlines()[0].split(": ", 1)[-1].rstrip(":")
+                limit = re.search(r"'(\d+)U - (\d+)U'", why)   # rcl says "length should not exceed '255U - 8U'"
+                if limit:
+                    why = f"longer than the {int(limit[1]) - int(limit[2])} characters ROS allows"
+                where = f"{name[:40]}.../{suffix} ({len(topic)} characters)" if len(topic) > 60 else topic
+                raise argparse.ArgumentTypeError(f"{shown!r} gives the topic {where}, which ROS refuses: "
+                                                 f"{why}") from None
+        return name
+    parse.__name__ = "node name"
+    return parse
 
 
 class NodeLink:

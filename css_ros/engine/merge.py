@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from ..errors import MapError
+from .map_args import MAX_CONCENTRATION
+from .spec import MAX_FRAMES
 
 if TYPE_CHECKING:
     from .semantic_map import SemanticMap
@@ -50,13 +52,27 @@ def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None
     is in both and would count twice.
 
     Raises:
-        MapError: fewer than one map, incompatible maps, or a source listed by two maps.
+        MapError: fewer than one map, something that is not a SemanticMap, not one name per map, incompatible maps,
+            a source listed by two maps, or a sum a map file cannot hold (MAX_CONCENTRATION, MAX_FRAMES).
     """
     from .semantic_map import SemanticMap
 
+    if isinstance(maps, (str, bytes)) or not hasattr(maps, "__iter__"):
+        raise MapError(f"maps must be a sequence of SemanticMap, got {type(maps).__name__}")
+    maps = list(maps)
     if not maps:
         raise MapError("nothing to merge: no maps given")
-    names = list(names) if names is not None else [f"map {i + 1}" for i in range(len(maps))]
+    for i, m in enumerate(maps):
+        if not isinstance(m, SemanticMap):
+            raise MapError(f"maps[{i}] is a {type(m).__name__}, not a SemanticMap")
+    if names is None:
+        names = [f"map {i + 1}" for i in range(len(maps))]
+    elif isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
+        raise MapError(f"names must be a sequence of str (one per map), got {type(names).__name__}")
+    names = [str(n) for n in names]
+    if len(names) != len(maps):
+        # zip() would stop at the shorter one and leave the other maps unchecked
+        raise MapError(f"{len(names)} names for {len(maps)} maps: give one name per map")
     first = maps[0]
     seen: dict[str, str] = {}
     for name, m in zip(names, maps):
@@ -72,6 +88,12 @@ def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None
     out.fused_sensor_model = first.fused_sensor_model
     for m in maps:
         add_evidence(out, m)
-    out.frames_observed = int(sum(m.frames_observed for m in maps))
+    if float(out.concentrations_readonly.max()) > MAX_CONCENTRATION:
+        raise MapError(f"the merged map would hold a concentration above {MAX_CONCENTRATION:g} (MAX_CONCENTRATION), "
+                       "which no map file may hold")
+    frames = int(sum(m.frames_observed for m in maps))
+    if frames > MAX_FRAMES:
+        raise MapError(f"the merged map would count {frames} frames, more than MAX_FRAMES ({MAX_FRAMES})")
+    out.frames_observed = frames
     out.sources = sorted(seen)
     return out

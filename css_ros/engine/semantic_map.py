@@ -20,7 +20,8 @@ from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semanti
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from .spec import MAX_FRAMES
-from . import view_args
+from . import map_args, view_args
+from .map_args import MAX_CLASSES, MAX_CONCENTRATION
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -29,10 +30,6 @@ if TYPE_CHECKING:
     from .sensor_model import SensorModel, SoftLabels
 
 MAP_FORMAT_VERSION = 1
-#: Largest concentration / prior / background accepted from a map file (beyond: a crafted or broken file).
-MAX_CONCENTRATION = 1e15
-#: Largest number of classes accepted from a map file.
-MAX_CLASSES = 65536
 #: npz members of a map file: name -> (dtype kinds accepted, shape; "G"/"C" = Gaussians / classes).
 _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "format_version": ("iu", ()),
@@ -299,6 +296,9 @@ class SemanticMap:
             the paper's update, bit for bit.
         depth_scale: metres per splat unit (the scale of ``splat_to_map``): the sensor model's depth bins
             and ``RenderedView.depth`` are in metres.
+    Raises:
+        MapError: an argument of the wrong type or outside its bounds (:mod:`css_ros.engine.map_args`: C in
+            1..MAX_CLASSES, prior and background in (0, MAX_CONCENTRATION], the bounds a map file is loaded with).
     """
 
     def __init__(self, model: "GaussianModel", num_classes: int, prior: float = DEFAULT_PRIOR,
@@ -307,21 +307,16 @@ class SemanticMap:
                  backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  device: int | None = None, sensor_model: "SensorModel | None" = None,
                  depth_scale: float = 1.0) -> None:
-        if int(num_classes) < 1:
-            raise MapError(f"num_classes must be >= 1, got {num_classes}")
-        if not (np.isfinite(prior) and prior > 0):
-            raise MapError(f"prior must be a positive finite number, got {prior}")
-        if not (np.isfinite(background) and background > 0):
-            raise MapError(f"background must be a positive finite number, got {background}")
-        if not (np.isfinite(depth_scale) and depth_scale > 0):
-            raise MapError(f"depth_scale must be a positive finite number, got {depth_scale}")
-        self.model = model
-        self.num_classes = int(num_classes)
-        self.prior = float(prior)
-        self.background = float(background)
-        self.ignore_label = int(ignore_label)
-        self.unknown_threshold = float(unknown_threshold)
-        self.background_rgb = np.asarray(background_rgb, dtype=np.float64)
+        self.model = map_args.check_model(model)
+        self.num_classes = map_args.check_num_classes(num_classes)
+        self.prior = map_args.check_concentration(prior, "prior")
+        self.background = map_args.check_concentration(background, "background")
+        self.ignore_label = map_args.check_ignore_label(ignore_label)
+        self.unknown_threshold = map_args.check_unknown_threshold(unknown_threshold)
+        self.background_rgb = map_args.check_background_rgb(background_rgb)
+        depth_scale = map_args.check_depth_scale(depth_scale)
+        if not isinstance(backend, str):
+            raise MapError(f"backend must be a name (numba, torch or cuda), got {type(backend).__name__}")
         self.backend_name = backend
         self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
@@ -412,6 +407,8 @@ class SemanticMap:
 
     def _prepare_labels(self, camera: "Camera", labels: np.ndarray,
                         confidence: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, UpdateStats]:
+        if isinstance(labels, np.ma.MaskedArray):
+            raise InputError("labels is a masked array: give a plain array (ignore_label marks pixels without a label)")
         labels = np.asarray(labels)
         if labels.ndim != 2:
             raise InputError(f"labels must be an (H, W) array, got shape {labels.shape}")
@@ -425,10 +422,11 @@ class SemanticMap:
         if confidence is None:
             weights = np.ones(lab.shape, dtype=np.float32)
         else:
-            weights = np.asarray(confidence, dtype=np.float32)
-            if weights.shape != lab.shape:
-                raise InputError(f"confidence shape {weights.shape} differs from labels {lab.shape}")
-            weights = np.clip(np.nan_to_num(weights, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+            conf = map_args.check_real_array(confidence, "confidence")
+            if conf.shape != lab.shape:
+                raise InputError(f"confidence shape {conf.shape} differs from labels {lab.shape}")
+            # clipped in float64 before the float32 cast (1e300 would overflow the cast with a RuntimeWarning)
+            weights = np.clip(np.nan_to_num(conf, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)
         used = int(np.count_nonzero((lab >= 0) & (weights > 0)))
         n_oor = int(np.count_nonzero(out_of_range))
         stats = UpdateStats(used=used, ignored=int(lab.size) - used - n_oor, out_of_range=n_oor)
@@ -475,9 +473,10 @@ class SemanticMap:
             labels: (H, W) integer class ids; ``ignore_label`` and ids >= C (or < 0) add nothing.
             confidence: optional (H, W) float weights in [0, 1] (NaN counts as 0); y_i = conf_i * onehot.
         Raises:
-            InputError: wrong shape or dtype.
+            InputError: wrong shape or dtype (confidence: real numbers; masked arrays refused).
+            CameraError: ``camera`` is not a Camera.
         """
-        frame = self._backend.prepare(camera)
+        frame = self._backend.prepare(map_args.check_camera(camera, "update"))
         return self._update_frame(frame, camera, labels, confidence)
 
     def observe(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None,
@@ -487,7 +486,7 @@ class SemanticMap:
         ``outputs``: the images to deliver (names of :data:`css_ros.engine.final_form.IMAGE_OUTPUTS`; None = all);
         the others are None in the view and cost no copy from the device."""
         settings = self.render_settings(outputs, probabilities)
-        frame = self._backend.prepare(camera)
+        frame = self._backend.prepare(map_args.check_camera(camera, "observe"))
         self._update_frame(frame, camera, labels, confidence)
         return self._render_frame(frame, settings)
 
@@ -496,7 +495,7 @@ class SemanticMap:
         """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view); ``outputs`` as
         in :meth:`observe`."""
         settings = self.render_settings(outputs, probabilities)
-        return self._render_frame(self._backend.prepare(camera), settings)
+        return self._render_frame(self._backend.prepare(map_args.check_camera(camera, "render")), settings)
 
     def score_views(self, cameras: Sequence["Camera"], importance: np.ndarray | None = None,
                     pixel_scale: float = 1.0) -> np.ndarray:
@@ -591,6 +590,7 @@ class SemanticMap:
 
         Unobserved Gaussians (S_n - C α_0 < ``min_evidence``) get ``ignore_label``.
         """
+        min_evidence = map_args.check_real(min_evidence, "min_evidence")
         return gaussian_semantics(self.concentrations_readonly, self.prior, min_evidence, self.ignore_label)
 
     def query_points(self, xyz: np.ndarray,
@@ -604,7 +604,12 @@ class SemanticMap:
             :class:`FieldQuery` (labels (M,) int32 with ``ignore_label`` where κ_b > ``unknown_threshold``,
             expectation and variance (M, C) float32, background κ_b (M,) float32).
             The spatial index of the model is built on the first call (O(N)) and reused.
+        Raises:
+            InputError: points not an (M, 3) array of real numbers, more than ``map_args.MAX_QUERY_VALUES`` / C
+                points, or a background weight that is not a positive finite number.
         """
+        xyz = map_args.check_query_points(xyz, self.num_classes)
+        background_weight = map_args.check_background_weight(background_weight)
         if self._field_index is None:
             self._field_index = FieldIndex.from_model(self.model)
         e_b, v_b, _ = self._background_moments()
@@ -616,9 +621,31 @@ class SemanticMap:
         """Write the map as a versioned ``.npz`` of plain arrays, atomically.
 
         The file is written to a temporary name in the same directory, flushed and fsync'ed, then
-        renamed over ``path``: a crash at any moment leaves either the old or the new file intact.
+        renamed over ``path``: a crash at any moment leaves either the old or the new file intact. The file gets the
+        mode a plain ``open()`` gives (0666 less the umask).
+
+        Raises:
+            MapError (naming ``path``): a path that is no str/PathLike, holds NUL or is a directory; a map that
+                :meth:`load` would refuse (concentrations not finite or outside (0, MAX_CONCENTRATION], frames
+                beyond MAX_FRAMES: nothing is written); the file system's refusal (permission, name too long, disk
+                full: the old file stays).
         """
-        path = Path(path)
+        path = map_args.check_map_path(path, reading=False)
+        conc = self.concentrations_readonly
+        if not (np.all(np.isfinite(conc)) and np.all(conc > 0) and np.all(conc <= MAX_CONCENTRATION)):
+            raise MapError(f"cannot save the map to {path}: its concentrations are not all finite and in (0, "
+                           f"{MAX_CONCENTRATION:g}] (a map file must be loadable)")
+        if not 0 <= self.frames_observed <= MAX_FRAMES:
+            raise MapError(f"cannot save the map to {path}: frames_observed={self.frames_observed} outside "
+                           f"[0, {MAX_FRAMES}]")
+        try:
+            self._write(path)
+        except OSError as exc:
+            raise MapError(f"cannot save the map to {path}: {exc.strerror or exc}") from exc
+        return path
+
+    def _write(self, path: Path) -> None:
+        """The npz members of :meth:`save`, written atomically to ``path``."""
         with atomic_file(path) as fh:
             np.savez(
                 fh,
@@ -636,7 +663,6 @@ class SemanticMap:
                 evidence_epoch=np.uint64(self.evidence_epoch),
                 **self._received_members(),
             )
-        return path
 
     def _received_members(self) -> dict[str, Any]:
         """The ``received_*`` members of a map file: each source's nonzero rows, in sorted source order."""
@@ -663,11 +689,19 @@ class SemanticMap:
         (ignore_label, unknown_threshold, backend, ...) go to the constructor; prior, background and
         num_classes come from the file.
         Raises:
-            MapError (naming ``path``): unreadable/corrupt/crafted file (also a corrupt compressed
+            MapError (naming ``path``): a path that does not exist or is not a regular file, prior /
+                background / num_classes passed as arguments (they come from the file), a bad
+                ``expected_classes``; unreadable/corrupt/crafted file (also a corrupt compressed
                 stream), unknown format version, a map of another model ("this map belongs to model
                 <fingerprint>, not <model file>"), or invalid values.
         """
-        path = Path(path)
+        path = map_args.check_map_path(path, reading=True)
+        map_args.check_model(model)
+        if expected_classes is not None:
+            expected_classes = map_args.check_num_classes(expected_classes, "expected_classes")
+        fixed = sorted({"prior", "background", "num_classes"} & set(kwargs))
+        if fixed:
+            raise MapError(f"load takes {', '.join(fixed)} from the map file, not as an argument")
         _check_map_headers(path, model, expected_classes)
         try:
             with np.load(path, allow_pickle=False) as data:

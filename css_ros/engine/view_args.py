@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import CameraError, MapError
+from .map_args import check_real_array
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -63,16 +64,15 @@ def check_importance(importance: Any, num_gaussians: int) -> np.ndarray | None:
     """(N,) float64 per-Gaussian weights, finite, in [0, MAX_IMPORTANCE] (None: uniform, returned as None)."""
     if importance is None:
         return None
-    try:
-        imp = np.asarray(importance, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise MapError(f"importance must be an array of ({num_gaussians},) numbers, got "
-                       f"{type(importance).__name__}") from None
+    imp = check_real_array(importance, "importance", MapError)
     if imp.shape != (num_gaussians,):
         raise MapError(f"importance must have shape ({num_gaussians},) (one weight per Gaussian), got {imp.shape}")
-    if not np.all(np.isfinite(imp)) or np.any(imp < 0) or np.any(imp > MAX_IMPORTANCE):
-        raise MapError(f"importance must be finite and in [0, {MAX_IMPORTANCE:g}] (relative weights), got values in "
-                       f"[{np.nanmin(imp):g}, {np.nanmax(imp):g}]" if imp.size else "importance is empty")
+    finite = np.isfinite(imp)
+    bad = ~finite | (imp < 0) | (imp > MAX_IMPORTANCE)
+    if np.any(bad):
+        first = int(np.flatnonzero(bad)[0])
+        raise MapError(f"importance must be finite and in [0, {MAX_IMPORTANCE:g}] (relative weights): {int(bad.sum())} "
+                       f"of {imp.size} values are not, the first importance[{first}] = {imp[first]:g}")
     return imp
 
 

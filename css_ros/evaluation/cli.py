@@ -10,6 +10,7 @@ from typing import Sequence
 
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
 from ..engine.backends import BACKENDS
+from ..engine.map_args import MAX_CONCENTRATION
 from ..engine.warmup import warm_up_kernels
 from ..console import run_console
 from ..errors import ConfigError
@@ -188,8 +189,9 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         v = getattr(args, name)
         if v is not None and v < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0")
-    if args.prior <= 0 or args.background <= 0:
-        raise ConfigError("--prior and --background must be > 0")
+    for name in ("prior", "background"):
+        if not (math.isfinite(getattr(args, name)) and 0 < getattr(args, name) <= MAX_CONCENTRATION):
+            raise ConfigError(f"--{name} must be finite, > 0 and <= {MAX_CONCENTRATION:g}")
     given = {kind: getattr(args, f"topic_{kind}") for kind in BAG_TOPICS}
     topics = {kind: BAG_TOPICS[kind] if v is None else v for kind, v in given.items()}
     for kind in REQUIRED_BAG_KINDS:

@@ -14,6 +14,7 @@ from typing import Any
 from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                            DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from ..engine.backends import BACKENDS
+from ..engine.map_args import MAX_CONCENTRATION
 from ..errors import ConfigError
 from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsics
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
@@ -283,6 +284,11 @@ def check_params(p: NodeParams) -> None:
                  "query_background_weight"):
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
             raise bad(name, "must be finite and > 0")
+    for name in ("prior", "background"):
+        if getattr(p, name) > MAX_CONCENTRATION:
+            raise bad(name, f"must be <= {MAX_CONCENTRATION:g} (the largest concentration a map file may hold)")
+    if p.unknown_threshold > 1:
+        raise bad("unknown_threshold", "must be <= 1 (a background weight; 1.0: never unknown)")
     for name in ("output_scale", "candidate_scale"):
         if getattr(p, name) > 1:
             raise bad(name, "must be <= 1 (renders never exceed the camera resolution)")

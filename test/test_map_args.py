@@ -1,0 +1,196 @@
+"""SemanticMap's constructor, frame inputs, point queries, persistence and merge refuse bad arguments with a CssError
+naming the argument (css_ros/engine/map_args.py), and accept exactly what a map file may hold."""
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+from css_ros import SemanticMap
+from css_ros.engine import map_args
+from css_ros.engine.merge import merge_maps
+from css_ros.errors import CameraError, InputError, MapError
+from scenes import camera, random_scene
+
+C = 4
+
+
+@pytest.fixture(scope="module")
+def model():
+    return random_scene(7, n=60)
+
+
+@pytest.fixture(scope="module")
+def smap(model):
+    m = SemanticMap(model, C)
+    m.update(camera(), np.random.default_rng(0).integers(0, C, (48, 64)))
+    return m
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    ({"prior": 1e300}, r"prior must be in \(0, 1e\+15\]"), ({"prior": 1e16}, "prior must be in"),
+    ({"background": 1e300}, "background must be in"), ({"prior": 0.0}, "prior must be in"),
+    ({"prior": "x"}, "prior must be a real number, got str"), ({"prior": float("nan")}, "prior must be finite"),
+    ({"unknown_threshold": float("nan")}, "unknown_threshold must be finite"),
+    ({"unknown_threshold": -1.0}, r"unknown_threshold must be in \[0, 1\]"),
+    ({"unknown_threshold": 1.5}, "unknown_threshold must be in"), ({"unknown_threshold": "a"}, "real number"),
+    ({"num_classes": "abc"}, "num_classes must be an integer, got str"), ({"num_classes": None}, "num_classes must be"),
+    ({"num_classes": 2.7}, "num_classes must be an integer, got 2.7"), ({"num_classes": True}, "got bool"),
+    ({"num_classes": 10**7}, r"num_classes must be in 1\.\.65536"), ({"num_classes": np.int64(2**62)}, "1..65536"),
+    ({"num_classes": 0}, "num_classes must be in"),
+    ({"ignore_label": 1.5}, "ignore_label must be an integer"), ({"ignore_label": "x"}, "ignore_label must be"),
+    ({"ignore_label": 2**40}, "ignore_label must fit int32"),
+    ({"depth_scale": "1"}, "depth_scale must be a real number"), ({"depth_scale": -1.0}, "depth_scale must be a pos"),
+    ({"background_rgb": (1, 2)}, r"background_rgb must be 3 numbers .* got shape \(2,\)"),
+    ({"background_rgb": (float("nan"), 0, 0)}, r"background_rgb must be finite, each channel in \[0, 1\]"),
+    ({"background_rgb": (2.0, 0, 0)}, "each channel in"), ({"background_rgb": ("r", "g", "b")}, "real numbers"),
+    ({"backend": ["numba"]}, "backend must be a name"),
+])
+def test_constructor_refuses_each_bad_argument_by_name(model, kwargs, says):
+    args = {"num_classes": C, **kwargs}
+    with pytest.raises(MapError, match=says):
+        SemanticMap(model, **args)
+
+
+def test_constructor_refuses_what_is_not_a_model():
+    with pytest.raises(MapError, match=r"model must be a GaussianModel \(GaussianModel.from_ply\), got NoneType"):
+        SemanticMap(None, C)
+
+
+def test_the_largest_prior_accepted_saves_loads_and_scores_finitely(model, tmp_path):
+    """The constructor's bounds are the file's: a map built at the bound round-trips, and its gains stay finite."""
+    m = SemanticMap(model, 4.0, prior=map_args.MAX_CONCENTRATION, background=map_args.MAX_CONCENTRATION)
+    assert m.num_classes == 4 and isinstance(m.num_classes, int)
+    back = SemanticMap.load(m.save(tmp_path / "big.npz"), model)
+    assert back.prior == map_args.MAX_CONCENTRATION
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scores = back.score_views([camera()])
+    assert np.all(np.isfinite(scores))
+
+
+def test_unknown_threshold_bounds_keep_their_meaning(model):
+    """0 marks every pixel with any background weight unknown, 1 never marks one."""
+    never = SemanticMap(model, C, unknown_threshold=1.0).render(camera())
+    always = SemanticMap(model, C, unknown_threshold=0.0).render(camera())
+    assert not np.any(never.labels == 255)
+    assert np.all((always.labels == 255) == (always.background > 0.0))
+
+
+@pytest.mark.parametrize("call", ["update", "observe", "render"])
+@pytest.mark.parametrize("cam", [None, "cam"])
+def test_frame_calls_without_a_camera_raise_camera_error(smap, call, cam):
+    labels = np.zeros((48, 64), np.int64)
+    args = (cam,) if call == "render" else (cam, labels)
+    with pytest.raises(CameraError, match=f"{call}: camera must be a Camera"):
+        getattr(smap, call)(*args)
+
+
+@pytest.mark.parametrize("confidence, says", [
+    (np.full((48, 64), 0.5 + 2j), "confidence must hold real numbers.*complex"),
+    (np.full((48, 64), "a"), "confidence must hold real numbers"),
+    (np.ma.masked_array(np.ones((48, 64)), mask=True), "confidence is a masked array"),
+])
+def test_confidence_of_other_kinds_is_refused(model, confidence, says):
+    m = SemanticMap(model, C)
+    with pytest.raises(InputError, match=says):
+        m.update(camera(), np.zeros((48, 64), np.int64), confidence)
+    assert m.frames_observed == 0 and np.all(m.concentrations_readonly == m.prior)
+
+
+def test_masked_labels_are_refused(model):
+    labels = np.ma.masked_array(np.zeros((48, 64), np.int64), mask=True)
+    with pytest.raises(InputError, match="labels is a masked array"):
+        SemanticMap(model, C).update(camera(), labels)
+
+
+def test_huge_confidence_counts_as_one_without_a_warning(model):
+    labels = np.random.default_rng(1).integers(0, C, (48, 64))
+    a, b = SemanticMap(model, C), SemanticMap(model, C)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a.update(camera(), labels, np.full((48, 64), 1e300))
+    b.update(camera(), labels, np.ones((48, 64)))
+    np.testing.assert_array_equal(a.concentrations_readonly, b.concentrations_readonly)
+
+
+@pytest.mark.parametrize("outputs, says", [(5, "outputs must be a collection of names, got int"),
+                                           ([["labels"]], "outputs must be names \\(str\\), got a list")])
+def test_outputs_of_another_type_are_refused(smap, outputs, says):
+    with pytest.raises(InputError, match=says):
+        smap.render(camera(), outputs=outputs)
+
+
+def test_query_points_refuses_complex_huge_and_odd_weights_before_allocating(smap):
+    with pytest.raises(InputError, match="real numbers, got dtype complex128"):
+        smap.query_points(np.zeros((2, 3), complex))
+    huge = np.broadcast_to(np.float64(0.0), (10**9, 3))  # 24 GB if it were materialised
+    with pytest.raises(InputError, match="MAX_QUERY_VALUES"):
+        smap.query_points(huge)
+    with pytest.raises(InputError, match="background_weight must be a real number, got str"):
+        smap.query_points(np.zeros((2, 3)), background_weight="a")
+    with pytest.raises(MapError, match="min_evidence must be a real number"):
+        smap.gaussian_semantics("a")
+
+
+def test_importance_that_is_complex_or_all_nan_is_refused_without_warnings(smap):
+    n = smap.model.num_gaussians
+    with pytest.raises(MapError, match="importance must hold real numbers.*complex"):
+        smap.score_views([camera()], importance=(1 + 5j) * np.ones(n))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(MapError, match=rf"{n} of {n} values are not, the first importance\[0\] = nan"):
+            smap.score_views([camera()], importance=np.full(n, np.nan))
+
+
+def test_merge_checks_every_map_and_wants_one_name_each(model):
+    a = SemanticMap(model, C)
+    other_prior = SemanticMap(model, C, prior=0.5)
+    with pytest.raises(MapError, match="1 names for 2 maps"):
+        merge_maps([a, other_prior], names=["a"])  # zip() once left the second map unchecked
+    with pytest.raises(MapError, match="map a has prior"):
+        merge_maps([a, other_prior], names=["map a", "map b"])
+    with pytest.raises(MapError, match="names must be a sequence of str"):
+        merge_maps([a, a], names=5)
+    with pytest.raises(MapError, match=r"maps\[1\] is a str, not a SemanticMap"):
+        merge_maps([a, "b"])
+
+
+def test_merge_refuses_a_sum_no_map_file_may_hold(model):
+    a, b = SemanticMap(model, C), SemanticMap(model, C)
+    a.concentrations[0, 0] = b.concentrations[0, 0] = 0.75 * map_args.MAX_CONCENTRATION
+    with pytest.raises(MapError, match="above 1e\\+15"):
+        merge_maps([a, b])
+
+
+def test_load_refuses_devices_fifos_folders_and_odd_arguments(model, smap, tmp_path):
+    with pytest.raises(MapError, match="/dev/zero is not a regular file"):
+        SemanticMap.load("/dev/zero", model)  # was read to its end: MemoryError
+    fifo = tmp_path / "map.fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(MapError, match="is not a regular file"):
+        SemanticMap.load(fifo, model)  # opening it would block for ever
+    with pytest.raises(MapError, match="is not a regular file"):
+        SemanticMap.load(tmp_path, model)
+    path = smap.save(tmp_path / "map.npz")
+    with pytest.raises(MapError, match="expected_classes must be an integer, got str"):
+        SemanticMap.load(path, model, expected_classes="4")
+    with pytest.raises(MapError, match="load takes prior from the map file"):
+        SemanticMap.load(path, model, prior=5)
+    with pytest.raises(MapError, match="model must be a GaussianModel"):
+        SemanticMap.load(path, None)
+    assert SemanticMap.load(path, model, expected_classes=4.0).num_classes == C
+
+
+def test_save_refuses_bad_paths_with_map_error_and_writes_nothing(smap, tmp_path):
+    with pytest.raises(MapError, match="it is a directory"):
+        smap.save(tmp_path)
+    with pytest.raises(MapError, match="must be a str or os.PathLike, got NoneType"):
+        smap.save(None)
+    with pytest.raises(MapError, match="NUL"):
+        smap.save(str(tmp_path / "a\0b.npz"))
+    with pytest.raises(MapError, match="File name too long"):
+        smap.save(tmp_path / ("m" * 300 + ".npz"))
+    assert list(tmp_path.iterdir()) == []
