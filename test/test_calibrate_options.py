@@ -24,6 +24,9 @@ from test_replay import H, W, cameras, gt_labels, make_model
     ("--bin-width", "1e-9", f"more than {MAX_DEPTH_BINS}"),
     ("--bin-width", "0.01", f"800 depth bins, more than {MAX_DEPTH_BINS}"),
     ("--bin-width", "9", "must be larger than --bin-width 9"),
+    # 8 / 1e-320 and 1000 / 4e-306 overflow to inf: math.ceil raised OverflowError, a traceback with exit 1
+    ("--bin-width", "1e-320", f"gives far more than {MAX_DEPTH_BINS} depth bins"),
+    ("--bin-width", "4e-306", f"gives far more than {MAX_DEPTH_BINS} depth bins"),
     ("--pseudo-count", "inf", "outside [0, 1e+09]"),
     ("--pseudo-count", "-1", "outside [0, 1e+09]"),
     ("--weight-floor", "nan", "outside [0, 1]"),

@@ -3,6 +3,7 @@ with the same sensor model, ``~/confidence`` carries the calibrated confidence m
 start-up (exit 2, one line), and checkpoints of another update are refused like any other unusable checkpoint."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -172,6 +173,25 @@ def _bad_files(tmp: Path) -> dict[str, tuple[Path, str]]:
     (tmp / "edited.yaml").write_text(yaml.safe_dump(d))
     out["fingerprint mismatch"] = (tmp / "edited.yaml", "do not match its fingerprint")
     out["PLY"] = (rh.write_wall_model(tmp / "as_sensor_model.ply"), "is not a readable YAML file")
+    # the second probe (docs/reliability.md "Sensor-model files"): every reader refusal is the same FATAL line
+    out["A name too long"] = (tmp / ("a" * 300 + ".yaml"), "cannot be read: file name too long")  # was a traceback
+    (tmp / "adir.yaml").mkdir()
+    out["H directory"] = (tmp / "adir.yaml", "is a directory, not a regular file")
+    os.mkfifo(tmp / "fifo.yaml")
+    out["H FIFO"] = (tmp / "fifo.yaml", "is a FIFO (named pipe), not a regular file")
+    d = dict(good, classes=["B" * 100_000] + list(NAMES[1:]))
+    del d["fingerprint"]
+    (tmp / "long_class.yaml").write_text(yaml.safe_dump(d))
+    out["B long class name"] = (tmp / "long_class.yaml", "class 0 is '" + "B" * 60 + "'…")
+    d = dict(good, confidence=dict(good["confidence"], coef=[1e308, -1e308, 0.0]))
+    (tmp / "coef.yaml").write_text(yaml.safe_dump(d))
+    out["D huge coef"] = (tmp / "coef.yaml", "confidence.coef must be within +-1e+06")
+    d = dict(good, weight=[[0.0, 0.0] for _ in NAMES])
+    del d["fingerprint"]
+    (tmp / "zero.yaml").write_text(yaml.safe_dump(d))
+    out["E zero weights"] = (tmp / "zero.yaml", "every weight is below 1e-06")
+    (tmp / "dup.yaml").write_text(yaml.safe_dump(good) + "weight: [[1.0]]\n")
+    out["G duplicate key"] = (tmp / "dup.yaml", "key 'weight' given twice")
     return out
 
 
@@ -197,8 +217,9 @@ def test_bad_sensor_model_files_are_clean_fatal_exits(tmp_path: Path) -> None:
         assert proc.returncode == 2, (case, out)
         fatal = [line for line in out.splitlines() if "cannot start:" in line]
         assert len(fatal) == 1 and "FATAL" in fatal[0] and "Traceback" not in out, (case, out)
-        assert f"sensor model {path}" in fatal[0] and expect in fatal[0], (case, fatal[0])
-        assert f"(parameter sensor_model='{path}')" in fatal[0], (case, fatal[0])
+        assert f"sensor model {path}" in fatal[0] and expect in fatal[0], (case, fatal[0][:2000])
+        assert f"(parameter sensor_model='{path}')" in fatal[0], (case, fatal[0][:2000])
+        assert len(fatal[0]) < 2000, (case, len(fatal[0]))       # B: no value is echoed whole
     assert ckpt.read_bytes() == original and not list(tmp_path.glob("map.npz.rejected-*"))
 
 

@@ -7,8 +7,9 @@ file is written atomically, the YAML last: a failed run leaves no partial file.
 from __future__ import annotations
 
 import argparse
-import math
+import os
 import sys
+import tempfile
 from collections import Counter
 from pathlib import Path
 from typing import Any, Sequence
@@ -20,12 +21,14 @@ from ..console import bounded_number, run_console
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
-from ..engine.sensor_model import MAX_DEPTH_BINS, SensorModel, uniform_edges
+from ..engine.sensor_model import (MAX_DEPTH_BINS, SensorModel, shorten, uniform_bin_count, uniform_edges,
+                                   vote_table_error)
 from ..errors import ConfigError, CssError
 from ..evaluation import cli as replay_cli
 from ..evaluation.calibration_metrics import ReliabilityBins
 from ..evaluation.config import ReplayConfig
 from ..evaluation.source import FrameSource
+from ..io.params_file import PARAMS_FILE_NAME
 from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
                     DEFAULT_WEIGHT_FLOOR, MIN_LABELLED_PIXELS, ConfidenceSamples, LabelDepthCounts, fit_confidence,
                     extrapolated_bins, fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
@@ -49,7 +52,11 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Example: css_calibrate bags/calib_range/bag --out sensor_model.yaml; then css_replay BAG "
                "--sensor-model sensor_model.yaml, or css_node with sensor_model:=sensor_model.yaml")
     p.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="labelled bag directories")
-    p.add_argument("--out", type=Path, required=True, metavar="YAML", help="sensor model file to write")
+    p.add_argument("--out", type=Path, required=True, metavar="YAML",
+                   help="sensor model file to write (.yaml; its figures go beside it). Its folder must exist and be "
+                        "writable: css_calibrate creates no folder (a typo would create directories anywhere). It "
+                        "must not be inside an input bag nor be an input of the run (a bag's model, class or "
+                        "parameter file). Checked before any work (exit 2)")
     p.add_argument("--model", type=Path, default=None, metavar="PLY",
                    help="splat model (only with one bag; default: <bag parent>/model.ply)")
     p.add_argument("--classes", default=None, metavar="YAML",
@@ -106,14 +113,104 @@ def option_error(args: argparse.Namespace) -> str | None:
         return "--model applies to one bag; with several, each bag's parent holds its model.ply"
     if not args.max_depth > args.bin_width:
         return f"--max-depth {args.max_depth:g} must be larger than --bin-width {args.bin_width:g}"
-    bins = math.ceil(args.max_depth / args.bin_width - 1e-9)
-    if bins > MAX_DEPTH_BINS:
-        return (f"--max-depth {args.max_depth:g} / --bin-width {args.bin_width:g} gives {bins} depth bins, more than "
-                f"{MAX_DEPTH_BINS}: widen the bins")
+    bins = uniform_bin_count(args.max_depth, args.bin_width)     # inf when the quotient overflows: never raises
+    if not bins <= MAX_DEPTH_BINS:
+        count = f"{bins:.0f} depth bins, more than {MAX_DEPTH_BINS}" if bins < 1e15 else \
+            f"far more than {MAX_DEPTH_BINS} depth bins (the quotient overflows)"
+        return f"--max-depth {args.max_depth:g} / --bin-width {args.bin_width:g} gives {count}: widen the bins"
     if args.heldout_every == 1:
         return "--heldout-every must be 0 (none) or >= 2 (1 would hold out every frame)"
     if args.out.suffix.lower() not in (".yaml", ".yml"):
-        return f"--out {args.out}: expected a .yaml file"
+        return f"--out {shorten(str(args.out), 200)}: expected a .yaml file"
+    return out_error(args)
+
+
+def _resolved(path: Path) -> Path:
+    """``path`` made absolute with its symlinks resolved as far as they exist (a loop: made absolute only)."""
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path))
+
+
+def run_inputs(args: argparse.Namespace) -> tuple[list[Path], list[tuple[str, Path]]]:
+    """(bag folders, [(what, file)]) this run reads, found as :func:`bag_config` finds them (a bag that cannot be
+    found is refused later, when it is read): --model, --classes, and each bag's default model.ply, classes.yaml and
+    css_node.yaml beside it."""
+    folders: list[Path] = []
+    files: list[tuple[str, Path]] = []
+    if args.model is not None:
+        files.append(("--model", Path(args.model)))
+    if args.classes:
+        files.append(("--classes", Path(args.classes)))
+    for given in args.bags:
+        try:
+            bag = replay_cli.find_bag(Path(given))
+        except (CssError, OSError):
+            bag = Path(given)
+        try:
+            is_dir = bag.is_dir()
+        except OSError:
+            is_dir = False
+        if is_dir:
+            folders.append(bag)
+        else:
+            files.append(("the bag", bag))
+        base = _resolved(bag).parent
+        files += [("the model", base / "model.ply"), ("the class file", base / "classes.yaml"),
+                  ("the parameter file", base / PARAMS_FILE_NAME)]
+    return folders, files
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Both name one file: the same resolved path, or (both existing) the same inode (a hard link)."""
+    if _resolved(a) == _resolved(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def out_error(args: argparse.Namespace) -> str | None:
+    """What is wrong with --out as a destination, or None; checked when parsed, before any work (a usage error).
+
+    Refused: --out (or one of its figures) an existing directory; its folder missing (css_calibrate creates no
+    folder) or not a directory; --out or a figure inside an input bag folder or equal to an input file (it would
+    overwrite the bag's metadata or the class file the run reads); a folder where no file can be created (a
+    temporary file is made and removed there to know)."""
+    out = Path(args.out)
+    name = shorten(str(out), 200)
+    outputs = [out, *figure_paths(out).values()]
+    parent = out.parent
+    try:
+        for path in outputs:
+            if path.is_dir():
+                return (f"--out {name} is a directory: name the .yaml file to write" if path == out else
+                        f"--out {name}: its figure {path} would replace a directory")
+        if not parent.exists():
+            return (f"--out {name}: its folder {shorten(str(parent), 200)} does not exist (css_calibrate creates no "
+                    "folder: make it first)")
+        if not parent.is_dir():
+            return f"--out {name}: {shorten(str(parent), 200)} is not a directory"
+    except OSError as exc:
+        return f"--out {name}: {exc.strerror or exc}"
+    folders, files = run_inputs(args)
+    for path in outputs:
+        target = _resolved(path)
+        what = f"--out {name}" if path == out else f"--out {name}: its figure {path.name}"
+        for folder in folders:
+            if _resolved(folder) in target.parents:
+                return f"{what} would be written inside the input bag {folder}; write it outside the bag"
+        for kind, file in files:
+            if _same_file(path, file):
+                return f"{what} is an input of this run ({kind} {file}): it would be overwritten"
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=f".{out.stem}.", suffix=".probe")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        return f"--out {name}: cannot write in {shorten(str(parent), 200)} ({exc.strerror or exc})"
     return None
 
 
@@ -241,6 +338,9 @@ def calibrate(args: argparse.Namespace) -> int:
         if other.names != classes.names:
             raise ConfigError(f"{cfg.bag} uses the classes of {cfg.classes}, which differ from {configs[0].classes}")
     edges = uniform_edges(args.max_depth, args.bin_width)
+    table_error = vote_table_error(classes.num_classes, edges.size - 1)
+    if table_error is not None:
+        raise ConfigError(f"{configs[0].classes}: {table_error}")
     skipped: Counter[str] = Counter()
     counts = collect(configs, edges, classes.num_classes, args.heldout_every, args.quiet, skipped)
     fit_pixels = int(counts.fit.sum())
@@ -302,20 +402,31 @@ def figure_paths(out: Path) -> dict[str, Path]:
 
 def write_outputs(out: Path, sensor: SensorModel, counts: LabelDepthCounts, classes: ClassSet,
                   panels: list) -> list[Path]:
-    """The figures (each atomic), then the YAML (atomic, last); returns the figures written."""
+    """The figures (each atomic), then the YAML (atomic, last); returns the figures written. The folder of ``out``
+    must exist (no folder is created). A failure (OSError) removes the figures this call wrote and is a CssError
+    naming ``out``: no partial set of files is left."""
     from .plots import (confusion_bands_figure, reliability_by_depth_figure, reliability_panels_figure,
                         save_figure)
 
-    out.parent.mkdir(parents=True, exist_ok=True)
     paths = figure_paths(out)
     total = counts.fit + counts.heldout
-    save_figure(reliability_by_depth_figure(sensor, counts.fit, classes), paths["reliability_by_depth"])
-    save_figure(confusion_bands_figure(total, sensor.depth_edges, classes), paths["confusion"])
-    written = [paths["reliability_by_depth"], paths["confusion"]]
-    if panels:
-        save_figure(reliability_panels_figure(panels), paths["reliability"])
-        written.append(paths["reliability"])
-    sensor.save(out)
+    written: list[Path] = []
+    try:
+        save_figure(reliability_by_depth_figure(sensor, counts.fit, classes), paths["reliability_by_depth"])
+        written.append(paths["reliability_by_depth"])
+        save_figure(confusion_bands_figure(total, sensor.depth_edges, classes), paths["confusion"])
+        written.append(paths["confusion"])
+        if panels:
+            save_figure(reliability_panels_figure(panels), paths["reliability"])
+            written.append(paths["reliability"])
+        sensor.save(out)
+    except OSError as exc:
+        for path in written:
+            try:
+                path.unlink()
+            except OSError:
+                pass
+        raise CssError(f"cannot write --out {out} ({exc.strerror or exc}); nothing was written") from None
     return written
 
 
@@ -324,7 +435,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
-        error = option_error(args)
+        try:
+            error = option_error(args)
+        except (ArithmeticError, ValueError) as exc:    # a combination no check foresaw: still a usage error
+            error = f"bad options: {exc}"
         if error is not None:
             parser.error(error)
     except SystemExit as exc:

@@ -61,8 +61,20 @@ def interp(x, xp, fp):  # type: ignore[no-untyped-def]
 def confidence_score(expectation, evidence, c0, c1, c2):  # type: ignore[no-untyped-def]
     """The logistic score of sensor_model.ConfidenceMap for one pixel, before its isotonic correction
     (:func:`interp` through the knots): sigmoid(c0 logit(E) + c1 log(1 + evidence) + c2), E clipped to
-    [E_CLIP, 1 - E_CLIP], the argument to +-Z_CLIP."""
-    e = min(max(expectation, E_CLIP), 1.0 - E_CLIP)
-    z = c0 * math.log(e / (1.0 - e)) + c1 * math.log1p(max(evidence, 0.0)) + c2
-    z = min(max(z, -Z_CLIP), Z_CLIP)
+    [E_CLIP, 1 - E_CLIP], the argument to +-Z_CLIP. Written with explicit comparisons (not min / max, whose NaN
+    handling differs between Python, numba and CUDA) so that every backend gives numpy's answer: a NaN input or a
+    NaN argument (0 x inf) scores 0.5, +-inf is clipped."""
+    e = expectation
+    if e < E_CLIP:
+        e = E_CLIP
+    elif e > 1.0 - E_CLIP:
+        e = 1.0 - E_CLIP
+    ev = 0.0 if evidence < 0.0 else evidence
+    z = c0 * math.log(e / (1.0 - e)) + c1 * math.log1p(ev) + c2
+    if z != z:
+        z = 0.0
+    elif z > Z_CLIP:
+        z = Z_CLIP
+    elif z < -Z_CLIP:
+        z = -Z_CLIP
     return 0.5 * (1.0 + math.tanh(0.5 * z))

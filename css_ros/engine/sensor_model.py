@@ -18,9 +18,11 @@ docs/spec.md: classes, shapes, finiteness, ranges, normalisation, bin order, fil
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import math
 import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -46,6 +48,25 @@ MAX_YAML_SCALARS = 2**22
 MAX_YAML_DEPTH = 16
 #: Most characters of an integer in a sensor-model file (a version, a pixel count: 2^64 has 20 digits).
 MAX_YAML_INT_CHARS = 32
+#: Most characters of any other non-string scalar (a float: css_calibrate writes at most 24, ``-1.2345678901234567e-308``;
+#: a bool, null, date). Longer ones are refused before they are converted: PyYAML turns a 33 MB YAML 1.1
+#: sexagesimal float (``1:59:59:...``) into 11 M floats (1.4 GB).
+MAX_YAML_NUMBER_CHARS = 64
+#: Largest magnitude of a confidence-map coefficient (css_calibrate's L2-regularised fits are O(1-10)). With the
+#: features bounded (|logit E| <= 13.9, log(1 + evidence) <= 710 for any finite float64), |z| stays below 1e9: the
+#: logistic score never overflows, on any backend.
+MAX_CONFIDENCE_COEF = 1e6
+#: Smallest largest weight of a sensor model: below it every vote is (nearly) worthless and the map would stay at
+#: its prior whatever it sees (css_calibrate writes no weight below its --weight-floor, 0.02 by default).
+MIN_LARGEST_WEIGHT = 1e-6
+#: Most entries of the dense vote table, classes x depth bins x classes (``SoftLabels.table``; the update builds ~4
+#: float64 arrays of this size): 2^24 entries (~0.5 GB in all) hold 256 classes x 256 bins or 512 classes x 64 bins;
+#: 1500 classes x 256 bins would need 4.3 GB per array.
+MAX_VOTE_TABLE_ENTRIES = 2**24
+#: Most characters of a value (a class name, a version, a key) quoted in an error message.
+MAX_SHOWN_CHARS = 60
+#: Most characters of a file name quoted in an error message (longer ones are cut, e.g. a 5000-character path).
+MAX_SHOWN_PATH_CHARS = 1024
 #: Tolerance on the sum of a confusion row.
 ROW_SUM_TOLERANCE = 1e-6
 #: Fingerprint of the paper's update (no sensor model), as stored in map files.
@@ -70,6 +91,31 @@ class ConfidenceMap:
     knots_x: np.ndarray
     knots_y: np.ndarray
 
+    def __post_init__(self) -> None:
+        for name in ("coef", "knots_x", "knots_y"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        self.check("confidence map")
+
+    def check(self, where: str) -> None:
+        """Raise SensorModelError (naming ``where``) unless the coefficients and knots are usable: 3 finite
+        coefficients within +-MAX_CONFIDENCE_COEF, knots finite, x strictly increasing and y non-decreasing in
+        [0, 1]."""
+        coef, kx, ky = self.coef, self.knots_x, self.knots_y
+        if coef.shape != (3,):
+            raise SensorModelError(f"{where}.coef: expected 3 numbers, got {coef.size}")
+        if kx.ndim != 1 or kx.shape != ky.shape or kx.size < 1:
+            raise SensorModelError(f"{where}: knots_x and knots_y must be non-empty and of one length")
+        for name, a in (("coef", coef), ("knots_x", kx), ("knots_y", ky)):
+            if not np.all(np.isfinite(a)):
+                raise SensorModelError(f"{where}.{name} must be finite numbers, got {_short(a)}")
+        if np.any(np.abs(coef) > MAX_CONFIDENCE_COEF):
+            raise SensorModelError(f"{where}.coef must be within +-{MAX_CONFIDENCE_COEF:g} (css_calibrate fits "
+                                   f"values of order 1; larger ones overflow the logistic score), got {_short(coef)}")
+        if np.any(np.diff(kx) <= 0) or kx[0] < 0 or kx[-1] > 1:
+            raise SensorModelError(f"{where}.knots_x must be strictly increasing within [0, 1]")
+        if np.any(np.diff(ky) < 0) or ky[0] < 0 or ky[-1] > 1:
+            raise SensorModelError(f"{where}.knots_y must be non-decreasing within [0, 1]")
+
     @staticmethod
     def features(expectation: np.ndarray, evidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(logit E with E clipped to [1e-6, 1 - 1e-6], log(1 + evidence)), float64, the inputs' shape: the two
@@ -78,10 +124,14 @@ class ConfidenceMap:
         return np.log(e / (1.0 - e)), np.log1p(np.maximum(np.asarray(evidence, dtype=np.float64), 0.0))
 
     def score(self, expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
-        """The logistic score before the isotonic correction (same shape as the inputs, float64)."""
+        """The logistic score before the isotonic correction (same shape as the inputs, float64): a NaN argument
+        (a NaN input, 0 x inf evidence) scores 0.5 and +-inf is clipped to +-Z_CLIP, as in
+        :func:`.pixel_math.confidence_score` (the compiled backends), without a RuntimeWarning."""
         logit_e, log_ev = self.features(expectation, evidence)
-        z = self.coef[0] * logit_e + self.coef[1] * log_ev + self.coef[2]
-        return 0.5 * (1.0 + np.tanh(0.5 * np.clip(z, -Z_CLIP, Z_CLIP)))
+        with np.errstate(over="ignore", invalid="ignore"):
+            z = self.coef[0] * logit_e + self.coef[1] * log_ev + self.coef[2]
+        z = np.clip(np.nan_to_num(z, nan=0.0, posinf=Z_CLIP, neginf=-Z_CLIP), -Z_CLIP, Z_CLIP)
+        return 0.5 * (1.0 + np.tanh(0.5 * z))
 
     def __call__(self, expectation: np.ndarray, evidence: np.ndarray) -> np.ndarray:
         """Probability that the label is right (float32, same shape as ``expectation``)."""
@@ -100,18 +150,11 @@ class ConfidenceMap:
         coef = _array(d.get("coef"), where + ".coef", 1)
         kx = _array(d.get("knots_x"), where + ".knots_x", 1)
         ky = _array(d.get("knots_y"), where + ".knots_y", 1)
-        if coef.shape != (3,):
-            raise SensorModelError(f"{where}.coef: expected 3 numbers, got {coef.size}")
-        if kx.shape != ky.shape or kx.size < 1:
-            raise SensorModelError(f"{where}: knots_x and knots_y must be non-empty and of one length")
+        cmap = cls.__new__(cls)
         for name, a in (("coef", coef), ("knots_x", kx), ("knots_y", ky)):
-            if not np.all(np.isfinite(a)):
-                raise SensorModelError(f"{where}.{name} must be finite numbers, got {_short(a)}")
-        if np.any(np.diff(kx) <= 0) or kx[0] < 0 or kx[-1] > 1:
-            raise SensorModelError(f"{where}.knots_x must be strictly increasing within [0, 1]")
-        if np.any(np.diff(ky) < 0) or ky[0] < 0 or ky[-1] > 1:
-            raise SensorModelError(f"{where}.knots_y must be non-decreasing within [0, 1]")
-        return cls(coef, kx, ky)
+            object.__setattr__(cmap, name, a)
+        cmap.check(where)            # naming the file (the constructor's own check would say "confidence map")
+        return cmap
 
 
 @dataclass(frozen=True)
@@ -241,10 +284,17 @@ class SensorModel:
             raise SensorModelError(f"{where}: depth_edges must be finite, >= 0 and strictly increasing, got "
                                    f"{_short(e)}")
         b = e.size - 1
+        table_error = vote_table_error(c, b)
+        if table_error is not None:
+            raise SensorModelError(f"{where}: {table_error}")
         if self.weight.shape != (c, b):
             raise SensorModelError(f"{where}: weight has shape {self.weight.shape}, expected ({c} classes, {b} bins)")
         if not np.all(np.isfinite(self.weight)) or np.any(self.weight < 0) or np.any(self.weight > 1):
             raise SensorModelError(f"{where}: weight entries must be finite and in [0, 1]")
+        if not self.weight.max() >= MIN_LARGEST_WEIGHT:
+            raise SensorModelError(f"{where}: every weight is below {MIN_LARGEST_WEIGHT:g} (largest "
+                                   f"{self.weight.max():g}): no label would add evidence and the map would stay at its "
+                                   "prior")
         if self.confusion is not None:
             p = self.confusion
             if p.shape != (c, b, c):
@@ -254,7 +304,7 @@ class SensorModel:
             bad = np.abs(p.sum(axis=2) - 1.0) > ROW_SUM_TOLERANCE
             if np.any(bad):
                 y, bb = np.argwhere(bad)[0]
-                raise SensorModelError(f"{where}: confusion row of label {self.class_names[y]!r}, depth bin {bb} "
+                raise SensorModelError(f"{where}: confusion row of label {_quote(self.class_names[y])}, depth bin {bb} "
                                        f"sums to {p[y, bb].sum():.6g}, not 1")
 
     def check_classes(self, class_names: Sequence[str], where: str | None = None) -> None:
@@ -265,8 +315,8 @@ class SensorModel:
             if len(names) != len(self.class_names):
                 raise SensorModelError(f"{where} is for {len(self.class_names)} classes, the map has {len(names)}")
             diff = next(i for i, (a, b) in enumerate(zip(names, self.class_names)) if a != b)
-            raise SensorModelError(f"{where}: class {diff} is {self.class_names[diff]!r}, the map's class file says "
-                                   f"{names[diff]!r}")
+            raise SensorModelError(f"{where}: class {diff} is {_quote(self.class_names[diff])}, the map's class file "
+                                   f"says {_quote(names[diff])}")
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:
@@ -298,8 +348,12 @@ class SensorModel:
         if not isinstance(d, dict) or d.get("format") != SENSOR_MODEL_FORMAT:
             raise SensorModelError(f"{where} is not a css_ros sensor model (no 'format: {SENSOR_MODEL_FORMAT}'; "
                                    "css_calibrate writes these files)")
-        if d.get("version") != SENSOR_MODEL_VERSION:
-            raise SensorModelError(f"{where} has version {d.get('version')!r}, this css_ros reads "
+        version = d.get("version")
+        if type(version) is not int:             # not True (== 1), 1.0 or "1"
+            raise SensorModelError(f"{where}: version must be an integer, got {_quote(version)} "
+                                   f"({_kind(version)})")
+        if version != SENSOR_MODEL_VERSION:
+            raise SensorModelError(f"{where} has version {_quote(version)}, this css_ros reads "
                                    f"{SENSOR_MODEL_VERSION}")
         names = d.get("classes")
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
@@ -323,24 +377,23 @@ class SensorModel:
         """Read and check a sensor-model YAML file (and, given ``class_names``, that it fits the map's classes).
 
         Raises:
-            SensorModelError: one line naming the file: missing, too large, not YAML, YAML beyond what
+            SensorModelError: one line naming the file: missing, unreadable (any OSError: permission, name too
+                long, ...), not a regular file (a directory, a FIFO or a device: never opened), too large, not YAML,
+                YAML beyond what
                 :func:`read_plain_yaml` reads (aliases, deep nesting, huge integers, too many values), not a sensor
                 model, or any failed check of :meth:`validate` / :meth:`check_classes` / the confidence map.
         """
+        if isinstance(path, str) and not path:
+            raise SensorModelError("sensor model path is empty")
         path = Path(path)
-        if not path.is_file():
-            raise SensorModelError(f"sensor model {path} does not exist")
-        size = path.stat().st_size
-        if size > MAX_SENSOR_MODEL_BYTES:
-            raise SensorModelError(f"sensor model {path} is {size} bytes, larger than {MAX_SENSOR_MODEL_BYTES}")
+        where = f"sensor model {shorten(str(path), MAX_SHOWN_PATH_CHARS)}"
+        raw = read_regular_file(path, where, MAX_SENSOR_MODEL_BYTES)
         try:
-            with open(path, "rb") as fh:
-                raw = fh.read(MAX_SENSOR_MODEL_BYTES + 1)
-            d = read_plain_yaml(raw.decode("utf-8"), f"sensor model {path}")
-        except (OSError, UnicodeDecodeError, YAMLError, ValueError, OverflowError) as exc:
+            d = read_plain_yaml(raw.decode("utf-8"), where)
+        except (UnicodeDecodeError, YAMLError, ValueError, OverflowError) as exc:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise SensorModelError(f"sensor model {path} is not a readable YAML file ({first})") from None
-        model = cls.from_dict(d, f"sensor model {path}")
+            raise SensorModelError(f"{where} is not a readable YAML file ({shorten(first, 200)})") from None
+        model = cls.from_dict(d, where)
         if class_names is not None:
             model.check_classes(class_names)
         return model
@@ -350,8 +403,10 @@ def read_plain_yaml(text: str, where: str) -> Any:
     """The one document of ``text`` as plain Python values (dict, list, str, int, float, bool, None), read event by
     event (no node graph is built; libyaml's parser when installed). Refused with SensorModelError naming ``where``:
     aliases (``*name``: a few kB of them expand to GBs), nesting deeper than MAX_YAML_DEPTH, more than
-    MAX_YAML_SCALARS scalars, integers of more than MAX_YAML_INT_CHARS characters, other than the standard tags,
-    mappings as keys, several documents. Memory: the text plus ~32 bytes per scalar. yaml.YAMLError: bad syntax."""
+    MAX_YAML_SCALARS scalars, integers of more than MAX_YAML_INT_CHARS characters, other non-string scalars of more
+    than MAX_YAML_NUMBER_CHARS, sexagesimal numbers (``1:30``), binary data, other than the standard tags, mappings as
+    keys, a key given twice in one mapping, several documents.
+    Memory: the text plus ~32 bytes per scalar. yaml.YAMLError: bad syntax."""
     import yaml
     from yaml.constructor import SafeConstructor
     from yaml.resolver import Resolver
@@ -370,6 +425,8 @@ def read_plain_yaml(text: str, where: str) -> Any:
         elif stack[-1][1] is _NO_KEY:
             if isinstance(value, (list, dict)):
                 raise SensorModelError(f"{where}: a list or mapping as a mapping key is not accepted")
+            if value in stack[-1][0]:
+                raise SensorModelError(f"{where}: key {_quote(value)} given twice")
             stack[-1][1] = value
         else:
             stack[-1][0][stack[-1][1]] = value
@@ -397,13 +454,14 @@ def read_plain_yaml(text: str, where: str) -> Any:
                 scalars += 1
                 if scalars > MAX_YAML_SCALARS:
                     raise SensorModelError(f"{where}: holds more than {MAX_YAML_SCALARS} values")
+                if event.tag in (None, "!"):
+                    _check_plain(event.value, where)
                 tag = event.tag if event.tag not in (None, "!") else \
                     resolver.resolve(yaml.ScalarNode, event.value, event.implicit)
-                if tag == "tag:yaml.org,2002:int" and len(event.value) > MAX_YAML_INT_CHARS:
-                    raise SensorModelError(f"{where}: an integer of {len(event.value)} characters (at most "
-                                           f"{MAX_YAML_INT_CHARS})")
+                _check_scalar(tag, event.value, where)
                 construct = SafeConstructor.yaml_constructors.get(tag)
-                if tag is None or construct is None or tag.endswith((":set", ":omap", ":pairs", ":seq", ":map")):
+                if tag is None or construct is None or tag.endswith((":set", ":omap", ":pairs", ":seq", ":map",
+                                                                     ":binary")):
                     raise SensorModelError(f"{where}: YAML tag {tag} is not accepted")
                 add(construct(constructor, yaml.ScalarNode(tag, event.value, style=event.style)))
     finally:
@@ -412,6 +470,121 @@ def read_plain_yaml(text: str, where: str) -> Any:
 
 
 _NO_KEY = object()
+#: First characters of a plain scalar that PyYAML may resolve to an int, float or timestamp.
+_NUMBER_STARTS = frozenset("0123456789+-.")
+_INT_TAG, _FLOAT_TAG, _STR_TAG = ("tag:yaml.org,2002:" + t for t in ("int", "float", "str"))
+
+
+def _check_scalar(tag: str | None, text: str, where: str) -> None:
+    """Refuse, before it is converted, a scalar whose conversion would be costly or surprising: an integer of more
+    than MAX_YAML_INT_CHARS characters, any other non-string scalar of more than MAX_YAML_NUMBER_CHARS, a YAML 1.1
+    sexagesimal number (``1:30``: base 60)."""
+    if tag == _STR_TAG:
+        return
+    if tag == _INT_TAG and len(text) > MAX_YAML_INT_CHARS:
+        raise SensorModelError(f"{where}: an integer of {len(text)} characters (at most {MAX_YAML_INT_CHARS})")
+    if len(text) > MAX_YAML_NUMBER_CHARS:
+        raise SensorModelError(f"{where}: a number of {len(text)} characters (at most {MAX_YAML_NUMBER_CHARS})")
+    if tag in (_INT_TAG, _FLOAT_TAG) and ":" in text:
+        raise SensorModelError(f"{where}: the sexagesimal number {_quote(text)} (YAML 1.1 base 60) is not accepted; "
+                               "write plain decimal numbers")
+
+
+def _check_plain(text: str, where: str) -> None:
+    """Refuse, before the resolver sees it, a long untagged scalar that starts like a number and holds ':': PyYAML's
+    YAML 1.1 rules try it as a sexagesimal number (``1:59:59...``), whose regular expression takes ~60 bytes per
+    character (1.2 GB for 20 MB) even to fail. Any other long scalar is resolved in linear time and memory."""
+    if len(text) > MAX_YAML_NUMBER_CHARS and text[:1] in _NUMBER_STARTS and ":" in text:
+        raise SensorModelError(f"{where}: a number of {len(text)} characters (at most {MAX_YAML_NUMBER_CHARS}; a "
+                               "value that starts with a digit and holds ':' reads as a YAML 1.1 sexagesimal number: "
+                               "quote it if it is text)")
+
+
+def shorten(text: str, limit: int = MAX_SHOWN_CHARS) -> str:
+    """``text`` itself when at most ``limit`` characters, else its first ``limit`` and '…' (for messages)."""
+    return text if len(text) <= limit else text[:limit] + "…"
+
+
+def _quote(value: Any) -> str:
+    """``repr(value)`` for a message, at most about MAX_SHOWN_CHARS characters (a 30 MB class name is not echoed)."""
+    if isinstance(value, str):
+        return repr(value) if len(value) <= MAX_SHOWN_CHARS else repr(value[:MAX_SHOWN_CHARS]) + "…"
+    if isinstance(value, (list, dict)):
+        return f"a {'list' if isinstance(value, list) else 'mapping'} of {len(value)}"
+    return shorten(repr(value))
+
+
+def _kind(value: Any) -> str:
+    """The YAML kind of a plain value, for messages."""
+    kinds = {bool: "a boolean", str: "a string", float: "a float", int: "an integer", bytes: "binary data",
+             list: "a list", dict: "a mapping", type(None): "null"}
+    return kinds.get(type(value), type(value).__name__)
+
+
+def vote_table_error(num_classes: int, num_bins: int) -> str | None:
+    """Why a model of ``num_classes`` x ``num_bins`` is refused (its dense vote table, classes x bins x classes,
+    beyond MAX_VOTE_TABLE_ENTRIES), or None."""
+    entries = num_classes * num_bins * num_classes
+    if entries <= MAX_VOTE_TABLE_ENTRIES:
+        return None
+    return (f"{num_classes} classes x {num_bins} depth bins need a vote table of {entries} entries ("
+            f"{entries * 8 / 1e9:.1f} GB per copy), more than {MAX_VOTE_TABLE_ENTRIES} (2^24): use fewer depth bins "
+            "or classes")
+
+
+#: What a file that is not a regular file is, by its st_mode type test.
+_FILE_KINDS = ((stat.S_ISDIR, "is a directory"), (stat.S_ISFIFO, "is a FIFO (named pipe)"),
+               (stat.S_ISCHR, "is a character device"), (stat.S_ISBLK, "is a block device"),
+               (stat.S_ISSOCK, "is a socket"))
+
+
+def _not_regular(mode: int) -> str | None:
+    """'is a directory' / 'is a FIFO (named pipe)' / ... for a file mode that is not a regular file, else None."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((what for test, what in _FILE_KINDS if test(mode)), "is not a regular file")
+
+
+def _os_reason(exc: OSError) -> str:
+    """How an OSError on a file reads after its name: 'does not exist' (ENOENT only), 'cannot be read: ...'."""
+    if exc.errno == errno.ENOENT:
+        return "does not exist"
+    if exc.errno == errno.ENOTDIR:
+        return "does not exist (a part of its path is not a directory)"
+    if exc.errno == errno.ELOOP:
+        return "cannot be read: symlink loop (too many levels of symbolic links)"
+    reason = exc.strerror or type(exc).__name__
+    return f"cannot be read: {reason[:1].lower()}{reason[1:]}"
+
+
+def read_regular_file(path: Path, where: str, max_bytes: int) -> bytes:
+    """The bytes of the regular file ``path``, at most ``max_bytes``. SensorModelError naming ``where`` otherwise:
+    any OSError (missing, permission denied, name too long, symlink loop, I/O error), a directory, FIFO, device or
+    socket (checked with ``os.stat`` before opening and again with ``fstat`` after a non-blocking open, so a FIFO
+    is never waited on nor a device read), a file larger than ``max_bytes``."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise SensorModelError(f"{where} {_os_reason(exc)}") from None
+    except ValueError as exc:                 # a NUL byte in the name
+        raise SensorModelError(f"{where} cannot be read: {exc}") from None
+    what = _not_regular(st.st_mode)
+    if what is not None:
+        raise SensorModelError(f"{where} {what}, not a regular file")
+    if st.st_size > max_bytes:
+        raise SensorModelError(f"{where} is {st.st_size} bytes, larger than {max_bytes}")
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+        with os.fdopen(fd, "rb") as fh:
+            what = _not_regular(os.fstat(fh.fileno()).st_mode)   # replaced between the stat and the open
+            if what is not None:
+                raise SensorModelError(f"{where} {what}, not a regular file")
+            raw = fh.read(max_bytes + 1)
+    except OSError as exc:
+        raise SensorModelError(f"{where} {_os_reason(exc)}") from None
+    if len(raw) > max_bytes:
+        raise SensorModelError(f"{where} is larger than {max_bytes} bytes")
+    return raw
 
 
 def _row_mode(row: np.ndarray) -> float:
@@ -425,6 +598,7 @@ def _array(value: Any, where: str, ndim: int) -> np.ndarray:
     """A float64 array of ``ndim`` dimensions from nested YAML lists (SensorModelError otherwise)."""
     if value is None:
         raise SensorModelError(f"{where} is missing")
+    _check_numbers(value, where)
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
@@ -432,6 +606,24 @@ def _array(value: Any, where: str, ndim: int) -> np.ndarray:
     if a.ndim != ndim:
         raise SensorModelError(f"{where} must have {ndim} dimension(s), got shape {a.shape}")
     return a
+
+
+def _check_numbers(value: Any, where: str) -> None:
+    """Refuse nested lists whose leaves are not YAML integers or floats: a string ("0.5"), a boolean (true is 1),
+    binary data, a date or null would otherwise be converted by numpy without a word."""
+    todo = [value]
+    while todo:
+        v = todo.pop()
+        if type(v) is list:
+            if all(type(x) is float or type(x) is int for x in v):
+                continue
+            for x in v:
+                if type(x) is list:
+                    todo.append(x)
+                elif type(x) is not float and type(x) is not int:
+                    raise SensorModelError(f"{where} must hold numbers, found {_quote(x)} ({_kind(x)})")
+        elif type(v) is not float and type(v) is not int:
+            raise SensorModelError(f"{where} must hold numbers, found {_quote(v)} ({_kind(v)})")
 
 
 def _short(a: np.ndarray) -> str:
@@ -445,7 +637,16 @@ def depth_bins(edges: np.ndarray, depth: np.ndarray) -> np.ndarray:
     return np.clip(np.searchsorted(edges, depth, side="right") - 1, 0, edges.size - 2)
 
 
+def uniform_bin_count(max_depth: float, bin_width: float) -> float:
+    """How many bins of ``bin_width`` reach ``max_depth`` (ceil, 1e-9 of slack), at least 1, as a float: inf when the
+    quotient overflows (``8 / 1e-320``), so that callers compare it with MAX_DEPTH_BINS and never raise."""
+    ratio = max_depth / bin_width - 1e-9
+    return float(max(1, math.ceil(ratio))) if math.isfinite(ratio) else math.inf
+
+
 def uniform_edges(max_depth: float, bin_width: float) -> np.ndarray:
-    """Depth-bin edges 0, w, 2w, ..., >= max_depth [m]."""
-    n = max(1, int(math.ceil(max_depth / bin_width - 1e-9)))
-    return np.arange(n + 1, dtype=np.float64) * bin_width
+    """Depth-bin edges 0, w, 2w, ..., >= max_depth [m] (SensorModelError beyond MAX_DEPTH_BINS bins)."""
+    n = uniform_bin_count(max_depth, bin_width)
+    if not n <= MAX_DEPTH_BINS:
+        raise SensorModelError(f"depth {max_depth:g} m in bins of {bin_width:g} m needs more than {MAX_DEPTH_BINS} bins")
+    return np.arange(int(n) + 1, dtype=np.float64) * bin_width

@@ -240,7 +240,11 @@ def resolve_frame_options(args: argparse.Namespace, base: Path) -> dict:
         sensor = given.get("sensor_model")
         if isinstance(sensor, str) and sensor:  # the node's sensor model, unless --sensor-model names another
             path = Path(sensor)
-            values["sensor_model"] = path if path.is_absolute() or path.exists() else Path(params_path).parent / path
+            try:
+                here = path.is_absolute() or path.exists()
+            except OSError:  # a name too long, a folder it cannot search: SensorModel.load names the fault
+                here = True
+            values["sensor_model"] = path if here else Path(params_path).parent / path
     for name in FRAME_PARAMS:
         v = getattr(args, name, None)
         if v is not None:

@@ -366,6 +366,14 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def _ece_text(summary: dict[str, Any]) -> str:
+    """An ECE for the summary, saying how many pixels were left out for a NaN / inf value (never silently)."""
+    ece = summary.get("ece")
+    text = "n/a" if ece is None else f"{ece:.3f}"
+    dropped = int(summary.get("dropped") or 0)
+    return text + (f" ({dropped} pixels with a NaN / inf value left out)" if dropped else "")
+
+
 def headline(metrics: dict[str, Any]) -> str:
     """One-paragraph summary printed at the end of a run."""
     lines = []
@@ -389,8 +397,8 @@ def headline(metrics: dict[str, Any]) -> str:
             if a.get(k) is not None))
     cal = (metrics.get("calibration") or {}).get("online")
     if cal:
-        lines.append("ECE of the online renders: E " + f"{cal['expectation']['ece']:.3f}"
-                     + (f", calibrated confidence {cal['confidence']['ece']:.3f}" if cal.get("confidence") else ""))
+        lines.append("ECE of the online renders: E " + _ece_text(cal["expectation"])
+                     + (f", calibrated confidence {_ece_text(cal['confidence'])}" if cal.get("confidence") else ""))
     im = metrics["image_level"].get("spearman")
     if im:
         lines.append("image-level Spearman rho vs error: " + "  ".join(

@@ -514,6 +514,12 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
                     unc.append(f"| {key} | {'E' if sig == 'expectation' else 'calibrated confidence'} | "
                                f"{_f(r['ece'])} | {_f(r['brier'])} | {_f(r['mean_confidence'], '.3f')} | "
                                f"{_f(r['accuracy'], '.3f')} |")
+        dropped = {f"{key} {sig}": int((cal.get(key) or {}).get(sig, {}).get("dropped") or 0)
+                   for key in ("online", "fused") for sig in ("expectation", "confidence")
+                   if (cal.get(key) or {}).get(sig)}
+        if any(dropped.values()):
+            unc += ["", "Pixels left out of these rows for a NaN / inf value: " + ", ".join(
+                f"{k} {n}" for k, n in dropped.items() if n) + "."]
     if unc:
         lines += ["", "## Uncertainty", "", *unc, "", *TERMS]
     for title, fname in plots:

@@ -32,8 +32,11 @@ def resolve_data_path(path: str) -> Path:
     if p.is_absolute():
         return p
     for base in [Path.cwd(), *share_directories(), SOURCE_ROOT]:
-        if (base / p).exists():
-            return base / p
+        try:
+            if (base / p).exists():
+                return base / p
+        except OSError:  # name too long, permission denied: the caller's reader names the fault
+            continue
     return Path.cwd() / p
 
 
