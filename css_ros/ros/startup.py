@@ -22,7 +22,7 @@ from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
 from ..engine.map_file import read_map_info
-from ..engine.sensor_model import NO_SENSOR_MODEL, SensorModel
+from ..engine.sensor_model import NO_SENSOR_MODEL, SensorModel, shorten
 from ..engine.similarity import Similarity
 from ..engine.warmup import warm_up_kernels
 from ..errors import ConfigError, CssError, MapError, ModelError, SensorModelError
@@ -130,7 +130,7 @@ def load_sensor_model(params: NodeParams, classes: ClassSet) -> SensorModel | No
     try:
         return SensorModel.load(resolve_data_path(params.sensor_model), classes.names)
     except SensorModelError as exc:
-        raise SensorModelError(f"{exc} (parameter sensor_model={params.sensor_model!r})") from None
+        raise SensorModelError(f"{exc} (parameter sensor_model={shorten(repr(params.sensor_model), 1024)})") from None
 
 
 def describe_sensor_model(model: SensorModel | None) -> str:
@@ -196,8 +196,14 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
     ``model_watch_dir``, the model may be a newer splat of that folder (:func:`newest_watched_model`)."""
     p = params
     model_path = resolve_data_path(p.model_path)
-    if not model_path.is_file():
-        raise ModelError(f"model file not found: {model_path} (parameter model_path={p.model_path!r})")
+    try:
+        found = model_path.is_file()
+    except OSError as exc:  # e.g. a file name too long
+        raise ModelError(f"model file {shorten(str(model_path), 1024)} cannot be read: {exc.strerror or exc} "
+                         f"(parameter model_path={shorten(repr(p.model_path), 1024)})") from None
+    if not found:
+        raise ModelError(f"model file not found: {shorten(str(model_path), 1024)} (parameter model_path="
+                         f"{shorten(repr(p.model_path), 1024)})")
     model = GaussianModel.from_ply(model_path)
     watched = newest_watched_model(p, model_path, log_info, log_warning)
     if watched is not None:
