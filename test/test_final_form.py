@@ -2,6 +2,8 @@
 a view delivers against independent numpy forms, the ``outputs`` argument, and views that stay valid."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -140,3 +142,35 @@ def test_node_image_messages_only_for_the_wanted_topics():
     np.testing.assert_array_equal(some["semantic_color"][0], allowed["semantic_color"][0])
     part = smap.render(cam, outputs=("labels",))
     assert list(frame_output_images(part, classes, 255)) == ["semantic", "semantic_color"]
+
+
+@pytest.mark.parametrize("e,var,match", [
+    (np.full((4, 4), 0.5), np.full((2, 2), 0.01), r"expectation \(4, 4\) and variance \(2, 2\) differ in shape"),
+    (None, None, "expectation must be a real numeric array, got dtype object"),
+    (np.full((2, 2), 0.5), None, "variance must be a real numeric array"),
+    (np.zeros((0, 0)), np.zeros((0, 0)), "empty images"),
+    (np.full((2, 2), 5.0), np.ones((2, 2)), r"expectation must be in \[0, 1\], got values in \[5, 5\]"),
+    (np.full((2, 2), -1e-3), np.ones((2, 2)), r"expectation must be in \[0, 1\]"),
+    (np.full((2, 2), 0.5), np.full((2, 2), -0.01), "variance must be >= 0, got a minimum of -0.01"),
+    (np.full((2, 2), 0.5 + 2j), np.ones((2, 2)), "expectation must be a real numeric array, got complex values"),
+    (np.full((2, 2), 0.5), np.full((2, 2), 0.1 + 1j), "variance must be a real numeric array, got complex"),
+    (np.full((2, 2), np.nan), np.ones((2, 2)), "expectation holds non-finite values"),
+    (np.full((2, 2), 0.5), np.full((2, 2), np.inf), "variance holds non-finite values"),
+    (np.full((2, 2), "a"), np.ones((2, 2)), "expectation must be a real numeric array"),
+    ([[0.5, 0.5], [0.5]], np.ones((2, 2)), "expectation is not an array"),
+])
+def test_image_uncertainty_refuses_bad_images(e, var, match):
+    with pytest.raises(InputError, match=match):
+        image_uncertainty(e, var)
+
+
+def test_image_uncertainty_values_and_rounding_tolerance():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # closed form: U_var = geometric mean of max(Var, 1e-30), U_exp = 1 - mean(E)
+        u_var, u_exp = image_uncertainty(np.array([[0.25, 0.75]]), np.array([[0.01, 0.04]]))
+        assert u_var == pytest.approx(0.02, rel=1e-12) and u_exp == pytest.approx(0.5, rel=1e-12)
+        # within the 1e-6 rounding tolerance: used as given (Var floored at VAR_FLOOR)
+        u_var, u_exp = image_uncertainty(np.full((2, 2), 1.0 + 1e-9), np.full((2, 2), -1e-9))
+        assert u_var == pytest.approx(1e-30) and u_exp == pytest.approx(-1e-9, rel=1e-6)
+        assert image_uncertainty(np.float32([[0.5]]), np.float32([[0.01]])) == pytest.approx((0.01, 0.5), rel=1e-6)

@@ -328,3 +328,30 @@ def test_no_vertex_element_and_garbage(tmp_path):
     bad_header.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty floot x\nend_header\n")
     with pytest.raises(ModelError, match=r"badheader\.ply"):
         GaussianModel.from_ply(bad_header)
+
+
+@pytest.mark.parametrize("index,match", [
+    (np.array([1000]), r"indices must be in \[0, 100\), got values in \[1000, 1000\]"),
+    (np.array([-1]), r"indices must be in \[0, 100\)"),
+    (np.array([np.iinfo(np.uint64).max]), r"indices must be in \[0, 100\)"),
+    (np.array([1.0, 2.0]), "bool mask or integer indices, got ndarray of dtype float64"),
+    (None, "got NoneType"),
+    (["a"], "bool mask or integer indices"),
+    (np.ones(5, dtype=bool), "bool mask has length 5, the model has 100 Gaussians"),
+    (np.zeros((2, 2), dtype=int), "must be 1-D"),
+    (np.zeros(100, dtype=bool), "selects no Gaussian"),
+    ([], "selects no Gaussian"),
+])
+def test_select_refuses_bad_indices(index, match):
+    m = GaussianModel.from_ply(REAL_PLY).select(np.arange(100))
+    with pytest.raises(ModelError, match=match):
+        m.select(index)
+
+
+def test_select_masks_and_indices():
+    m = GaussianModel.from_ply(REAL_PLY).select(np.arange(100))
+    mask = np.zeros(100, dtype=bool)
+    mask[[3, 7]] = True
+    np.testing.assert_array_equal(m.select(mask).means, m.means[[3, 7]])
+    np.testing.assert_array_equal(m.select([7, 7, 0]).means, m.means[[7, 7, 0]])
+    np.testing.assert_array_equal(m.select(np.array([99], dtype=np.uint64)).means, m.means[[99]])

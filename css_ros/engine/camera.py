@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import numbers
+import reprlib
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -11,7 +13,9 @@ from ..errors import CameraError
 
 __all__ = [
     "Camera",
+    "MAX_CAMERA_PIXELS",
     "QUATERNION_NORM_TOLERANCE",
+    "MATRIX_TO_QUATERNION_TOLERANCE",
     "body_to_optical_rotation",
     "intrinsics_from_fov",
     "matrix_to_quaternion_xyzw",
@@ -21,22 +25,66 @@ __all__ = [
 #: Accepted range of the norm of an incoming quaternion before it is normalised.
 QUATERNION_NORM_TOLERANCE = (0.9, 1.1)
 _ORTHO_TOL = 1e-5
+#: Largest |R^T R - I| and |det R - 1| :func:`matrix_to_quaternion_xyzw` accepts. Wider than a Camera's pose check
+#: (1e-5) and the importers' (1e-4, rotations read from text files), so every rotation those accept converts; a
+#: matrix further off (a reflection, a scaled or zero matrix) is not a rotation and is refused.
+MATRIX_TO_QUATERNION_TOLERANCE = 1e-3
+#: Largest image (width x height, pixels) a Camera describes: 8192 x 8192 = 2**26. Every buffer of a render or a
+#: scored view is allocated per pixel (a render takes ~95 bytes per pixel with 4 classes, numba backend; more with
+#: probabilities), so this bounds a call's memory (~6.4 GB at the bound) instead of a MemoryError / OOM. It admits
+#: the node's inputs at its default ``max_image_pixels`` (4096 x 4096, css_ros.io.frames.DEFAULT_MAX_IMAGE_PIXELS,
+#: with 4x to spare for a raised parameter) and offline renders up to 8K (7680 x 4320 and 8192 x 4320, ~35 MP). The
+#: engine keeps its own bound because it never imports ``io``; io's default must stay <= this (test_camera_args
+#: checks it).
+MAX_CAMERA_PIXELS = 8192 * 8192
+#: Quaternions with a norm below this (after scaling by the largest component it cannot underflow) are "zero".
+_ZERO_QUATERNION = 1e-12
+
+
+def _real_array(name: str, value: object) -> np.ndarray:
+    """``value`` as a float64 array; CameraError naming ``name`` for complex, text or non-numeric values."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(f"{name} is not a numeric array ({exc})") from None
+    if a.dtype.kind == "c":
+        raise CameraError(f"{name} holds complex values")
+    if a.dtype.kind not in "biufO":
+        raise CameraError(f"{name} must be numeric, got dtype {a.dtype}")
+    try:
+        return np.array(a, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise CameraError(f"{name} cannot be converted to float ({exc})") from None
+
+
+def _unit_rows(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v / |v| along the last axis, |v| (..., 1)) without overflow or underflow: rows whose largest |component|
+    lies outside [1e-100, 1e100] are divided by it before the norm (the others exactly as v / |v|).
+
+    All-zero rows get norm 0 and zeros as direction; the norm of a row near the float maximum may be inf."""
+    m = np.max(np.abs(v), axis=-1, keepdims=True)
+    scale = np.where((m >= 1e-100) & (m <= 1e100), 1.0, np.where(m > 0, m, 1.0))
+    w = v / scale
+    n = np.linalg.norm(w, axis=-1, keepdims=True)
+    with np.errstate(over="ignore"):
+        return w / np.where(n > 0, n, 1.0), n * scale
 
 
 def quaternion_xyzw_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rotation matrix (..., 3, 3) float64 from quaternion(s) (..., 4) in (x, y, z, w) order (normalised here).
+    """Rotation matrix (..., 3, 3) float64 from quaternion(s) (..., 4) in (x, y, z, w) order (normalised here;
+    scaled by the largest component first, so any finite magnitude works).
 
-    Raises CameraError for non-finite or zero quaternions.
+    Raises CameraError for non-numeric, complex, non-finite or zero (norm < 1e-12) quaternions.
     """
-    q = np.asarray(q, dtype=np.float64)
+    q = _real_array("quaternion", q)
     if q.shape[-1:] != (4,):
         raise CameraError(f"quaternion must have 4 components (x, y, z, w), got shape {q.shape}")
     if not np.all(np.isfinite(q)):
         raise CameraError("quaternion holds non-finite values")
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(norm < 1e-12):
+    unit, norm = _unit_rows(q)
+    if np.any(norm < _ZERO_QUATERNION):
         raise CameraError("zero quaternion")
-    x, y, z, w = np.moveaxis(q / norm, -1, 0)
+    x, y, z, w = np.moveaxis(unit, -1, 0)
     R = np.empty(q.shape[:-1] + (3, 3))
     R[..., 0, 0] = 1 - 2 * (y * y + z * z)
     R[..., 0, 1] = 2 * (x * y - w * z)
@@ -55,15 +103,27 @@ def matrix_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
 
     Shepperd's method: the component with the largest magnitude is computed from the diagonal, the others
     from off-diagonal sums, so it is accurate for every rotation (including 180 degrees).
+
+    Raises CameraError unless every matrix is finite and a rotation within :data:`MATRIX_TO_QUATERNION_TOLERANCE`
+    (max |R^T R - I| and |det R - 1|).
     """
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape[-2:] != (3, 3):
+    R = _real_array("rotation matrix", R)
+    if R.ndim < 2 or R.shape[-2:] != (3, 3):
         raise CameraError(f"rotation matrix must be (..., 3, 3), got {R.shape}")
     if not np.all(np.isfinite(R)):
         raise CameraError("rotation matrix holds non-finite values")
     r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
     r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
     r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    if R.size:
+        ortho_err = float(np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3))))
+        if ortho_err > MATRIX_TO_QUATERNION_TOLERANCE:
+            raise CameraError(f"not a rotation matrix: max |R^T R - I| = {ortho_err:.3g} "
+                              f"> {MATRIX_TO_QUATERNION_TOLERANCE:g}")
+        det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20)
+        worst = float(np.ravel(det)[np.argmax(np.abs(det - 1.0))])
+        if abs(worst - 1.0) > MATRIX_TO_QUATERNION_TOLERANCE:
+            raise CameraError(f"not a rotation matrix: determinant {worst:.3g}, expected +1 (a reflection?)")
     t = np.stack([1 + r00 + r11 + r22,   # 4 w^2
                   1 + r00 - r11 - r22,   # 4 x^2
                   1 - r00 + r11 - r22,   # 4 y^2
@@ -95,18 +155,23 @@ def body_to_optical_rotation() -> np.ndarray:
 
 def intrinsics_from_fov(width: int, height: int, fov_x_deg: float) -> np.ndarray:
     """Pinhole K (3, 3) with square pixels, horizontal field of view ``fov_x_deg`` and the principal point at the
-    image centre ((W - 1) / 2, (H - 1) / 2) in the pixel-centres-at-integers convention."""
-    if not (0.0 < fov_x_deg < 180.0):
-        raise CameraError(f"fov_x_deg must be in (0, 180), got {fov_x_deg}")
-    f = width / (2.0 * math.tan(math.radians(fov_x_deg) / 2.0))
+    image centre ((W - 1) / 2, (H - 1) / 2) in the pixel-centres-at-integers convention.
+
+    Raises CameraError for an image size a Camera refuses, or ``fov_x_deg`` not a real number in (0, 180)
+    degrees (exclusive) or so small that the focal length is not finite.
+    """
+    width, height = _image_size(width, height)
+    fov = _real_number("fov_x_deg", fov_x_deg)
+    if not (0.0 < fov < 180.0):
+        raise CameraError(f"fov_x_deg must be in (0, 180) degrees, got {fov_x_deg!r}")
+    f = width / (2.0 * math.tan(math.radians(fov) / 2.0))
+    if not (math.isfinite(f) and f > 0):
+        raise CameraError(f"fov_x_deg {fov_x_deg!r} gives focal length {f!r} px (not finite and > 0)")
     return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def _as_K(K: np.ndarray | Sequence[float]) -> np.ndarray:
-    try:
-        k = np.array(K, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise CameraError(f"intrinsics K cannot be converted to float ({exc})") from None
+    k = _real_array("intrinsics K", K)
     if k.shape == (9,):
         k = k.reshape(3, 3)
     if k.shape != (3, 3):
@@ -121,7 +186,39 @@ def _as_int(name: str, v: object) -> int:
         return int(v)
     if isinstance(v, (float, np.floating)) and math.isfinite(v) and float(v).is_integer():
         return int(v)
-    raise CameraError(f"{name} must be an integer, got {v!r}")
+    raise CameraError(f"{name} must be an integer, got {reprlib.repr(v)}")
+
+
+def _image_size(width: object, height: object) -> tuple[int, int]:
+    """(width, height) as ints >= 1 with width x height <= :data:`MAX_CAMERA_PIXELS`; CameraError naming the size."""
+    w, h = _as_int("width", width), _as_int("height", height)
+    if w <= 0 or h <= 0:
+        raise CameraError(f"image size must be positive, got width={reprlib.repr(w)} height={reprlib.repr(h)}")
+    if w * h > MAX_CAMERA_PIXELS:
+        raise CameraError(f"image size {reprlib.repr(w)}x{reprlib.repr(h)} exceeds MAX_CAMERA_PIXELS = "
+                          f"{MAX_CAMERA_PIXELS} (8192 x 8192) pixels")
+    return w, h
+
+
+def _real_number(name: str, v: object) -> float:
+    """``v`` as a float: a real number (int, float or numpy scalar; not bool, str or complex), else CameraError."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+        raise CameraError(f"{name} must be a real number, got {reprlib.repr(v)}")
+    try:
+        return float(v)
+    except OverflowError:  # an int beyond float range
+        return math.inf if v > 0 else -math.inf
+
+
+def _vector3(name: str, v: object) -> np.ndarray:
+    """``v`` as a finite (3,) float64 vector, else CameraError naming ``name``."""
+    a = _real_array(name, v)
+    if a.size != 3:
+        raise CameraError(f"{name} must have 3 components, got shape {a.shape}")
+    a = a.reshape(3)
+    if not np.all(np.isfinite(a)):
+        raise CameraError(f"{name} holds non-finite values: {a.tolist()}")
+    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,10 +241,7 @@ class Camera:
 
     def __post_init__(self) -> None:
         K = _as_K(self.K)
-        width = _as_int("width", self.width)
-        height = _as_int("height", self.height)
-        if width <= 0 or height <= 0:
-            raise CameraError(f"image size must be positive, got width={width} height={height}")
+        width, height = _image_size(self.width, self.height)
         if not np.all(np.isfinite(K)):
             raise CameraError(f"intrinsics K hold non-finite values: {K.tolist()}")
         if not (K[0, 0] > 0 and K[1, 1] > 0):
@@ -155,10 +249,7 @@ class Camera:
         if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
             raise CameraError(f"intrinsics K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), "
                               f"got {K.tolist()}")
-        try:
-            T = np.array(self.T_map_cam, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise CameraError(f"T_map_cam cannot be converted to float ({exc})") from None
+        T = _real_array("T_map_cam", self.T_map_cam)
         if T.shape != (4, 4):
             raise CameraError(f"T_map_cam must be (4, 4), got {T.shape}")
         if not np.all(np.isfinite(T)):
@@ -198,11 +289,8 @@ class Camera:
         while a larger deviation (e.g. a zero quaternion from an uninitialised message, or xyzw/wxyz mix-ups
         with scaled values) means a bug upstream and is rejected with CameraError.
         """
-        try:
-            pos = np.array(position_xyz, dtype=np.float64).reshape(-1)
-            q = np.array(quaternion_xyzw, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError) as exc:
-            raise CameraError(f"pose cannot be converted to float ({exc})") from None
+        pos = _real_array("position", position_xyz).reshape(-1)
+        q = _real_array("quaternion", quaternion_xyzw).reshape(-1)
         if pos.shape != (3,):
             raise CameraError(f"position must have 3 components, got {pos.shape}")
         if q.shape != (4,):
@@ -234,22 +322,27 @@ class Camera:
                 up: Sequence[float] | np.ndarray = (0.0, 0.0, 1.0)) -> "Camera":
         """Optical-frame camera at ``position`` (map, metres) whose optical axis (+z) points at ``target``.
 
-        Image "up" (-y optical) is aligned as closely as possible with the map direction ``up``; CameraError if
-        position == target or the viewing direction is parallel to ``up`` (pass another ``up`` then).
+        Image "up" (-y optical) is aligned as closely as possible with the map direction ``up``. CameraError if an
+        argument is not a finite 3-vector, ``up`` is zero, position == target, or the viewing direction is parallel
+        to ``up`` (pass another ``up`` then). Directions are scaled by their largest component before any norm, so
+        coordinates up to the float range work.
         """
-        pos = np.asarray(position, dtype=np.float64).reshape(3)
-        tgt = np.asarray(target, dtype=np.float64).reshape(3)
-        upv = np.asarray(up, dtype=np.float64).reshape(3)
-        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(tgt)) and np.all(np.isfinite(upv))):
-            raise CameraError("look_at: position, target and up must be finite")
-        z = tgt - pos
-        nz = np.linalg.norm(z)
-        if nz < 1e-12:
+        pos = _vector3("look_at: position", position)
+        tgt = _vector3("look_at: target", target)
+        upv = _vector3("look_at: up", up)
+        with np.errstate(over="ignore"):
+            d = tgt - pos
+        if not np.all(np.isfinite(d)):  # beyond the float range: the halves cannot overflow
+            d = tgt * 0.5 - pos * 0.5
+        z, dist = _unit_rows(d)
+        if float(dist[0]) < 1e-12:
             raise CameraError("look_at: position and target coincide")
-        z /= nz
-        x = np.cross(z, upv)
+        u, up_norm = _unit_rows(upv)
+        if float(up_norm[0]) == 0.0:
+            raise CameraError("look_at: up must be a non-zero vector")
+        x = np.cross(z, u)
         nx = np.linalg.norm(x)
-        if nx < 1e-9 * max(1.0, np.linalg.norm(upv)):
+        if nx < 1e-9:
             raise CameraError("look_at: viewing direction is parallel to 'up'; pass a different up vector")
         x /= nx
         y = np.cross(z, x)
@@ -328,20 +421,24 @@ class Camera:
     def scaled(self, factor: float) -> "Camera":
         """Camera for the image resized by ``factor`` (same pose): :meth:`resized` to
         (max(1, round(width * factor)), max(1, round(height * factor)))."""
-        f = float(factor)
+        f = _real_number("scale factor", factor)
         if not (math.isfinite(f) and f > 0):
-            raise CameraError(f"scale factor must be finite and > 0, got {factor!r}")
-        return self.resized(max(1, int(round(self.width * f))), max(1, int(round(self.height * f))))
+            raise CameraError(f"scale factor must be finite and > 0, got {reprlib.repr(factor)}")
+        wf, hf = max(1.0, self.width * f), max(1.0, self.height * f)  # Python floats: inf at worst, no warning
+        # the first test keeps round() away from inf
+        if wf * hf > 2 * MAX_CAMERA_PIXELS or max(1, round(wf)) * max(1, round(hf)) > MAX_CAMERA_PIXELS:
+            raise CameraError(f"scale factor {reprlib.repr(factor)} gives a {wf:.6g}x{hf:.6g} image, above "
+                              f"MAX_CAMERA_PIXELS = {MAX_CAMERA_PIXELS} (8192 x 8192) pixels")
+        return self.resized(max(1, round(wf)), max(1, round(hf)))
 
     def resized(self, width: int, height: int) -> "Camera":
         """Camera for the image resampled to ``width`` x ``height`` pixels (same pose, same field of view).
 
         With s_x = width' / width and s_y = height' / height: fx' = fx s_x, cx' = (cx + 0.5) s_x - 0.5 (likewise
-        y), which keeps the pixel-centres-at-integers convention (the image edge -0.5 maps to -0.5).
+        y), which keeps the pixel-centres-at-integers convention (the image edge -0.5 maps to -0.5). CameraError for
+        a size a Camera refuses (not integers >= 1, or above :data:`MAX_CAMERA_PIXELS`).
         """
-        w2, h2 = _as_int("width", width), _as_int("height", height)
-        if w2 <= 0 or h2 <= 0:
-            raise CameraError(f"image size must be positive, got width={w2} height={h2}")
+        w2, h2 = _image_size(width, height)
         sx, sy = w2 / self.width, h2 / self.height
         K = np.array(self.K)
         K[0, 0] *= sx

@@ -29,14 +29,21 @@ def check_outputs(outputs: Iterable[str] | None) -> frozenset[str]:
     """The set of requested image names (None: all of :data:`IMAGE_OUTPUTS`).
 
     Raises:
-        InputError: an unknown name, or a plain string (a common slip for a one-element list).
+        InputError: an unknown name, a name that is no str, not a collection, or a plain string (a common slip for
+            a one-element list).
     """
     if outputs is None:
         return frozenset(IMAGE_OUTPUTS)
     if isinstance(outputs, str):
         raise InputError(f"outputs must be a collection of names, not the string {outputs!r} "
                          f"(e.g. outputs=({outputs!r},))")
-    names = frozenset(outputs)
+    if not hasattr(outputs, "__iter__"):
+        raise InputError(f"outputs must be a collection of names, got {type(outputs).__name__}")
+    items = list(outputs)
+    odd = [type(n).__name__ for n in items if not isinstance(n, str)]
+    if odd:
+        raise InputError(f"outputs must be names (str), got a {odd[0]} (choose from {', '.join(IMAGE_OUTPUTS)})")
+    names = frozenset(items)
     unknown = sorted(str(n) for n in names - set(IMAGE_OUTPUTS))
     if unknown:
         raise InputError(f"unknown output(s) {', '.join(unknown)} (choose from {', '.join(IMAGE_OUTPUTS)})")
@@ -102,11 +109,48 @@ def uncertainty_from_sums(sum_log_var: float, sum_e: float, num_pixels: int) -> 
     return float(np.exp(sum_log_var / num_pixels)), float(1.0 - sum_e / num_pixels)
 
 
+#: Rounding tolerance of :func:`image_uncertainty`'s range checks (E in [0, 1], Var >= 0).
+_UNCERTAINTY_TOL = 1e-6
+
+
+def _uncertainty_input(name: str, a: object) -> np.ndarray:
+    """``a`` as a finite real float64 array, else InputError naming ``name``."""
+    try:
+        arr = np.asarray(a)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"image_uncertainty: {name} is not an array ({exc})") from None
+    if arr.dtype.kind not in "biuf":
+        what = "complex values" if arr.dtype.kind == "c" else f"dtype {arr.dtype} ({type(a).__name__})"
+        raise InputError(f"image_uncertainty: {name} must be a real numeric array, got {what}")
+    arr = arr.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"image_uncertainty: {name} holds non-finite values")
+    return arr
+
+
 def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
-    """(U_var, U_exp) of SPEC §6 over all pixels of a view (float64 accumulation)."""
-    var = np.maximum(np.asarray(variance, dtype=np.float64), VAR_FLOOR)
-    u_var = float(np.exp(np.mean(np.log(var))))
-    u_exp = float(1.0 - np.mean(np.asarray(expectation, dtype=np.float64)))
+    """(U_var, U_exp) of SPEC §6 over all pixels of a view (float64 accumulation).
+
+    Both arrays must be real (bool, integer or float; not complex), of the same non-empty shape and finite, with
+    E in [0, 1] and Var >= 0 up to a rounding tolerance of 1e-6 (float32 images of values computed in float64 are
+    off by < 1e-7); values within it are used as given (Var floored at VAR_FLOOR before the log).
+
+    Raises:
+        InputError: naming the array and the problem.
+    """
+    e = _uncertainty_input("expectation", expectation)
+    var = _uncertainty_input("variance", variance)
+    if e.shape != var.shape:
+        raise InputError(f"image_uncertainty: expectation {e.shape} and variance {var.shape} differ in shape")
+    if e.size == 0:
+        raise InputError(f"image_uncertainty: empty images (shape {e.shape})")
+    if float(e.min()) < -_UNCERTAINTY_TOL or float(e.max()) > 1.0 + _UNCERTAINTY_TOL:
+        raise InputError(f"image_uncertainty: expectation must be in [0, 1], got values in "
+                         f"[{float(e.min()):.6g}, {float(e.max()):.6g}]")
+    if float(var.min()) < -_UNCERTAINTY_TOL:
+        raise InputError(f"image_uncertainty: variance must be >= 0, got a minimum of {float(var.min()):.6g}")
+    u_var = float(np.exp(np.mean(np.log(np.maximum(var, VAR_FLOOR)))))
+    u_exp = float(1.0 - np.mean(e))
     return u_var, u_exp
 
 

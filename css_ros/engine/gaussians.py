@@ -189,8 +189,32 @@ class GaussianModel:
         return M @ np.swapaxes(M, 1, 2)
 
     def select(self, index: np.ndarray) -> "GaussianModel":
-        """New model holding the Gaussians picked by ``index`` (bool mask (N,) or integer indices)."""
-        idx = np.asarray(index)
+        """New model holding the Gaussians picked by ``index``: a bool mask (N,) or 1-D integer indices in [0, N)
+        (repeats allowed).
+
+        Raises:
+            ModelError: ``index`` is None, not bool/integer (floats included), not 1-D, a mask of another length,
+                holds indices outside [0, N), or selects no Gaussian.
+        """
+        n = self.num_gaussians
+        try:
+            idx = np.asarray(index)
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"select: index is not an array ({exc})") from None
+        if idx.dtype.kind not in "biu" and idx.size > 0:
+            raise ModelError(f"select: index must be a bool mask or integer indices, got "
+                             f"{type(index).__name__} of dtype {idx.dtype}")
+        if idx.ndim != 1:
+            raise ModelError(f"select: index must be 1-D (a bool mask ({n},) or integer indices), got shape {idx.shape}")
+        if idx.size == 0:
+            raise ModelError("select: the index selects no Gaussian")
+        if idx.dtype.kind == "b":
+            if idx.shape != (n,):
+                raise ModelError(f"select: bool mask has length {idx.size}, the model has {n} Gaussians")
+            if not idx.any():
+                raise ModelError("select: the index selects no Gaussian")
+        elif int(idx.min()) < 0 or int(idx.max()) >= n:
+            raise ModelError(f"select: indices must be in [0, {n}), got values in [{int(idx.min())}, {int(idx.max())}]")
         return GaussianModel(self.means[idx], self.sh[idx], self.opacity_logits[idx],
                              self.log_scales[idx], self.rotations[idx], self.normals[idx])
 

@@ -31,8 +31,8 @@ import numpy as np
 from ..engine.camera import Camera
 from ..engine.similarity import Similarity
 from ..errors import CameraError
-from .frames import (FrameRejected, Intrinsics, decode_camera_info, decode_confidence, decode_image, decode_labels,
-                     decode_pose)
+from .frames import (DEFAULT_MAX_IMAGE_PIXELS, FrameRejected, Intrinsics, decode_camera_info, decode_confidence,
+                     decode_image, decode_labels, decode_pose)
 from .messages import stamp_to_ns
 from .pose_history import LookupStatus, PoseHistory, PoseLookup, PosePolicy
 from .tf_buffer import DEFAULT_TF_BUFFER_S, TfBuffer
@@ -103,7 +103,7 @@ class GateConfig:
     sync_slop: float = 0.05
     queue_size: int = 30
     map_frame: str = "map"
-    max_image_pixels: int = 4096 * 4096
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
     max_stamp_future: float = 0.0
     #: extra image kinds matched to frames and decoded as labels (css_replay: "gt")
     extra_label_kinds: tuple[str, ...] = ()
