@@ -55,3 +55,14 @@ def camera(width: int = 64, height: int = 48, f: float = 50.0, position=(0, 0, 0
     K = np.array([[f, 0, (width - 1) / 2 if cx is None else cx], [0, f * 1.05, (height - 1) / 2 if cy is None else cy],
                   [0, 0, 1.0]])
     return Camera.from_pose(K, width, height, np.asarray(position, float), np.asarray(quat, float))
+
+
+def small_wall(tmp_path, n: int) -> GaussianModel:
+    """A flat wall of ``n`` Gaussians at z = 3 m (map frame), written to and read back from ``tmp_path``/wall.ply (the
+    model a node would load: same fingerprint)."""
+    side = int(np.ceil(np.sqrt(n)))
+    xs, ys = np.meshgrid(np.linspace(-2, 2, side), np.linspace(-1.5, 1.5, side))
+    pos = np.c_[xs.ravel(), ys.ravel(), np.full(side * side, 3.0)][:n]
+    GaussianModel.from_activated(pos, np.full((n, 3), 0.05), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9),
+                                 np.random.default_rng(0).uniform(0.1, 0.9, (n, 3))).to_ply(tmp_path / "wall.ply")
+    return GaussianModel.from_ply(tmp_path / "wall.ply")

@@ -306,7 +306,9 @@ class _Node:
                 if got is not None:                   # EvidenceLink._adopt_return_locked
                     _, frames, evidence = got
                     conc = self.smap.concentrations
-                    conc[...] = np.maximum(conc - self.own_base + evidence, PRIOR)
+                    received = self.ledger.received_total()
+                    own = np.maximum(ev.own_evidence(conc, PRIOR, received) - self.own_base, 0.0) + evidence
+                    conc[...] = PRIOR + own + received
                     self.smap.frames_observed += frames - self.frames_base
                     self.own_base, self.frames_base = evidence, frames
                     self.snapshot_due = self.adopted = True

@@ -71,6 +71,7 @@ def test_coerce_refuses_with_config_error_naming_the_parameter(name, value, defa
                                           ("candidate_slice", 0), ("candidate_time_budget", float("inf")),
                                           ("checkpoint_retry_max", -1.0), ("num_classes", -1),
                                           ("ignore_label", 70000), ("prior", 1e300), ("background", 1e16),
+                                          ("max_image_pixels", 8192 * 8192 + 1),
                                           ("unknown_threshold", 1.5),
                                           ("camera_extrinsics", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
                                           ("splat_to_map", [-1.0, 0, 0, 0, 0, 0, 0, 1]),

@@ -162,7 +162,10 @@ def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarr
                       prior: float) -> dict[str, SourceEvidence]:
     """The received sources of a map file (``received_*`` members, shapes checked by :func:`_check_map_headers`):
     ids of 1..32 ASCII characters, each once; rows strictly increasing per source; evidence finite, >= 0, and in
-    total at most what the concentrations hold above the prior. An old file without them: none."""
+    total at most what the concentrations hold above the prior, up to the rounding of float64 sums: 1e-9 of α per
+    Gaussian and class. css_node keeps that by construction (css_ros/io/evidence.py: α is recomputed as
+    α_0 + own + Σ sources on every row a snapshot changes; deltas and frames only add, each rounding by at most
+    half an ulp of α). An old file without them: none."""
     if not members:
         return {}
     names, state, counts = members["received_sources"], members["received_state"], members["received_counts"]
@@ -190,7 +193,7 @@ def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarr
             raise MapError(f"map file {path}: received source {name!r} claims {frames} frames (> {MAX_FRAMES})")
         out[name] = SourceEvidence(ev, epoch, seq, frames, bool(in_step))
         start += r.size
-    if np.any(total > (conc - prior) + 1e-9 * conc):
+    if np.any(total > (conc - prior) + 1e-9 * conc):   # 1e-9 α: rounding only (see the docstring)
         raise MapError(f"map file {path}: the received evidence exceeds what the concentrations hold")
     return out
 

@@ -55,12 +55,12 @@ import math
 import struct
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Mapping
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import numpy as np
 from numba import njit
 
-from ..engine.semantic_map import SourceEvidence
+from ..engine.semantic_map import MAX_RECEIVED_SOURCES, SourceEvidence
 from ..engine.spec import MAX_FRAMES
 from ..errors import InputError
 
@@ -70,7 +70,7 @@ if TYPE_CHECKING:
 __all__ = ["EvidencePacket", "encode_packet", "decode_packet", "EvidenceLedger", "DELTA", "SNAPSHOT",
            "MAX_INCREMENT", "HEADER_SIZE", "ORIGIN_BYTES", "own_evidence", "new_epoch", "received_sources",
            "RETURN", "FLAG_RESUMED", "encode_return", "EvidenceRecovery", "RETURN_WINDOW_S",
-           "NOT_NEEDED_REASON"]
+           "NOT_NEEDED_REASON", "OriginBuckets", "FLOOD_REASON"]
 
 MAGIC = b"CSSE"
 VERSION = 2
@@ -78,8 +78,9 @@ DELTA = 0
 SNAPSHOT = 1
 RETURN = 2
 FLAG_RESUMED = 1
-#: Seconds a resumed node flags its snapshots "resumed" and accepts returns, counted from the first packet it hears
-#: from a peer (the start of the exchange: a peer discovered late, on a loaded host, still gets the whole window).
+#: Seconds a resumed node flags its snapshots "resumed" and accepts returns, counted from the first packet of a peer
+#: that it applies (the start of the exchange: a peer discovered late, on a loaded host, still gets the whole window;
+#: a refused packet, e.g. of another splat or a junk origin, does not start it).
 RETURN_WINDOW_S = 60.0
 ORIGIN_BYTES = 32
 _HEADER = struct.Struct("<4sHBB32s32sQQIIIIIIdQQ")
@@ -104,6 +105,7 @@ RETURN_FRAMES_REASON = "return claims more frames than this node could have fuse
 #: every snapshot "resumed" for a minute; a forged stream of such snapshots is answered at this pace, not per packet).
 RETURN_INTERVAL_S = 5.0
 RETURN_BURST = 3
+FLOOD_REASON = "flood: more than evidence_max_rate packets/s from one source"
 
 
 def new_epoch(previous: int = 0) -> int:
@@ -249,6 +251,30 @@ class SourceState(SourceEvidence):
     #: returns the source may still be sent now, as of time.monotonic() ``returned_at`` (a token bucket)
     return_tokens: float = float(RETURN_BURST)
     returned_at: float = -math.inf
+    #: (N,) bool: the rows where ``evidence`` is nonzero, kept in step (a snapshot part finds the rows the source
+    #: held in its range without a pass over (N, C) arrays); None: taken from ``evidence`` once
+    held: np.ndarray | None = None
+    held_rows: int = 0
+
+    def __post_init__(self) -> None:
+        if self.held is None:
+            self.held = np.any(self.evidence != 0.0, axis=1)
+        self.held_rows = int(np.count_nonzero(self.held))
+
+    def rows_in(self, lo: int, hi: int) -> np.ndarray:
+        """(k,) int64 the rows in [lo, hi) where this source holds evidence (none: no pass at all)."""
+        if not self.held_rows:
+            return np.zeros(0, np.int64)
+        assert self.held is not None
+        return np.flatnonzero(self.held[lo:hi]) + lo
+
+    def mark(self, rows: np.ndarray, values: np.ndarray) -> None:
+        """``evidence[rows] = values`` was set for ``rows`` (sorted, distinct): keep ``held`` in step."""
+        assert self.held is not None
+        now = np.any(values != 0.0, axis=1)
+        before = self.held[rows]
+        self.held[rows] = now
+        self.held_rows += int(np.count_nonzero(now)) - int(np.count_nonzero(before))
 
 
 class EvidenceLedger:
@@ -256,8 +282,15 @@ class EvidenceLedger:
 
     ``apply`` changes the map's concentrations and returns None, or returns the reason a packet was refused
     (the map and the ledger are then unchanged: a refused packet takes no source slot and moves no sequence
-    number). Memory: 8·N·C bytes per source, at most ``max_sources`` sources (those of ``received``, the sources
-    a loaded map holds, are kept even beyond). A source holding no evidence gives its slot to a new one.
+    number). Memory: 8·N·C + N bytes per source, at most ``max_sources`` sources (at most MAX_RECEIVED_SOURCES,
+    what a map file keeps; those of ``received``, the sources a loaded map holds, are kept even beyond
+    ``max_sources``). A source holding no evidence gives its slot to a new one.
+    Consistency: on every row a snapshot part changes, α is recomputed as α_0 + own + Σ sources (own = what α held
+    above α_0 and the sources before, rounding-level values set to 0, as :func:`own_evidence`), never as α − old +
+    new, which loses the small evidence of one source to the rounding of another's large one; deltas only add. So
+    Σ received ≤ α − α_0 up to float64 rounding of α (a few ulp: the loader allows 1e-9 α), and the map file the
+    node writes loads. A snapshot part costs O((rows sent + rows the source held in its range) · C · sources
+    holding evidence there), plus a scan of N/8 bytes of a bool mask when the source holds any row.
     ``max_frame_evidence``: the most evidence one frame adds (pixels of the largest image);
     ``max_frame_rate``: the most frames per second a source may claim within one epoch.
     Returns (``returns_due``) go only to a source that held evidence here from unflagged packets, per source at
@@ -273,7 +306,7 @@ class EvidenceLedger:
         self.return_interval = float(return_interval)
         self.digest = bytes.fromhex(fingerprint)
         self.n, self.c, self.prior = num_gaussians, num_classes, prior
-        self.max_sources = max_sources
+        self.max_sources = min(int(max_sources), MAX_RECEIVED_SOURCES)
         self.max_concentration = max_concentration
         self.max_frame_evidence, self.max_frame_rate = float(max_frame_evidence), float(max_frame_rate)
         self.sources: dict[str, SourceState] = {}
@@ -296,7 +329,14 @@ class EvidenceLedger:
         for s in self.sources.values():
             s.evidence[...] = 0.0
             s.in_step, s.pending, s.total = False, None, 0.0
+            assert s.held is not None
+            s.held[...] = False
+            s.held_rows = 0
         self._total[...] = 0.0
+
+    def holders(self) -> list[str]:
+        """The sources whose evidence the map holds now (a source whose evidence went to 0 is not one)."""
+        return [name for name, s in self.sources.items() if s.held_rows]
 
     def apply(self, pkt: EvidencePacket, concentrations: np.ndarray, now: float | None = None) -> str | None:
         """Apply one decoded packet to ``concentrations`` (N, C) in place, or return why it was refused.
@@ -350,6 +390,7 @@ class EvidenceLedger:
             return "evidence would exceed the concentration bound"
         conc[rows] = new_alpha
         state.evidence[rows] += values
+        state.mark(rows, state.evidence[rows])
         self._total[rows] += values
         state.total += added
         if pkt.frames > state.frames:
@@ -378,24 +419,36 @@ class EvidenceLedger:
         assert snap is not None
         if pkt.part == pkt.parts - 1 and hi != self.n:
             return "bad sequence / part / range fields"
-        block = np.zeros((hi - lo, self.c))
-        block[pkt.rows - lo] = pkt.values
-        block_total = float(block.sum())
-        if (block.size and float(block.sum(axis=1).max()) > self._bound(pkt.frames)) or \
+        rows, values = pkt.rows, pkt.values
+        block_total = float(values.sum())
+        if (values.size and float(values.sum(axis=1).max()) > self._bound(pkt.frames)) or \
                 snap.total + block_total > self._bound(pkt.frames):
             return BOUND_REASON
-        old = state.evidence[lo:hi] if state is not None else np.zeros_like(block)
-        new_alpha = conc[lo:hi] - old + block
+        # only the rows sent and the rows the source held in the range change (no pass over the range)
+        held = state.rows_in(lo, hi) if state is not None else np.zeros(0, np.int64)
+        touched = np.union1d(held, rows) if held.size else rows
+        new = np.zeros((touched.size, self.c))
+        new[np.searchsorted(touched, rows)] = values
+        old = state.evidence[touched] if state is not None else np.zeros_like(new)
+        alpha = conc[touched]
+        own = own_evidence(alpha, self.prior, self._total[touched])
+        total = new.copy()                                  # Σ over the sources, summed afresh on these rows
+        for name, other in self.sources.items():
+            if name != pkt.origin and other.held_rows:
+                total += other.evidence[touched]
+        new_alpha = self.prior + own + total
         if np.any(new_alpha > self.max_concentration):
             return "evidence would exceed the concentration bound"
         if state is None:
-            state = self.sources[pkt.origin] = SourceState(np.zeros((self.n, self.c)))
+            state = self.sources[pkt.origin] = SourceState(np.zeros((self.n, self.c)),
+                                                           held=np.zeros(self.n, dtype=bool))
         if pkt.part == 0:
             self._note_resumed(state, pkt, now)
-        conc[lo:hi] = np.maximum(new_alpha, self.prior)
-        self._total[lo:hi] += block - old
+        conc[touched] = new_alpha
+        self._total[touched] = total
         state.total += block_total - float(old.sum())
-        state.evidence[lo:hi] = block
+        state.evidence[touched] = new
+        state.mark(touched, new)
         if pkt.part == 0:
             if new_epoch:
                 # a resumed source may claim the frames of its previous epoch at once (it adopts their return)
@@ -426,7 +479,10 @@ class EvidenceLedger:
         # kept while the source stays resumed (killed again before it took the copy back: the same copy)
         if state.returnable is None and pkt.epoch != state.epoch and state.in_step and state.pending is None \
                 and state.total > 0.0 and not was_flagged:
-            state.returnable = (state.epoch, state.frames, state.evidence.copy())
+            rows = state.rows_in(0, self.n)          # a sparse copy: no pass over (N, C) per resumed snapshot
+            kept = np.zeros((self.n, self.c))
+            kept[rows] = state.evidence[rows]
+            state.returnable = (state.epoch, state.frames, kept)
         if state.returnable is not None and state.returnable[0] != pkt.epoch:
             tokens = min(float(RETURN_BURST), state.return_tokens + (now - state.returned_at) / self.return_interval)
             if tokens >= 1.0:
@@ -445,7 +501,7 @@ class EvidenceLedger:
     def _free_slot(self) -> bool:
         """Drop one source that holds no evidence (a new source may take its slot); False when none."""
         for name, s in self.sources.items():
-            if s.total == 0.0 and s.pending is None and not s.evidence.any():
+            if not s.held_rows and s.pending is None:
                 del self.sources[name]
                 return True
         return False
@@ -469,8 +525,8 @@ class EvidenceRecovery:
     """A node restarted with ``resume``: takes back, from a peer's return, its own evidence of the epoch it ran
     before (the frames fused and published after its last checkpoint, which a ``kill -9`` lost).
 
-    Accepted only until ``window`` seconds after the first packet heard from a peer (:meth:`heard`; open until
-    then), for the subject = this node's origin, an epoch at or
+    Accepted only until ``window`` seconds after the first peer packet the node applied (:meth:`heard`; open until
+    then: a refused packet does not start it), for the subject = this node's origin, an epoch at or
     after its checkpoint's (``checkpoint_epoch``; 0: no checkpoint, any earlier epoch) and before its current one,
     and more (epoch, frames) than it holds (the checkpoint's, then the best return adopted); the parts must tile
     [0, N) and keep the ledger's bounds (P per frame and row, P·F in total). The frames claimed are at most what
@@ -494,7 +550,7 @@ class EvidenceRecovery:
         self._pending: dict[str, tuple[int, int, int, int, np.ndarray]] = {}   # sender -> epoch, frames, part, start
 
     def heard(self, now: float) -> None:
-        """A packet from a peer arrived at ``now`` (time.monotonic()): the window runs from the first one."""
+        """A peer packet was applied at ``now`` (time.monotonic()): the window runs from the first one."""
         if self.until == math.inf:
             self.until = now + self.window
 
@@ -565,7 +621,65 @@ def received_sources(smap: "SemanticMap", own_origin: str) -> dict[str, SourceEv
         received[smap.evidence_origin] = SourceEvidence(own_evidence(conc, smap.prior, total),
                                                         frames=smap.frames_observed)
     received.pop(own_origin, None)
+    if len(received) > MAX_RECEIVED_SOURCES:
+        # a file of MAX_RECEIVED_SOURCES sources saved under another origin: that origin makes one more. Sources
+        # holding no evidence are dropped first (they re-sync by their next snapshot), then the smallest ones are
+        # kept as part of the file origin's evidence (never as own: nothing is re-published under own_origin; the
+        # peer's next snapshot re-states it): the map this node saves keeps at most MAX_RECEIVED_SOURCES
+        for name in [k for k, s in received.items() if not s.evidence.any() and k != smap.evidence_origin]:
+            if len(received) <= MAX_RECEIVED_SOURCES:
+                break
+            del received[name]
+        if len(received) > MAX_RECEIVED_SOURCES:
+            keep = received[smap.evidence_origin]
+            by_size = sorted((k for k in received if k != smap.evidence_origin),
+                             key=lambda k: float(received[k].evidence.sum()))
+            folded = keep.evidence.copy()
+            for name in by_size[:len(received) - MAX_RECEIVED_SOURCES]:
+                folded += received.pop(name).evidence
+            received[smap.evidence_origin] = SourceEvidence(folded, keep.epoch, keep.last_seq, keep.frames,
+                                                            keep.in_step)
     return received
+
+
+class OriginBuckets:
+    """Token buckets per origin: ``rate`` packets/s, bursts up to one second's worth (ROS-free; the node keeps one).
+
+    At most ``capacity`` buckets of origins that are not ``protected`` (a callable: the origins holding a source
+    slot in the ledger or named in evidence_allowed_origins) are kept; a new origin beyond that evicts the least
+    recently used unprotected bucket. A protected origin's bucket is never evicted, so a flood under many other
+    origins (also of packets refused later) cannot lock a peer out; their number is bounded by the ledger's slots
+    and the allow-list. Evicting a bucket forgets its debt (an origin cycling through many ids gets each one's
+    burst: the per-origin bound is no bound on the total rate, as with any forged origin)."""
+
+    def __init__(self, rate: float, capacity: int, protected: Callable[[str], bool]) -> None:
+        self.rate, self.capacity, self.protected = float(rate), max(1, int(capacity)), protected
+        self._buckets: dict[str, tuple[float, float]] = {}   # origin -> (tokens, time of last use); LRU first
+        self.evicted = 0
+
+    def __len__(self) -> int:
+        return len(self._buckets)
+
+    def __contains__(self, origin: str) -> bool:
+        return origin in self._buckets
+
+    def allow(self, origin: str, now: float) -> bool:
+        """One packet of ``origin`` at ``now`` (time.monotonic()): True when its bucket holds a token (taken)."""
+        bucket = self._buckets.pop(origin, None)
+        if bucket is None:
+            self._make_room()
+            bucket = (self.rate, now)
+        tokens, last = bucket
+        tokens = min(self.rate, tokens + max(0.0, now - last) * self.rate)
+        ok = tokens >= 1.0
+        self._buckets[origin] = (tokens - 1.0 if ok else tokens, now)   # re-inserted: most recently used
+        return ok
+
+    def _make_room(self) -> None:
+        unprotected = [o for o in self._buckets if not self.protected(o)]   # LRU first
+        for origin in unprotected[:max(0, len(unprotected) - self.capacity + 1)]:
+            del self._buckets[origin]
+            self.evicted += 1
 
 
 class EvidenceOutbox:

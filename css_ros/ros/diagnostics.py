@@ -23,8 +23,12 @@ class Stats:
         self._request_ms: deque[float] = deque(maxlen=200)
 
     def count(self, key: str, n: int = 1) -> None:
+        """Add ``n`` to counter ``key``; a counter taken back to 0 by a negative ``n`` is dropped (the per-source
+        keys of evidence sources that gave up their slot: the key set stays bounded)."""
         with self._lock:
             self.counts[key] += n
+            if n < 0 and self.counts[key] <= 0:
+                del self.counts[key]
 
     def frame_latency(self, ms: float) -> None:
         with self._lock:

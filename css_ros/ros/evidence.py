@@ -12,21 +12,28 @@ import socket
 import time
 from typing import Any, Callable
 
+import numpy as np
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import UInt8MultiArray
 
+from ..engine.semantic_map import MAX_SOURCES
 from ..errors import InputError
-import numpy as np
-
-from ..io.evidence import (FLAG_RESUMED, NOT_NEEDED_REASON, ORIGIN_BYTES, RETURN, RETURN_WINDOW_S, EvidenceLedger,
-                           EvidenceOutbox, EvidenceRecovery, decode_packet, received_sources)
+from ..io.evidence import (FLAG_RESUMED, FLOOD_REASON, HEADER_SIZE, NOT_NEEDED_REASON, ORIGIN_BYTES, RETURN,
+                           RETURN_WINDOW_S, EvidenceLedger, EvidenceOutbox, EvidenceRecovery, OriginBuckets,
+                           decode_packet, own_evidence, received_sources)
 from .params import NodeParams
 from .work import WarnLimiter
 
-#: Depth of the evidence publisher and subscriptions (messages; each at most evidence_max_rows rows).
+#: Depth of the evidence publisher and subscriptions (messages; each at most evidence_max_rows rows when valid:
+#: DDS itself delivers messages of any size, see docs/maps.md "Bad input").
 EVIDENCE_QUEUE_DEPTH = 100
 TOPIC = "evidence_in"
+#: Bytes a serialized UInt8MultiArray adds to its packet (CDR header, layout, lengths), with room for a layout that
+#: names a few dimensions; a larger message is refused before it is deserialized.
+CDR_SLACK = 4096
+OVERSIZE_REASON = "message larger than any valid packet"
 
 
 def default_origin() -> str:
@@ -59,16 +66,20 @@ class EvidenceLink:
         if p.resume and self.outbox is not None:
             self._start_recovery(checkpoint_epoch)
         worker.on_map_replaced = self._map_replaced_locked
-        self._buckets: dict[str, tuple[float, float]] = {}   # origin -> (tokens, time.monotonic())
+        # token buckets per origin; those of origins holding a ledger slot or allowed by name are never evicted
+        self._buckets = OriginBuckets(p.evidence_max_rate, 4 * p.evidence_max_sources,
+                                      lambda o: o in self.ledger.sources or o in self.allowed)
+        self._counted: dict[str, int] = {}   # origin -> evidence_packets_from[origin] as counted in diagnostics
         self.topics = [t.strip() for t in p.evidence_in.split(",") if t.strip()]
         qos = QoSProfile(depth=EVIDENCE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
         self.pub = node.create_publisher(UInt8MultiArray, "~/evidence", qos) if p.publish_evidence else None
-        for topic in self.topics:
-            node.create_subscription(UInt8MultiArray, topic, self._on_packet, qos)
+        for topic in self.topics:   # raw: the size is checked before a message is deserialized
+            node.create_subscription(UInt8MultiArray, topic, self._on_raw, qos, raw=True)
         if self.pub is not None:
             node.create_timer(p.evidence_period, self.publish)
-        self._update_sources()
+        with worker.map_lock:
+            self._update_sources()
 
     def rebind(self) -> None:
         """(Re)start the bookkeeping for the worker's current map (at start)."""
@@ -91,7 +102,7 @@ class EvidenceLink:
             smap.evidence_epoch = self.outbox.epoch
 
     def _start_recovery(self, checkpoint_epoch: int) -> None:
-        """A resumed start: until the return window (from the first peer packet heard) ends, flag the snapshots
+        """A resumed start: until the return window (from the first peer packet applied) ends, flag the snapshots
         "resumed" and take back from a peer's return the own evidence of the previous epoch that the checkpoint
         lacks (see :class:`~css_ros.io.evidence.EvidenceRecovery`).
         ``_own_base`` / ``_frames_base``: the own evidence and frames the map holds of before this start."""
@@ -115,7 +126,11 @@ class EvidenceLink:
         smap = self.worker.smap
         alpha = smap.concentrations
         assert self._own_base is not None
-        alpha[...] = np.maximum(alpha - self._own_base + evidence, smap.prior)
+        # α = α_0 + own + received, recomputed (α - old + new would lose small received evidence to the rounding
+        # of large own evidence, and the checkpoint would not load)
+        received = self.ledger.received_total()
+        own = np.maximum(own_evidence(alpha, smap.prior, received) - self._own_base, 0.0) + evidence
+        alpha[...] = smap.prior + own + received
         smap.frames_observed += frames - self._frames_base
         self._own_base, self._frames_base = evidence, frames
         self._next_snapshot = 0.0
@@ -131,6 +146,9 @@ class EvidenceLink:
                                      max_frame_rate=self.p.evidence_max_frame_rate,
                                      received=received_sources(smap, self.origin))
         smap.evidence_origin, smap.received = self.origin, self.ledger.sources
+        # the map's sources that no received source stands for: evidence it holds as its own (e.g. a merged map's)
+        self._base_sources = set(smap.sources) - set(self.ledger.sources)
+        self._listed: tuple[bool, frozenset[str]] | None = None
 
     @property
     def enabled(self) -> bool:
@@ -138,9 +156,20 @@ class EvidenceLink:
 
     # ------------------------------------------------------------------ sources
     def _update_sources(self) -> None:
-        own = [self.origin] if self.pub is not None else []
-        received = list(self.ledger.sources)
-        self.worker.smap.sources = sorted(set(own) | set(received) | set(self.worker.smap.sources))
+        """Under the map lock. The map's ``sources``: this node's origin (when it publishes), the received sources
+        whose evidence the map holds now, and the sources the map held as its own when it was loaded or resumed; at
+        most MAX_SOURCES (the file bound; the last kind is cut first). A source whose evidence went to 0 (a peer's
+        reset, a junk origin's empty snapshot) is not listed. Its diagnostics key goes with its ledger slot."""
+        holders = frozenset(self.ledger.holders())
+        key = (self.pub is not None, holders)
+        if key != self._listed:
+            self._listed = key
+            listed = ({self.origin} if self.pub is not None else set()) | holders
+            rest = sorted(self._base_sources - listed)
+            self.worker.smap.sources = sorted(listed | set(rest[:max(0, MAX_SOURCES - len(listed))]))
+        for origin in [o for o in self._counted if o not in self.ledger.sources]:
+            self.count(f"evidence_packets_from[{origin}]", -self._counted.pop(origin))   # a counter at 0 is dropped
+            self.count("evidence_sources_released")
 
     def _map_replaced_locked(self) -> None:
         """Under the map lock, right after a reset or a load (MapWorker.on_map_replaced). Reset: the received
@@ -150,6 +179,7 @@ class EvidenceLink:
         smap = self.worker.smap
         if smap.received is self.ledger.sources:      # a reset (a load brings the file's sources)
             self.ledger.forget()
+            self._base_sources, self._listed = set(), None   # the map holds no evidence of any source now
         else:
             self._adopt_locked()
         if self.outbox is not None:
@@ -157,6 +187,7 @@ class EvidenceLink:
             smap.evidence_epoch = self.outbox.epoch
         self._next_snapshot = 0.0
         self.recovery = None   # a reset / load is meant: no returned evidence comes back over it
+        self._update_sources()
 
     # ------------------------------------------------------------------ out
     def publish(self) -> None:
@@ -186,24 +217,23 @@ class EvidenceLink:
         self.count("evidence_packets_sent", len(packets))
 
     # ------------------------------------------------------------------ in
-    def _allow(self, origin: str) -> bool:
-        """Token bucket per origin: evidence_max_rate packets/s, bursts up to one second's worth."""
-        rate = self.p.evidence_max_rate
-        now = time.monotonic()
-        tokens, last = self._buckets.get(origin, (rate, now))
-        tokens = min(rate, tokens + (now - last) * rate)
-        if tokens < 1.0:
-            self._buckets[origin] = (tokens, now)
-            return False
-        self._buckets[origin] = (tokens - 1.0, now)
-        return True
+    def max_message_bytes(self) -> int:
+        """The largest serialized message a valid packet makes (evidence_max_rows rows of the map's classes)."""
+        c = self.worker.smap.num_classes
+        return HEADER_SIZE + self.p.evidence_max_rows * (4 + 8 * c) + ORIGIN_BYTES + CDR_SLACK
 
-    def _prune_buckets(self) -> None:
-        """Forget the token buckets of origins idle for a second (full again: the same as a new one)."""
-        now = time.monotonic()
-        for origin, (_, last) in list(self._buckets.items()):
-            if now - last >= 1.0:
-                del self._buckets[origin]
+    def _on_raw(self, raw: bytes) -> None:
+        """A serialized message: refused unread when larger than any valid packet, else decoded."""
+        if len(raw) > self.max_message_bytes():
+            self._refuse(OVERSIZE_REASON)
+            return
+        try:
+            msg = deserialize_message(raw, UInt8MultiArray)
+        except Exception:   # noqa: BLE001 - whatever the type support raises for malformed CDR
+            self._refuse("not a UInt8MultiArray message")
+            return
+        del raw
+        self._on_packet(msg)
 
     def _on_packet(self, msg: Any) -> None:
         try:
@@ -214,17 +244,9 @@ class EvidenceLink:
         if self.allowed and pkt.origin not in self.allowed:
             self._refuse("origin not in evidence_allowed_origins")
             return
-        if len(self._buckets) >= 4 * self.p.evidence_max_sources and pkt.origin not in self._buckets:
-            self._prune_buckets()
-            if len(self._buckets) >= 4 * self.p.evidence_max_sources:
-                self._refuse("too many sources")
-                return
-        if not self._allow(pkt.origin):
-            self._refuse("flood: more than evidence_max_rate packets/s from one source")
+        if not self._buckets.allow(pkt.origin, time.monotonic()):
+            self._refuse(FLOOD_REASON, pkt.origin)
             return
-        rec = self.recovery
-        if rec is not None:
-            rec.heard(time.monotonic())   # the return window runs from the first packet of a peer
         if pkt.kind == RETURN:
             self._on_return(pkt)
             return
@@ -234,6 +256,12 @@ class EvidenceLink:
             if reason is None:
                 self.worker.policy.changed()
                 self.worker.map_version += 1
+                rec = self.recovery
+                if rec is not None:
+                    rec.heard(time.monotonic())   # the return window runs from the first peer packet applied
+                self.count(f"evidence_packets_from[{pkt.origin}]")   # diagnostics name the ledger's sources
+                self._counted[pkt.origin] = self._counted.get(pkt.origin, 0) + 1
+            self._update_sources()
             for subject in self.ledger.returns_due:
                 if self.pub is not None:
                     returns += self.ledger.return_packets(subject, self.p.evidence_max_rows)
@@ -250,8 +278,6 @@ class EvidenceLink:
             self._refuse(reason, pkt.origin)
             return
         self.count("evidence_packets_applied")
-        self.count(f"evidence_packets_from[{pkt.origin}]")   # diagnostics name the contributing sources
-        self._update_sources()
 
     def _on_return(self, pkt: Any) -> None:
         """A peer gives a restarted node back its evidence of the previous epoch (others' returns are ignored)."""
@@ -272,9 +298,8 @@ class EvidenceLink:
         elif reason is not None:
             self._refuse(reason, pkt.origin)
         elif got is not None:
-            self.count("evidence_returns_adopted")
+            self.count("evidence_returns_adopted")   # the sender is logged (no diagnostics key per origin)
             self.logger.info(f"took back the own evidence of epoch {got[0]} ({got[1]} frames) from {pkt.origin!r}")
-            self.count(f"evidence_returned_by[{pkt.origin}]")
 
     def _refuse(self, reason: str, origin: str = "") -> None:
         self.count(f"evidence_refused[{reason}]")

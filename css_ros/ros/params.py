@@ -14,7 +14,9 @@ from typing import Any
 from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                            DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from ..engine.backends import BACKENDS
+from ..engine.camera import MAX_CAMERA_PIXELS
 from ..engine.map_args import MAX_CONCENTRATION
+from ..engine.semantic_map import MAX_RECEIVED_SOURCES
 from ..errors import ConfigError
 from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsics
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
@@ -305,6 +307,8 @@ def check_params(p: NodeParams) -> None:
                  "evidence_max_sources", "view_max_changes"):
         if getattr(p, name) < 1:
             raise bad(name, "must be >= 1")
+    if p.max_image_pixels > MAX_CAMERA_PIXELS:
+        raise bad("max_image_pixels", f"must be <= {MAX_CAMERA_PIXELS} (8192 x 8192, the engine's largest camera)")
     if p.cloud_max_points < 0:
         raise bad("cloud_max_points", "must be >= 0")
     if p.num_classes < 0:
@@ -316,6 +320,9 @@ def check_params(p: NodeParams) -> None:
             raise bad(name, "must be in [0, 1] (a share of the map's evidence)")
     if p.model_swap_warn_ratio < p.model_swap_min_ratio:
         raise bad("model_swap_warn_ratio", f"must be >= model_swap_min_ratio ({p.model_swap_min_ratio:g})")
+    if p.evidence_max_sources > MAX_RECEIVED_SOURCES:
+        raise bad("evidence_max_sources", f"at most {MAX_RECEIVED_SOURCES} (the received sources a map file keeps: "
+                  "a checkpoint with more would not load)")
     if not (math.isfinite(p.evidence_max_rate) and p.evidence_max_rate > 0):
         raise bad("evidence_max_rate", "must be finite and > 0")
     if len(p.evidence_origin) > 32 or not p.evidence_origin.isascii():
