@@ -200,3 +200,9 @@ def test_from_pose_refuses_complex_and_text():
         Camera.from_pose(K, W, H, ["0", "0", "0"], [0, 0, 0, 1])
     with pytest.raises(CameraError, match="T_map_cam holds complex"):
         Camera(K, W, H, np.eye(4) + 0j)
+
+
+def test_object_arrays_holding_text_are_not_read_as_numbers():
+    with pytest.raises(CameraError, match="must hold numbers only"):
+        quaternion_xyzw_to_matrix(np.array(["1", 0, 0, 1], dtype=object))
+    np.testing.assert_allclose(quaternion_xyzw_to_matrix(np.array([0, 0, 0, 1], dtype=object)), np.eye(3))

@@ -101,3 +101,19 @@ def test_empty_file_is_one_line_without_a_numpy_warning(tmp_path):
     empty = tmp_path / "points.txt"
     empty.write_text("# nothing\n")
     refused(css_ctl("--timeout", "0.5", "query", "--file", str(empty)), 2, f"{empty}: expected 3 numbers per line")
+
+
+def test_points_on_the_command_line_and_in_a_file_are_refused_not_one_ignored(tmp_path):
+    points = tmp_path / "points.txt"
+    points.write_text("0 0 1\n")
+    refused(css_ctl("--timeout", "0.5", "query", "1", "2", "3", "--file", str(points)), 2,
+            "on the command line or with --file, not both")
+
+
+def test_a_points_file_larger_than_the_bound_is_refused_before_it_is_read(tmp_path):
+    from css_ros.clients.ctl import MAX_ROWS_FILE_BYTES
+
+    big = tmp_path / "points.txt"
+    with open(big, "wb") as fh:        # sparse: the declared size, no data written
+        fh.truncate(MAX_ROWS_FILE_BYTES + 1)
+    refused(css_ctl("--timeout", "0.5", "query", "--file", str(big)), 1, "more than 64 MiB")

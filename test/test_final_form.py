@@ -174,3 +174,11 @@ def test_image_uncertainty_values_and_rounding_tolerance():
         u_var, u_exp = image_uncertainty(np.full((2, 2), 1.0 + 1e-9), np.full((2, 2), -1e-9))
         assert u_var == pytest.approx(1e-30) and u_exp == pytest.approx(-1e-9, rel=1e-6)
         assert image_uncertainty(np.float32([[0.5]]), np.float32([[0.01]])) == pytest.approx((0.01, 0.5), rel=1e-6)
+
+
+def test_image_uncertainty_refuses_more_values_than_the_largest_image():
+    from css_ros.engine.camera import MAX_CAMERA_PIXELS
+
+    huge = np.broadcast_to(np.float32(0.5), (MAX_CAMERA_PIXELS + 1,))   # a view of one value, 537 MB once copied
+    with pytest.raises(InputError, match="more than an image of the largest camera"):
+        image_uncertainty(huge, huge)

@@ -355,3 +355,15 @@ def test_select_masks_and_indices():
     np.testing.assert_array_equal(m.select(mask).means, m.means[[3, 7]])
     np.testing.assert_array_equal(m.select([7, 7, 0]).means, m.means[[7, 7, 0]])
     np.testing.assert_array_equal(m.select(np.array([99], dtype=np.uint64)).means, m.means[[99]])
+
+
+def test_select_refuses_mixed_bool_int_lists_and_more_indices_than_gaussians():
+    model = GaussianModel.from_activated(np.zeros((4, 3)), np.ones((4, 3)), np.tile([1.0, 0, 0, 0], (4, 1)),
+                                         np.full(4, 0.5), np.full((4, 3), 0.5))
+    with pytest.raises(ModelError, match="mixes bools and integers"):
+        model.select([True, 2])
+    with pytest.raises(ModelError, match="5 indices for a model of 4 Gaussians"):
+        model.select(np.broadcast_to(np.int64(0), (5,)))
+    with pytest.raises(ModelError, match="indices for a model of 4 Gaussians"):
+        model.select(np.broadcast_to(np.int64(0), (10**9,)))   # 17.9 GiB of copies once asked for
+    assert model.select(np.array([3, 3, 0])).num_gaussians == 3

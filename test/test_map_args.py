@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from css_ros import SemanticMap
 from css_ros.engine import map_args
 from css_ros.engine.merge import merge_maps
-from css_ros.errors import CameraError, InputError, MapError
+from css_ros.errors import CameraError, InputError, MapError, SensorModelError
 from scenes import camera, random_scene
 
 C = 4
@@ -30,7 +31,7 @@ def smap(model):
 
 
 @pytest.mark.parametrize("kwargs, says", [
-    ({"prior": 1e300}, r"prior must be in \(0, 1e\+15\]"), ({"prior": 1e16}, "prior must be in"),
+    ({"prior": 1e300}, r"prior must be in \[1e-12, 1e\+15\], got 1e\+300"), ({"prior": 1e16}, "prior must be in"),
     ({"background": 1e300}, "background must be in"), ({"prior": 0.0}, "prior must be in"),
     ({"prior": "x"}, "prior must be a real number, got str"), ({"prior": float("nan")}, "prior must be finite"),
     ({"unknown_threshold": float("nan")}, "unknown_threshold must be finite"),
@@ -194,3 +195,92 @@ def test_save_refuses_bad_paths_with_map_error_and_writes_nothing(smap, tmp_path
     with pytest.raises(MapError, match="File name too long"):
         smap.save(tmp_path / ("m" * 300 + ".npz"))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_zero_d_arrays_count_as_the_numbers_they_hold(model, tmp_path):
+    """What np.load(...)["prior"] gives: a 0-d array is a scalar argument, as it was before the checks."""
+    smap = SemanticMap(model, np.array(4), prior=np.array(2e-3), ignore_label=np.array(255),
+                       unknown_threshold=np.array(0.5), depth_scale=np.array(1.0))
+    assert (smap.num_classes, smap.prior, smap.ignore_label) == (4, 2e-3, 255)
+    with np.load(smap.save(tmp_path / "m.npz")) as data:
+        again = SemanticMap(model, data["num_classes"], prior=data["prior"], background=data["background"])
+    assert (again.num_classes, again.prior) == (4, 2e-3)
+    assert smap.gaussian_semantics(np.array(0.5)).label.shape == (model.num_gaussians,)
+    assert smap.select_views([camera()], np.array(1)).indices == [0]
+    with pytest.raises(MapError, match="num_classes must be an integer"):
+        SemanticMap(model, np.array([4]))
+
+
+@pytest.mark.parametrize("prior", [1e-310, 5e-324, 1e-13])
+def test_subnormal_and_tiny_priors_are_refused(model, prior):
+    """A prior of 1e-310 made the numba render's expectation +inf (and U_exp -inf) with no warning."""
+    with pytest.raises(MapError, match=r"prior must be in \[1e-12, 1e\+15\]"):
+        SemanticMap(model, C, prior=prior)
+
+
+def test_the_smallest_prior_renders_finite_moments(model):
+    smap = SemanticMap(model, C, prior=map_args.MIN_CONCENTRATION, background=map_args.MIN_CONCENTRATION)
+    smap.update(camera(), np.random.default_rng(2).integers(0, C, (48, 64)))
+    view = smap.render(camera())
+    assert np.all(np.isfinite(view.expectation)) and np.all((view.expectation >= 0) & (view.expectation <= 1))
+    assert np.isfinite(view.u_var) and np.isfinite(view.u_exp)
+
+
+@pytest.mark.parametrize("name, call", [
+    ("prior", lambda m, c: SemanticMap(m, C, prior=10**400)),
+    ("prior", lambda m, c: SemanticMap(m, C, prior=Fraction(10**400, 3))),
+    ("depth_scale", lambda m, c: SemanticMap(m, C, depth_scale=-(10**400))),
+    ("pixel_scale", lambda m, c: SemanticMap(m, C).score_views([c], pixel_scale=10**400)),
+    ("background_weight", lambda m, c: SemanticMap(m, C).query_points(np.zeros((1, 3)), 10**400)),
+    ("k", lambda m, c: SemanticMap(m, C).select_views([c], Fraction(10**400, 1))),
+])
+def test_numbers_beyond_float64_are_refused_by_name(model, name, call):
+    with pytest.raises((MapError, InputError), match=name):
+        call(model, camera())
+
+
+def test_sensor_model_and_device_of_the_wrong_kind_are_refused(model, tmp_path):
+    with pytest.raises(SensorModelError, match="sensor_model must be a SensorModel"):
+        SemanticMap(model, C, sensor_model=str(tmp_path / "sm.yaml"))
+    with pytest.raises(MapError, match="device must be None or, with backend 'cuda', a GPU index"):
+        SemanticMap(model, C, device="cpu")
+
+
+def test_merge_keeps_depth_scale_and_background_colour_and_refuses_other_depth_scales(model):
+    labels = np.random.default_rng(3).integers(0, C, (48, 64))
+    a = SemanticMap(model, C, depth_scale=0.5, background_rgb=(1.0, 1.0, 1.0))
+    b = SemanticMap(model, C, depth_scale=0.5, background_rgb=(1.0, 1.0, 1.0))
+    a.update(camera(), labels)
+    b.update(camera(position=(0.2, 0.0, 0.0)), labels)
+    merged = merge_maps([a, b])
+    want, got = a.render(camera()), merged.render(camera())
+    np.testing.assert_array_equal(got.depth, want.depth)   # depth in metres: the same geometry, the same scale
+    np.testing.assert_array_equal(got.rgb, want.rgb)       # the white background stays white
+    with pytest.raises(MapError, match="depth_scale 0.5 m per splat unit, map 2 1"):
+        merge_maps([a, SemanticMap(model, C)])
+
+
+def test_merge_messages_show_long_or_multi_line_names_shortened(model):
+    a, b = SemanticMap(model, C), SemanticMap(model, C, prior=0.5)
+    with pytest.raises(MapError) as err:
+        merge_maps([a, b], names=["a", "b" * 10**6])
+    assert len(str(err.value)) < 300
+    with pytest.raises(MapError) as err:
+        merge_maps([a, b], names=["a", "line\nbreak"])
+    assert "\n" not in str(err.value)
+
+
+class _BytesPath:
+    def __fspath__(self):
+        return b"/tmp/map.npz"
+
+
+def test_odd_map_paths_are_refused_in_one_line(smap, tmp_path):
+    with pytest.raises(MapError, match="names a folder, give a file name"):
+        smap.save(str(tmp_path / "newdir") + os.sep)
+    assert not (tmp_path / "newdir").exists()
+    with pytest.raises(MapError, match="_BytesPath gives no str path"):
+        smap.save(_BytesPath())
+    with pytest.raises(MapError) as err:
+        SemanticMap.load(tmp_path / "a\nb.npz", smap.model)
+    assert "does not exist" in str(err.value) and "\n" not in str(err.value)

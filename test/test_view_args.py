@@ -63,8 +63,8 @@ def test_importance_out_of_bounds_is_refused_where_it_gave_inf_or_nan_gains(smap
 
 @pytest.mark.parametrize("scale, says", [(1e300, "pixel_scale must be finite and in \\(0, 1e\\+06\\]"),
                                          (0.0, "pixel_scale must be finite"), (float("inf"), "pixel_scale must be"),
-                                         ("1", "pixel_scale must be a number, got str"),
-                                         (None, "pixel_scale must be a number")])
+                                         ("1", "pixel_scale must be a real number, got str"),
+                                         (None, "pixel_scale must be a real number")])
 def test_pixel_scale_out_of_bounds_is_refused(smap, cams, scale, says):
     with pytest.raises(MapError, match=says):
         smap.score_views(cams, pixel_scale=scale)

@@ -19,16 +19,17 @@ from ..io.clouds import pack_cloud, unpack_cloud, unpack_scored_views
 from ..io.frames import FrameRejected, decode_pose
 from ..io.point_queries import ANSWER_FIELDS
 from ..io.topics import INPUT_TOPICS
-from .node_link import NodeLink, node_name_arg
+from .node_link import MIN_TIMEOUT_S, NodeLink, node_name_arg
 
 SERVICES = {"save": "save_map", "load": "load_map", "reset": "reset_map"}
 #: What css_ctl calls under --node (checked as full ROS names when --node is parsed).
 NODE_TOPICS = (*SERVICES.values(), "candidate_scores", "point_query_results")
 DEFAULT_TIMEOUT_S = 10.0
-#: --timeout range [s]: below 10 ms nothing can answer (1e-320 was accepted); beyond one day a typo would hang the
-#: terminal.
-MIN_TIMEOUT_S = 0.01
+#: Largest --timeout [s]: beyond one day a typo would hang the terminal (the smallest: node_link.MIN_TIMEOUT_S).
 MAX_TIMEOUT_S = 86400.0
+#: Largest --file of points or poses [bytes]: 64 MiB of text holds more rows than css_node takes in one request
+#: (max_query_points 10^6 points are ~40 MB); the size is checked before the file is read.
+MAX_ROWS_FILE_BYTES = 64 << 20
 #: Largest |coordinate| of a query point: points are sent as float32 (beyond, they would arrive as inf).
 MAX_POINT_COORD = float(np.finfo(np.float32).max)
 #: css_node's status counters (/diagnostics) that say why candidate rows are NaN (docs/reliability.md).
@@ -87,12 +88,19 @@ def build_parser() -> argparse.ArgumentParser:
 def read_rows(values: Sequence[float], file: Path | None, width: int, what: str) -> np.ndarray:
     """(M, width) float64 rows from the command line or a text file.
 
-    CssError (exit 1) when the file is missing or not a regular file (a folder, /dev/null); InputRefused (exit 2)
-    when the numbers do not come in groups of ``width``."""
+    CssError (exit 1) when the file is missing, not a regular file (a folder, /dev/null) or larger than
+    MAX_ROWS_FILE_BYTES; InputRefused (exit 2) when the numbers do not come in groups of ``width``, or come both from
+    the command line and a file."""
     if file is not None:
+        if values:
+            raise InputRefused(f"give {what} on the command line or with --file, not both ({len(values)} numbers and "
+                               f"{file})")
         if not file.is_file():
             raise CssError(f"{what} file is not a regular file: {file}" if file.exists()
                            else f"{what} file not found: {file}")
+        if file.stat().st_size > MAX_ROWS_FILE_BYTES:
+            raise CssError(f"{what} file {file} has {file.stat().st_size} bytes, more than {MAX_ROWS_FILE_BYTES >> 20} "
+                           "MiB (css_node takes at most max_query_points / max_candidates per request): split it")
         try:
             with warnings.catch_warnings():   # an empty file: "input contained no data", said below in one line
                 warnings.simplefilter("ignore")

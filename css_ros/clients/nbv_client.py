@@ -18,7 +18,7 @@ from ..io.messages import pose_to_arrays, stamp_to_ns
 from ..io.frame_gate import pose_message_pose
 from ..io.topics import POSE_TYPES
 from ..ros.work import WarnLimiter
-from .node_link import node_name_arg
+from .node_link import MIN_TIMEOUT_S, node_name_arg
 
 #: --metric choices: the candidate with the largest value is the next best view.
 METRICS = ("info_gain", "u_var", "u_exp")
@@ -93,8 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default info_gain)")
     p.add_argument("--period", type=bounded_number(MIN_PERIOD_S, MAX_SECONDS), default=2.0,
                    help=f"seconds between requests, in [{MIN_PERIOD_S:g}, {MAX_SECONDS:g}] (default 2)")
-    p.add_argument("--timeout", type=bounded_number(0.0, MAX_SECONDS, lo_open=True), default=10.0,
-                   help=f"seconds to wait for an answer (and, with --once, for a pose), in (0, {MAX_SECONDS:g}] "
+    p.add_argument("--timeout", type=bounded_number(MIN_TIMEOUT_S, MAX_SECONDS), default=10.0,
+                   help=f"seconds to wait for an answer (and, with --once, for a pose), in [{MIN_TIMEOUT_S:g}, "
+                        f"{MAX_SECONDS:g}] "
                         "(default 10)")
     p.add_argument("--once", action="store_true", help="one request, print the result, exit (0 on success)")
     p.add_argument("--json", action="store_true", help="also print each chosen view as one JSON line on stdout "

@@ -9,6 +9,8 @@ import threading
 import time
 from typing import Callable, Sequence
 
+#: Smallest --timeout of the clients [s]: below 10 ms nothing can answer (1e-320 was accepted).
+MIN_TIMEOUT_S = 0.01
 #: One component of a ROS name: a letter or underscore, then letters, digits, underscores.
 _NAME_COMPONENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 

@@ -51,6 +51,9 @@ def _real_array(name: str, value: object) -> np.ndarray:
         raise CameraError(f"{name} holds complex values")
     if a.dtype.kind not in "biufO":
         raise CameraError(f"{name} must be numeric, got dtype {a.dtype}")
+    if a.dtype.kind == "O" and not all(isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+                                       for v in a.flat):
+        raise CameraError(f"{name} must hold numbers only (an object array holds text or other objects)")
     try:
         return np.array(a, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Iterable
 import numpy as np
 
 from ..errors import InputError
+from .camera import MAX_CAMERA_PIXELS
 from .spec import VAR_FLOOR
 
 if TYPE_CHECKING:
@@ -122,7 +123,11 @@ def _uncertainty_input(name: str, a: object) -> np.ndarray:
     if arr.dtype.kind not in "biuf":
         what = "complex values" if arr.dtype.kind == "c" else f"dtype {arr.dtype} ({type(a).__name__})"
         raise InputError(f"image_uncertainty: {name} must be a real numeric array, got {what}")
-    arr = arr.astype(np.float64, copy=False)
+    if arr.size > MAX_CAMERA_PIXELS:
+        raise InputError(f"image_uncertainty: {name} has {arr.size} values, more than an image of the largest camera "
+                         f"(MAX_CAMERA_PIXELS = {MAX_CAMERA_PIXELS})")
+    with np.errstate(over="ignore"):  # a long double beyond float64 becomes inf: refused below
+        arr = arr.astype(np.float64, copy=False)
     if not np.all(np.isfinite(arr)):
         raise InputError(f"image_uncertainty: {name} holds non-finite values")
     return arr
@@ -131,7 +136,8 @@ def _uncertainty_input(name: str, a: object) -> np.ndarray:
 def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
     """(U_var, U_exp) of SPEC §6 over all pixels of a view (float64 accumulation).
 
-    Both arrays must be real (bool, integer or float; not complex), of the same non-empty shape and finite, with
+    Both arrays must be real (bool, integer or float; not complex), of the same non-empty shape of at most
+    MAX_CAMERA_PIXELS values and finite, with
     E in [0, 1] and Var >= 0 up to a rounding tolerance of 1e-6 (float32 images of values computed in float64 are
     off by < 1e-7); values within it are used as given (Var floored at VAR_FLOOR before the log).
 

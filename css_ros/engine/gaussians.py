@@ -190,13 +190,18 @@ class GaussianModel:
 
     def select(self, index: np.ndarray) -> "GaussianModel":
         """New model holding the Gaussians picked by ``index``: a bool mask (N,) or 1-D integer indices in [0, N)
-        (repeats allowed).
+        (repeats allowed, at most N of them). A mask must have dtype bool: a uint8 0/1 array is read as indices, as
+        numpy reads it.
 
         Raises:
-            ModelError: ``index`` is None, not bool/integer (floats included), not 1-D, a mask of another length,
-                holds indices outside [0, N), or selects no Gaussian.
+            ModelError: ``index`` is None, not bool/integer (floats included), a list mixing bools and integers, not
+                1-D, a mask of another length, more than N indices, indices outside [0, N), or no Gaussian selected.
         """
         n = self.num_gaussians
+        if isinstance(index, (list, tuple)) and any(isinstance(v, (bool, np.bool_)) for v in index) and \
+                not all(isinstance(v, (bool, np.bool_)) for v in index):
+            raise ModelError("select: index mixes bools and integers (True would be read as index 1): give a bool "
+                             "mask or integer indices")
         try:
             idx = np.asarray(index)
         except (TypeError, ValueError) as exc:
@@ -213,6 +218,8 @@ class GaussianModel:
                 raise ModelError(f"select: bool mask has length {idx.size}, the model has {n} Gaussians")
             if not idx.any():
                 raise ModelError("select: the index selects no Gaussian")
+        elif idx.size > n:
+            raise ModelError(f"select: {idx.size} indices for a model of {n} Gaussians (at most {n})")
         elif int(idx.min()) < 0 or int(idx.max()) >= n:
             raise ModelError(f"select: indices must be in [0, {n}), got values in [{int(idx.min())}, {int(idx.max())}]")
         return GaussianModel(self.means[idx], self.sh[idx], self.opacity_logits[idx],

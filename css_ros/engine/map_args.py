@@ -21,13 +21,16 @@ if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
 
-__all__ = ["MAX_CONCENTRATION", "MAX_CLASSES", "MAX_QUERY_VALUES", "check_model", "check_num_classes",
+__all__ = ["MAX_CONCENTRATION", "MIN_CONCENTRATION", "MAX_CLASSES", "MAX_QUERY_VALUES", "check_model", "check_num_classes",
            "check_real", "check_concentration", "check_unknown_threshold", "check_ignore_label", "check_background_rgb",
            "check_depth_scale", "check_camera", "check_real_array", "check_query_points", "check_background_weight",
            "check_map_path"]
 
 #: Largest concentration / prior / background of a map (beyond: a crafted or broken file, or a typo).
 MAX_CONCENTRATION = 1e15
+#: Smallest prior / background of a map: far below any useful prior (the default is 1e-3), and far above the
+#: subnormal range, where a prior of 1e-310 made the numba render's expectation +inf and U_exp -inf.
+MIN_CONCENTRATION = 1e-12
 #: Largest number of classes of a map.
 MAX_CLASSES = 65536
 #: Most (point, class) values one ``query_points`` call returns: its expectation and variance are 8 bytes per
@@ -36,13 +39,26 @@ MAX_QUERY_VALUES = 2**27
 _INT32 = (-(2**31), 2**31 - 1)
 
 
+def _scalar(value: Any) -> Any:
+    """A 0-d numpy array of numbers as its scalar (what ``np.load(...)["prior"]`` gives); anything else as is."""
+    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "biuf":
+        return value[()]
+    return value
+
+
 def check_real(value: Any, name: str) -> float:
-    """``value`` as a float: a real number (bools, strings, complex and arrays refused), finite."""
+    """``value`` as a float: a real number or a 0-d array of one (bools, strings, complex and other arrays refused),
+    finite and within float64 (an integer of 400 digits is refused, not an OverflowError)."""
+    value = _scalar(value)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
         raise MapError(f"{name} must be a real number, got {type(value).__name__} {_short(value)}")
-    f = float(value)
+    try:
+        with np.errstate(over="ignore"):
+            f = float(value)
+    except OverflowError:
+        f = math.inf
     if not math.isfinite(f):
-        raise MapError(f"{name} must be finite, got {f}")
+        raise MapError(f"{name} must be finite, got {_short(value)}")
     return f
 
 
@@ -52,7 +68,9 @@ def _short(value: Any, limit: int = 60) -> str:
 
 
 def _cut(text: str, limit: int = 200) -> str:
-    """``text`` cut to ``limit`` characters."""
+    """``text`` cut to ``limit`` characters; quoted when it holds a newline or other unprintable character (a message
+    stays one line)."""
+    text = text if text.isprintable() else repr(text)
     return text if len(text) <= limit else text[:limit] + "…"
 
 
@@ -66,15 +84,19 @@ def check_model(model: Any) -> "GaussianModel":
 
 
 def check_num_classes(value: Any, name: str = "num_classes") -> int:
-    """C: an integer in 1..MAX_CLASSES (an integral float such as 4.0 counts; 2.7, True, "4" do not)."""
+    """C: an integer in 1..MAX_CLASSES (an integral float such as 4.0 or a 0-d array counts; 2.7, True, "4" do not)."""
+    value = _scalar(value)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (Integral, Real)):
         raise MapError(f"{name} must be an integer, got {type(value).__name__} {_short(value)}")
     if isinstance(value, Integral):
         c = int(value)
     else:
-        f = float(value)
+        try:
+            f = float(value)
+        except OverflowError:
+            f = math.inf
         if not (math.isfinite(f) and f.is_integer()):
-            raise MapError(f"{name} must be an integer, got {value!r}")
+            raise MapError(f"{name} must be an integer, got {_short(value)}")
         c = int(f)
     if not 1 <= c <= MAX_CLASSES:
         raise MapError(f"{name} must be in 1..{MAX_CLASSES}, got {c}")
@@ -82,10 +104,10 @@ def check_num_classes(value: Any, name: str = "num_classes") -> int:
 
 
 def check_concentration(value: Any, name: str) -> float:
-    """A prior or background concentration: a real number in (0, MAX_CONCENTRATION]."""
+    """A prior or background concentration: a real number in [MIN_CONCENTRATION, MAX_CONCENTRATION]."""
     f = check_real(value, name)
-    if not 0.0 < f <= MAX_CONCENTRATION:
-        raise MapError(f"{name} must be in (0, {MAX_CONCENTRATION:g}], got {f:g}")
+    if not MIN_CONCENTRATION <= f <= MAX_CONCENTRATION:
+        raise MapError(f"{name} must be in [{MIN_CONCENTRATION:g}, {MAX_CONCENTRATION:g}], got {f:g}")
     return f
 
 
@@ -98,7 +120,8 @@ def check_unknown_threshold(value: Any) -> float:
 
 
 def check_ignore_label(value: Any) -> int:
-    """The "no label" value: an integer that fits the int32 label images."""
+    """The "no label" value: an integer (or a 0-d integer array) that fits the int32 label images."""
+    value = _scalar(value)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, Integral):
         raise MapError(f"ignore_label must be an integer, got {type(value).__name__} {_short(value)}")
     v = int(value)
@@ -144,7 +167,8 @@ def check_real_array(value: Any, name: str, error: type[Exception] = InputError)
     if arr.dtype.kind not in "biuf":
         raise error(f"{name} must hold real numbers, got dtype {arr.dtype}"
                     + (" (complex values)" if arr.dtype.kind == "c" else ""))
-    return np.asarray(arr, dtype=np.float64)
+    with np.errstate(over="ignore"):  # a long double beyond float64 becomes inf, which the callers handle
+        return np.asarray(arr, dtype=np.float64)
 
 
 def check_query_points(points: Any, num_classes: int) -> np.ndarray:
@@ -179,10 +203,17 @@ def check_map_path(path: Any, reading: bool) -> Path:
     folder is made when missing, as css_node's default checkpoint folder is). MapError naming the path otherwise."""
     if not isinstance(path, (str, os.PathLike)):
         raise MapError(f"map path must be a str or os.PathLike, got {type(path).__name__}")
-    p = Path(path)
+    try:
+        raw = os.fspath(path)
+        p = Path(raw)
+    except Exception as exc:  # noqa: BLE001 - a PathLike's __fspath__ may raise anything, or return bytes
+        raise MapError(f"map path {type(path).__name__} gives no str path ({type(exc).__name__}: {_cut(str(exc))})") \
+            from None
     text = os.fspath(p)
     if "\0" in text or not text:
-        raise MapError(f"map path {_cut(text)} is empty or holds a NUL character")
+        raise MapError(f"map path {_short(text)} is empty or holds a NUL character")
+    if not reading and raw.endswith(os.sep):
+        raise MapError(f"cannot save the map to {_cut(text)}{os.sep}: the path names a folder, give a file name")
     try:
         st = os.stat(p)
     except FileNotFoundError:

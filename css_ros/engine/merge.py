@@ -1,7 +1,7 @@
 """Merging maps of the same splat: Dirichlet evidence is additive (SPEC §4), so maps merge exactly.
 
 α_merged = α_0 + Σ_k (α_k - α_0): the evidence above the prior of every map is summed, in any order.
-Maps of different models, class counts, priors or backgrounds describe different things and are refused.
+Maps of different models, class counts, priors, backgrounds or depth scales describe different things and are refused.
 """
 from __future__ import annotations
 
@@ -31,10 +31,19 @@ def check_compatible(a: "SemanticMap", b: "SemanticMap", name_a: str = "first ma
         raise MapError(f"{name_a} has prior {a.prior:g}, {name_b} {b.prior:g}: their evidence is not comparable")
     if a.background != b.background:
         raise MapError(f"{name_a} has background {a.background:g}, {name_b} {b.background:g}")
+    if a.depth_scale != b.depth_scale:
+        raise MapError(f"{name_a} has depth_scale {a.depth_scale:g} m per splat unit, {name_b} {b.depth_scale:g}: their "
+                       "depths (and a sensor model's depth bins) are in other units")
     if a.fused_sensor_model != b.fused_sensor_model:
         raise MapError(f"{name_a} and {name_b} were fused with different sensor models "
                        f"({a.fused_sensor_model[:12] or 'none'} vs {b.fused_sensor_model[:12] or 'none'}): their "
                        "evidence is weighted differently and does not add up")
+
+
+def _shown(name: str, limit: int = 80) -> str:
+    """A map's name as messages show it: one line, at most ``limit`` characters."""
+    name = name if name.isprintable() else repr(name)
+    return name if len(name) <= limit else name[:limit] + "…"
 
 
 def add_evidence(target: "SemanticMap", source: "SemanticMap") -> None:
@@ -45,10 +54,10 @@ def add_evidence(target: "SemanticMap", source: "SemanticMap") -> None:
 
 
 def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None) -> "SemanticMap":
-    """One map holding the evidence of all ``maps`` (same model, classes, prior, background).
+    """One map holding the evidence of all ``maps`` (same model, classes, prior, background, depth_scale).
 
-    The result is a new map on the first map's model and backend; ``frames_observed`` is summed and
-    ``sources`` is the union. Maps that list a common source are refused: that source's evidence
+    The result is a new map on the first map's model, backend, background colour, depth_scale and sensor model;
+    ``frames_observed`` is summed and ``sources`` is the union. Maps that list a common source are refused: that source's evidence
     is in both and would count twice.
 
     Raises:
@@ -69,7 +78,7 @@ def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None
         names = [f"map {i + 1}" for i in range(len(maps))]
     elif isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
         raise MapError(f"names must be a sequence of str (one per map), got {type(names).__name__}")
-    names = [str(n) for n in names]
+    names = [_shown(str(n)) for n in names]
     if len(names) != len(maps):
         # zip() would stop at the shorter one and leave the other maps unchecked
         raise MapError(f"{len(names)} names for {len(maps)} maps: give one name per map")
@@ -84,7 +93,8 @@ def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None
             seen[src] = name
     out = SemanticMap(first.model, first.num_classes, prior=first.prior, background=first.background,
                       ignore_label=first.ignore_label, unknown_threshold=first.unknown_threshold,
-                      backend=first.backend_name)
+                      backend=first.backend_name, background_rgb=tuple(first.background_rgb),
+                      depth_scale=first.depth_scale, sensor_model=first.sensor_model)
     out.fused_sensor_model = first.fused_sensor_model
     for m in maps:
         add_evidence(out, m)

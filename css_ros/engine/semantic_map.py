@@ -21,7 +21,7 @@ from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENC
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from .spec import MAX_FRAMES
 from . import map_args, view_args
-from .map_args import MAX_CLASSES, MAX_CONCENTRATION
+from .map_args import MAX_CLASSES, MAX_CONCENTRATION, MIN_CONCENTRATION
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -320,8 +320,12 @@ class SemanticMap:
         depth_scale = map_args.check_depth_scale(depth_scale)
         if not isinstance(backend, str):
             raise MapError(f"backend must be a name (numba, torch or cuda), got {type(backend).__name__}")
+        cuda_index = isinstance(device, (int, np.integer)) and not isinstance(device, bool) and device >= 0
+        if device is not None and not (backend == "cuda" and cuda_index):
+            raise MapError(f"device must be None or, with backend 'cuda', a GPU index >= 0; got {device!r} with "
+                           f"backend {backend!r}")
         self.backend_name = backend
-        self._backend = make_backend(backend, model, **({} if device is None else {"device": device}))
+        self._backend = make_backend(backend, model, **({} if device is None else {"device": int(device)}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.depth_scale = float(depth_scale)
         #: pixel counts of the latest update (``observe`` returns the view, this keeps its counts); None before
@@ -358,6 +362,11 @@ class SemanticMap:
 
     @sensor_model.setter
     def sensor_model(self, model: "SensorModel | None") -> None:
+        from .sensor_model import SensorModel
+
+        if model is not None and not isinstance(model, SensorModel):
+            raise SensorModelError(f"sensor_model must be a SensorModel (SensorModel.load(path)) or None, got "
+                                   f"{type(model).__name__}")
         if model is not None and model.num_classes != self.num_classes:
             raise SensorModelError(f"{model.source or 'sensor model'} is for {model.num_classes} classes, the map "
                                    f"has {self.num_classes}")
@@ -737,8 +746,9 @@ class SemanticMap:
                            f"expected ({num_gaussians}, {num_classes}), all finite, > 0 and <= "
                            f"{MAX_CONCENTRATION:g})")
         for name, value in (("prior", prior), ("background", background)):
-            if not (np.isfinite(value) and 0 < value <= MAX_CONCENTRATION):
-                raise MapError(f"map file {path}: {name}={value!r} outside (0, {MAX_CONCENTRATION:g}]")
+            if not (np.isfinite(value) and MIN_CONCENTRATION <= value <= MAX_CONCENTRATION):
+                raise MapError(f"map file {path}: {name}={value!r} outside [{MIN_CONCENTRATION:g}, "
+                               f"{MAX_CONCENTRATION:g}]")
         if not 0 <= frames <= MAX_FRAMES:
             raise MapError(f"map file {path}: frames_observed={frames} outside [0, {MAX_FRAMES}]")
         smap = cls(model, num_classes, prior=prior, background=background, **kwargs)

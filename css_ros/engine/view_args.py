@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import CameraError, MapError
-from .map_args import check_real_array
+from .map_args import check_real, check_real_array
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -33,14 +33,20 @@ MAX_SELECT_CANDIDATES = 1024
 
 
 def _integer(value: Any, name: str) -> int:
-    """``value`` as an int: an integer, or a float holding one (bools, NaN, fractions and other types refused)."""
+    """``value`` as an int: an integer, or a float holding one, or a 0-d array of either (bools, NaN, fractions and
+    other types refused)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
+        value = value[()]
     if isinstance(value, bool) or not isinstance(value, (Integral, Real)):
         raise MapError(f"{name} must be an integer, got {type(value).__name__} {value!r}")
     if isinstance(value, Integral):
         return int(value)
-    f = float(value)
+    try:
+        f = float(value)
+    except OverflowError:
+        f = math.inf
     if not (math.isfinite(f) and f.is_integer()):
-        raise MapError(f"{name} must be an integer, got {value!r}")
+        raise MapError(f"{name} must be an integer, got {str(value)[:60]}")
     return int(f)
 
 
@@ -78,10 +84,8 @@ def check_importance(importance: Any, num_gaussians: int) -> np.ndarray | None:
 
 def check_pixel_scale(pixel_scale: Any) -> float:
     """Pixels observed per scored pixel: a real number in (0, MAX_PIXEL_SCALE]."""
-    if isinstance(pixel_scale, bool) or not isinstance(pixel_scale, Real):
-        raise MapError(f"pixel_scale must be a number, got {type(pixel_scale).__name__} {pixel_scale!r}")
-    value = float(pixel_scale)
-    if not (math.isfinite(value) and 0.0 < value <= MAX_PIXEL_SCALE):
+    value = check_real(pixel_scale, "pixel_scale")
+    if not 0.0 < value <= MAX_PIXEL_SCALE:
         raise MapError(f"pixel_scale must be finite and in (0, {MAX_PIXEL_SCALE:g}], got {pixel_scale}")
     return value
 

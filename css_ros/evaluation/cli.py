@@ -10,7 +10,7 @@ from typing import Sequence
 
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
 from ..engine.backends import BACKENDS
-from ..engine.map_args import MAX_CONCENTRATION
+from ..engine.map_args import MAX_CONCENTRATION, MIN_CONCENTRATION
 from ..engine.warmup import warm_up_kernels
 from ..console import run_console
 from ..errors import ConfigError
@@ -190,8 +190,8 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         if v is not None and v < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0")
     for name in ("prior", "background"):
-        if not (math.isfinite(getattr(args, name)) and 0 < getattr(args, name) <= MAX_CONCENTRATION):
-            raise ConfigError(f"--{name} must be finite, > 0 and <= {MAX_CONCENTRATION:g}")
+        if not (math.isfinite(getattr(args, name)) and MIN_CONCENTRATION <= getattr(args, name) <= MAX_CONCENTRATION):
+            raise ConfigError(f"--{name} must be in [{MIN_CONCENTRATION:g}, {MAX_CONCENTRATION:g}]")
     given = {kind: getattr(args, f"topic_{kind}") for kind in BAG_TOPICS}
     topics = {kind: BAG_TOPICS[kind] if v is None else v for kind, v in given.items()}
     for kind in REQUIRED_BAG_KINDS:

@@ -15,7 +15,7 @@ from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN
                            DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from ..engine.backends import BACKENDS
 from ..engine.camera import MAX_CAMERA_PIXELS
-from ..engine.map_args import MAX_CONCENTRATION
+from ..engine.map_args import MAX_CONCENTRATION, MIN_CONCENTRATION
 from ..engine.semantic_map import MAX_RECEIVED_SOURCES
 from ..errors import ConfigError
 from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsics
@@ -287,8 +287,8 @@ def check_params(p: NodeParams) -> None:
         if not (math.isfinite(getattr(p, name)) and getattr(p, name) > 0):
             raise bad(name, "must be finite and > 0")
     for name in ("prior", "background"):
-        if getattr(p, name) > MAX_CONCENTRATION:
-            raise bad(name, f"must be <= {MAX_CONCENTRATION:g} (the largest concentration a map file may hold)")
+        if not MIN_CONCENTRATION <= getattr(p, name) <= MAX_CONCENTRATION:
+            raise bad(name, f"must be in [{MIN_CONCENTRATION:g}, {MAX_CONCENTRATION:g}] (what a map file may hold)")
     if p.unknown_threshold > 1:
         raise bad("unknown_threshold", "must be <= 1 (a background weight; 1.0: never unknown)")
     for name in ("output_scale", "candidate_scale"):
