@@ -18,8 +18,6 @@ from scenes import small_wall
 C, PRIOR = 4, 1e-3
 
 
-
-
 def _packet(kind, origin, fp, n, seq, vals, epoch, frames, snapshot_id=0, c=C):
     rows = np.flatnonzero(np.any(vals != 0, axis=1))
     return decode_packet(ev.encode_packet(kind, origin, fp, seq, rows, vals[rows], PRIOR, n, snapshot_id=snapshot_id,
@@ -217,3 +215,49 @@ def test_an_empty_snapshot_part_costs_what_it_carries_not_its_range():
     assert conc[n - 1].sum() == pytest.approx(c * (PRIOR + 1.0))   # the last part (odd k) held the row
     np.testing.assert_array_equal(conc[:50, 3], PRIOR + 1.0)
     assert ledger.sources["flooder"].held_rows == 1 and ledger.sources["robot_a"].held_rows == 50
+
+
+def _first_of_two_parts(origin, fp, n, epoch):
+    """Part 0 (empty, rows [0, n/2)) of a 2-part snapshot, never followed by part 1."""
+    return decode_packet(ev.encode_packet(SNAPSHOT, origin, fp, 1, np.zeros(0, np.int64), np.zeros((0, C)), PRIOR, n,
+                                          snapshot_id=1, range_start=0, range_end=n // 2, part=0, parts=2,
+                                          epoch=epoch, frames=1), 20_000)
+
+
+def test_unfinished_snapshots_never_lock_a_new_source_out(tmp_path):
+    """Eight origins that each send only part 0 (empty) of a 2-part snapshot held all eight slots for ever: every
+    new peer was refused as "too many sources". Sources holding no evidence now give way, the least recently active
+    unfinished snapshot first; a source that holds evidence keeps its slot."""
+    model = small_wall(tmp_path, 50)
+    n, fp = model.num_gaussians, model.fingerprint
+    smap, ledger = _bound_map(model)
+    conc = smap.concentrations
+    held = np.full((n, C), 0.5)
+    assert ledger.apply(_packet(SNAPSHOT, "holder", fp, n, 1, held, 1, 1, 1), conc, now=0.0) is None
+    for k in range(7):
+        assert ledger.apply(_first_of_two_parts(f"junk{k}", fp, n, 5), conc, now=1.0 + k) is None
+    assert len(ledger.sources) == 8
+    real = np.full((n, C), 0.25)
+    for t in range(3):   # every new peer gets a slot, each time from the stalest unfinished snapshot
+        assert ledger.apply(_packet(SNAPSHOT, f"peer{t}", fp, n, 1, real, 7, 1, 1), conc, now=20.0 + t) is None
+        assert f"junk{t}" not in ledger.sources and "holder" in ledger.sources
+    np.testing.assert_allclose(conc, PRIOR + held + 3 * real)
+
+
+def test_unfinished_returns_never_block_a_real_return():
+    """Unfinished forged returns from max_sources senders blocked a real return until the window closed."""
+    n, fp = 40, "ab" * 32
+    rec = ev.EvidenceRecovery("me", fp, n, C, PRIOR, checkpoint_epoch=100, checkpoint_frames=1, current_epoch=200,
+                              max_frame_evidence=10.0, max_sources=4, now=0.0, window=30.0)
+    evidence = np.zeros((n, C))
+    evidence[::2, 1] = 0.5
+    for k in range(4):
+        first, _ = ev.encode_return(f"forger{k}", "me", fp, 150, 2, evidence, PRIOR, 5)[:2]
+        assert rec.offer(decode_packet(first, 100), now=1.0) == (None, None)
+    parts = ev.encode_return("robot_a", "me", fp, 150, 2, evidence, PRIOR, 5)
+    for p in parts[:-1]:
+        assert rec.offer(decode_packet(p, 100), now=2.0) == (None, None)
+    reason, adopted = rec.offer(decode_packet(parts[-1], 100), now=2.0)
+    assert reason is None and adopted is not None
+    np.testing.assert_array_equal(adopted[2], evidence)
+

@@ -255,6 +255,8 @@ class SourceState(SourceEvidence):
     #: held in its range without a pass over (N, C) arrays); None: taken from ``evidence`` once
     held: np.ndarray | None = None
     held_rows: int = 0
+    #: time.monotonic() of the source's latest applied packet (which source without evidence gives its slot first)
+    active_at: float = -math.inf
 
     def __post_init__(self) -> None:
         if self.held is None:
@@ -408,7 +410,7 @@ class EvidenceLedger:
             new_epoch = state is None or pkt.epoch != state.epoch or state.clock is None   # free first claim
             if state is not None and not new_epoch and pkt.frames > self._allowed_frames(state, now):
                 return "frames claimed faster than evidence_max_frame_rate"
-            if state is None and len(self.sources) >= self.max_sources and not self._free_slot():
+            if state is None and len(self.sources) >= self.max_sources and not self._free_slot(pkt.origin):
                 return "too many sources"
             snap: _Snapshot | None = _Snapshot(pkt.epoch, pkt.seq, pkt.frames)
         else:
@@ -460,6 +462,7 @@ class EvidenceLedger:
         state.pending = snap
         state.last_seq = pkt.seq
         state.packets += 1
+        state.active_at = now
         if snap.next_part == pkt.parts:
             state.in_step, state.pending, state.total = True, None, snap.total
             state.frames = state.frames_base = pkt.frames
@@ -498,13 +501,16 @@ class EvidenceLedger:
         return encode_return(self.own_origin, subject, self.digest.hex(), epoch, frames, evidence, self.prior,
                              max_rows)
 
-    def _free_slot(self) -> bool:
-        """Drop one source that holds no evidence (a new source may take its slot); False when none."""
-        for name, s in self.sources.items():
-            if not s.held_rows and s.pending is None:
-                del self.sources[name]
-                return True
-        return False
+    def _free_slot(self, newcomer: str) -> bool:
+        """Drop one source that holds no evidence, so that ``newcomer`` may take its slot; False when every source
+        holds some. A source with no snapshot under way goes first; else the one whose unfinished snapshot (its parts
+        so far empty: nothing of it is in the map) was active least recently, so unfinished snapshots (junk part 0s, a
+        peer killed between parts) never lock new sources out."""
+        idle = [(s.pending is not None, s.active_at, name) for name, s in self.sources.items() if not s.held_rows]
+        if not idle:
+            return False
+        del self.sources[min(idle)[2]]
+        return True
 
 
 def encode_return(sender: str, subject: str, fingerprint: str, epoch: int, frames: int, evidence: np.ndarray,
@@ -548,6 +554,8 @@ class EvidenceRecovery:
         self.window, self.until = window, math.inf
         self.checkpoint_frames, self.max_frame_rate = int(checkpoint_frames), float(max_frame_rate)
         self._pending: dict[str, tuple[int, int, int, int, np.ndarray]] = {}   # sender -> epoch, frames, part, start
+        self._active: dict[str, int] = {}   # sender -> order of its latest part (the oldest pending gives way)
+        self._clock = 0
 
     def heard(self, now: float) -> None:
         """A peer packet was applied at ``now`` (time.monotonic()): the window runs from the first one."""
@@ -568,6 +576,7 @@ class EvidenceRecovery:
             return "return for another node", None
         if not self.open(now):
             self._pending.clear()
+            self._active.clear()
             return "return after the recovery window", None
         if pkt.fingerprint_digest != self.digest:
             return "evidence of another splat model", None
@@ -586,7 +595,10 @@ class EvidenceRecovery:
             if lo != 0 or pkt.seq != 1:
                 return "bad sequence / part / range fields", None
             if pkt.origin not in self._pending and len(self._pending) >= self.max_sources:
-                return "too many sources", None
+                # the return least recently continued gives way (unfinished forged returns never block a real one)
+                oldest = min(self._pending, key=lambda k: self._active.get(k, -1))
+                del self._pending[oldest]
+                self._active.pop(oldest, None)
             cur = (pkt.epoch, pkt.frames, 0, 0, np.zeros((self.n, self.c)))
         else:
             cur = self._pending.get(pkt.origin)   # type: ignore[assignment]
@@ -602,8 +614,11 @@ class EvidenceRecovery:
         buf[pkt.rows] = pkt.values
         if pkt.part + 1 < pkt.parts:
             self._pending[pkt.origin] = (pkt.epoch, pkt.frames, pkt.part + 1, hi, buf)
+            self._active[pkt.origin] = self._clock
+            self._clock += 1
             return None, None
         self._pending.pop(pkt.origin, None)
+        self._active.pop(pkt.origin, None)
         self.best = (pkt.epoch, pkt.frames)
         return None, (pkt.epoch, pkt.frames, buf)
 
