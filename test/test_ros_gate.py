@@ -50,8 +50,9 @@ class Harness:
         self.warn = WarnLimiter(self.lines.append, params.get("warn_period", 0.0))
         self.now = now_ns
         self.confidence = confidence
+        self.mono = 0.0   # the clock frames wait on [s]
         self.gate = InputGate(NodeParams(**params), self.warn, self.count, lambda: self.now, lambda: self.confidence,
-                              self.logged.append)
+                              self.logged.append, lambda: self.mono)
 
     def count(self, key: str, n: int = 1) -> None:
         self.counts[key] = self.counts.get(key, 0) + n
@@ -65,12 +66,27 @@ class Harness:
 
 def test_frame_needs_camera_info_then_completes_with_its_intrinsics():
     h = Harness()
-    assert h.frame(S) == [] and h.warned("segmentation: no camera_info received yet") == 1
+    assert h.frame(S) == [] and h.warned("segmentation: no camera_info received yet") == 0   # waits for it
+    h.mono = NodeParams().pose_wait
+    assert h.gate.poll() == [] and h.warned("segmentation: no camera_info received yet") == 1   # none came: dropped
     assert h.gate.on_camera_info(camera_info())
     (job,) = h.frame(2 * S)
     f = job.frame
     assert job.stamp_ns == 2 * S and f.labels.shape == (H, W) and f.camera.K[0, 0] == 20.0
     assert f.confidence is None and h.counts["frames_synchronised"] == 1
+
+
+def test_a_first_segmentation_before_its_camera_info_waits_for_it():
+    """DDS orders no two topics: a driver's first camera_info may reach the node after the segmentation it was
+    published with. That frame once was dropped at once ("no camera_info received yet"); it now waits up to
+    pose_wait, like a frame waiting for its pose, and is mapped with the camera_info that came."""
+    h = Harness()
+    assert h.frame(S) == []
+    h.mono = 0.4 * NodeParams().pose_wait
+    assert h.gate.on_camera_info(camera_info())
+    (job,) = h.gate.poll()   # the node's pose-wait timer releases it
+    assert job.stamp_ns == S and job.frame.camera.K[0, 0] == 20.0
+    assert h.warned("segmentation: no camera_info received yet") == 0
 
 
 def test_frame_waits_for_the_pose_after_its_stamp_then_interpolates():
@@ -126,11 +142,12 @@ def test_size_mismatch_with_camera_info_dropped():
 def test_size_checked_against_camera_info_of_frame_time_when_info_came_late():
     h = Harness()
     h.gate.on_pose(pose(S))
-    h.gate.on_segmentation(labels(S, w=W // 2))  # no camera_info yet: size unknown, deferred
+    h.gate.on_segmentation(labels(S, w=W // 2))  # no camera_info yet: size unknown, the frame waits for it
     h.gate.on_camera_info(camera_info())
     h.gate.on_pose(pose(2 * S))
     assert h.gate.on_segmentation(labels(2 * S, w=W // 2)) == []
-    assert h.warned("segmentation: size mismatch with camera_info") == 1
+    # both frames are checked against the camera_info that came: the waiting one too
+    assert h.warned("segmentation: size mismatch with camera_info") == 2
 
 
 def test_invalid_camera_info_refused_previous_kept():

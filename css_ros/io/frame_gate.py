@@ -9,8 +9,8 @@ confidence (required while it is published), colour image and extra images (opti
 the latest valid camera_info. Its pose comes from the pose history **interpolated at the segmentation stamp**
 (:mod:`css_ros.io.pose_history`), composed with the camera's extrinsics (pose of the optical frame in the frame
 the pose describes) and taken from the map into the splat frame by ``splat_to_map``'s inverse. A frame whose
-pose is not yet bracketed (or whose confidence has not arrived) waits up to ``pose_wait`` s; frames of a camera
-are emitted in stamp order.
+pose is not yet bracketed (or whose confidence, or its camera's first camera_info, has not arrived) waits up to
+``pose_wait`` s; frames of a camera are emitted in stamp order.
 
 With ``pose_source`` "tf" the pose stream is not used: the pose is the TF lookup ``map_frame <- frame_id`` of the
 segmentation's header at its stamp (:mod:`css_ros.io.tf_buffer`, fed by :meth:`FrameGate.on_tf`), with the same
@@ -438,6 +438,9 @@ class FrameGate:
                 continue
             if not waited and any(self._nearest(st.buffers[k], fr.stamp_ns) is None for k in self.cfg.wait_for):
                 break
+            if st.info is None and not waited:
+                # the camera's first camera_info may arrive after its first segmentation: DDS orders no two topics
+                break
             look = self._lookup(history, fr, waited)
             if look.status is LookupStatus.WAIT:
                 break
@@ -466,7 +469,8 @@ class FrameGate:
         topic = self.topic(st.index, "segmentation")
         info = st.info
         if info is None:
-            self.warn(topic, "no camera_info received yet", "frame dropped")
+            self.warn(topic, "no camera_info received yet",
+                      f"none within pose_wait={self.cfg.pose_policy.wait:g} s of the frame; frame dropped")
             return None
         try:
             intr = intrinsics_for(fr.labels.shape, info)
