@@ -105,22 +105,13 @@ def test_sensor_model_load_refuses_hostile_files_in_bounded_memory(tmp_path):
         assert float(lines[1].split()[1]) < 400, (case, lines[1])
 
 
-@pytest.fixture(scope="module")
-def demo_bag(tmp_path_factory):
-    from css_ros.demo.make_demo import make_demo
-
-    root = tmp_path_factory.mktemp("sm_demo")
-    make_demo(root, num_gaussians=1500, frames=2, width=32, height=24, seed=3, progress=False)
-    return root
-
-
-def test_css_replay_refuses_hostile_sensor_models_in_one_line(demo_bag, tmp_path):
+def test_css_replay_refuses_hostile_sensor_models_in_one_line(tiny_demo, tmp_path):
     """css_replay BAG --sensor-model FILE: exit 1, one ``css_replay: error: sensor model FILE: ...`` line naming the
     fault (never "unexpected"), and no output written (the file is read before the replay starts)."""
-    names = ClassSet.from_yaml(demo_bag / "classes.yaml").names
+    names = ClassSet.from_yaml(tiny_demo / "classes.yaml").names
     for case, (path, expect) in hostile_files(tmp_path / "files", names).items():
         out = tmp_path / f"out_{path.stem}"
-        proc = subprocess.run([sys.executable, "-m", "css_ros.evaluation.cli", str(demo_bag / "bag"), "--out",
+        proc = subprocess.run([sys.executable, "-m", "css_ros.evaluation.cli", str(tiny_demo / "bag"), "--out",
                                str(out), "--quiet", "--sensor-model", str(path)], capture_output=True, text=True,
                               timeout=300, env=rh.node_env(0), preexec_fn=_capped)
         err = proc.stderr.strip().splitlines()

@@ -262,21 +262,12 @@ def test_values_of_the_wrong_yaml_type_and_duplicate_keys_are_refused(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------- css_replay
-@pytest.fixture(scope="module")
-def demo_bag(tmp_path_factory):
-    from css_ros.demo.make_demo import make_demo
-
-    root = tmp_path_factory.mktemp("sm_refusals_demo")
-    make_demo(root, num_gaussians=1500, frames=2, width=32, height=24, seed=3, progress=False)
-    return root
-
-
-def test_css_replay_gives_the_same_refusals_in_one_line(demo_bag, tmp_path):
+def test_css_replay_gives_the_same_refusals_in_one_line(tiny_demo, tmp_path):
     """css_replay BAG --sensor-model FILE (side by side; the reader is SensorModel.load, whose every refusal is
     tested above): exit 1, one line ``css_replay: error: sensor model FILE ...`` with the reader's reason (the old
     css_replay said "File name too long: /tmp/aaa..." without naming the file's role, printed a 100 kB line for B,
     replayed D with exit 0 and said "does not exist" of a FIFO)."""
-    names = ClassSet.from_yaml(demo_bag / "classes.yaml").names
+    names = ClassSet.from_yaml(tiny_demo / "classes.yaml").names
     good = _good(names)
     os.mkfifo(tmp_path / "fifo.yaml")
     coef = dict(good, confidence=dict(good["confidence"], coef=[1e308, -1e308, 0.0]))
@@ -287,7 +278,7 @@ def test_css_replay_gives_the_same_refusals_in_one_line(demo_bag, tmp_path):
         "D huge coef": (_write(tmp_path / "d.yaml", coef), "confidence.coef must be within"),
         "H FIFO": (tmp_path / "fifo.yaml", "is a FIFO (named pipe)"),
     }
-    procs = {case: subprocess.Popen([sys.executable, "-m", "css_ros.evaluation.cli", str(demo_bag / "bag"), "--out",
+    procs = {case: subprocess.Popen([sys.executable, "-m", "css_ros.evaluation.cli", str(tiny_demo / "bag"), "--out",
                                      str(tmp_path / f"out{i}"), "--quiet", "--sensor-model", str(path)],
                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=rh.node_env(0))
              for i, (case, (path, _)) in enumerate(cases.items())}

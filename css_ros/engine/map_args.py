@@ -21,10 +21,10 @@ if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
 
-__all__ = ["MAX_CONCENTRATION", "MIN_CONCENTRATION", "MAX_CLASSES", "MAX_QUERY_VALUES", "check_model", "check_num_classes",
-           "check_real", "check_concentration", "check_unknown_threshold", "check_ignore_label", "check_background_rgb",
-           "check_depth_scale", "check_camera", "check_real_array", "check_query_points", "check_background_weight",
-           "check_map_path"]
+__all__ = ["MAX_CONCENTRATION", "MIN_CONCENTRATION", "MAX_CLASSES", "MAX_QUERY_VALUES", "check_model",
+           "check_integer", "check_num_classes", "check_real", "check_concentration", "check_unknown_threshold",
+           "check_ignore_label", "check_background_rgb", "check_depth_scale", "check_camera", "check_real_array",
+           "check_query_points", "check_background_weight", "check_map_path", "shown"]
 
 #: Largest concentration / prior / background of a map (beyond: a crafted or broken file, or a typo).
 MAX_CONCENTRATION = 1e15
@@ -64,10 +64,10 @@ def check_real(value: Any, name: str) -> float:
 
 def _short(value: Any, limit: int = 60) -> str:
     """``repr(value)`` cut to ``limit`` characters (error messages never echo a huge argument)."""
-    return _cut(repr(value), limit)
+    return shown(repr(value), limit)
 
 
-def _cut(text: str, limit: int = 200) -> str:
+def shown(text: str, limit: int = 200) -> str:
     """``text`` cut to ``limit`` characters; quoted when it holds a newline or other unprintable character (a message
     stays one line)."""
     text = text if text.isprintable() else repr(text)
@@ -83,21 +83,26 @@ def check_model(model: Any) -> "GaussianModel":
     return model
 
 
-def check_num_classes(value: Any, name: str = "num_classes") -> int:
-    """C: an integer in 1..MAX_CLASSES (an integral float such as 4.0 or a 0-d array counts; 2.7, True, "4" do not)."""
+def check_integer(value: Any, name: str) -> int:
+    """``value`` as an int: an integer, a float holding one or a 0-d array of either (bools, NaN, fractions, numbers
+    beyond float64 and other types refused, MapError naming ``name``)."""
     value = _scalar(value)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (Integral, Real)):
         raise MapError(f"{name} must be an integer, got {type(value).__name__} {_short(value)}")
     if isinstance(value, Integral):
-        c = int(value)
-    else:
-        try:
-            f = float(value)
-        except OverflowError:
-            f = math.inf
-        if not (math.isfinite(f) and f.is_integer()):
-            raise MapError(f"{name} must be an integer, got {_short(value)}")
-        c = int(f)
+        return int(value)
+    try:
+        f = float(value)
+    except OverflowError:
+        f = math.inf
+    if not (math.isfinite(f) and f.is_integer()):
+        raise MapError(f"{name} must be an integer, got {_short(value)}")
+    return int(f)
+
+
+def check_num_classes(value: Any, name: str = "num_classes") -> int:
+    """C: an integer in 1..MAX_CLASSES (an integral float such as 4.0 or a 0-d array counts; 2.7, True, "4" do not)."""
+    c = check_integer(value, name)
     if not 1 <= c <= MAX_CLASSES:
         raise MapError(f"{name} must be in 1..{MAX_CLASSES}, got {c}")
     return c
@@ -207,24 +212,24 @@ def check_map_path(path: Any, reading: bool) -> Path:
         raw = os.fspath(path)
         p = Path(raw)
     except Exception as exc:  # noqa: BLE001 - a PathLike's __fspath__ may raise anything, or return bytes
-        raise MapError(f"map path {type(path).__name__} gives no str path ({type(exc).__name__}: {_cut(str(exc))})") \
+        raise MapError(f"map path {type(path).__name__} gives no str path ({type(exc).__name__}: {shown(str(exc))})") \
             from None
     text = os.fspath(p)
     if "\0" in text or not text:
         raise MapError(f"map path {_short(text)} is empty or holds a NUL character")
     if not reading and raw.endswith(os.sep):
-        raise MapError(f"cannot save the map to {_cut(text)}{os.sep}: the path names a folder, give a file name")
+        raise MapError(f"cannot save the map to {shown(text)}{os.sep}: the path names a folder, give a file name")
     try:
         st = os.stat(p)
     except FileNotFoundError:
         if reading:
-            raise MapError(f"map file {_cut(text)} does not exist") from None
+            raise MapError(f"map file {shown(text)} does not exist") from None
         st = None
     except OSError as exc:
-        raise MapError(f"map file {_cut(text)}: {exc.strerror or exc}") from None
+        raise MapError(f"map file {shown(text)}: {exc.strerror or exc}") from None
     if reading and st is not None and not stat.S_ISREG(st.st_mode):
-        raise MapError(f"map file {_cut(text)} is not a regular file")
+        raise MapError(f"map file {shown(text)} is not a regular file")
     if not reading:
         if st is not None and stat.S_ISDIR(st.st_mode):
-            raise MapError(f"cannot save the map to {_cut(text)}: it is a directory")
+            raise MapError(f"cannot save the map to {shown(text)}: it is a directory")
     return p

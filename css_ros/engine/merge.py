@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from ..errors import MapError
-from .map_args import MAX_CONCENTRATION
+from .map_args import MAX_CONCENTRATION, shown
 from .spec import MAX_FRAMES
 
 if TYPE_CHECKING:
@@ -38,12 +38,6 @@ def check_compatible(a: "SemanticMap", b: "SemanticMap", name_a: str = "first ma
         raise MapError(f"{name_a} and {name_b} were fused with different sensor models "
                        f"({a.fused_sensor_model[:12] or 'none'} vs {b.fused_sensor_model[:12] or 'none'}): their "
                        "evidence is weighted differently and does not add up")
-
-
-def _shown(name: str, limit: int = 80) -> str:
-    """A map's name as messages show it: one line, at most ``limit`` characters."""
-    name = name if name.isprintable() else repr(name)
-    return name if len(name) <= limit else name[:limit] + "…"
 
 
 def add_evidence(target: "SemanticMap", source: "SemanticMap") -> None:
@@ -78,7 +72,7 @@ def merge_maps(maps: Sequence["SemanticMap"], names: Sequence[str] | None = None
         names = [f"map {i + 1}" for i in range(len(maps))]
     elif isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
         raise MapError(f"names must be a sequence of str (one per map), got {type(names).__name__}")
-    names = [_shown(str(n)) for n in names]
+    names = [shown(str(n), 80) for n in names]
     if len(names) != len(maps):
         # zip() would stop at the shorter one and leave the other maps unchecked
         raise MapError(f"{len(names)} names for {len(maps)} maps: give one name per map")

@@ -8,14 +8,12 @@ and their evidence for the greedy re-scoring: memory grows with the candidates).
 """
 from __future__ import annotations
 
-import math
-from numbers import Integral, Real
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import CameraError, MapError
-from .map_args import check_real, check_real_array
+from .map_args import check_integer, check_real, check_real_array
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -32,27 +30,9 @@ MAX_PIXEL_SCALE = 1e6
 MAX_SELECT_CANDIDATES = 1024
 
 
-def _integer(value: Any, name: str) -> int:
-    """``value`` as an int: an integer, or a float holding one, or a 0-d array of either (bools, NaN, fractions and
-    other types refused)."""
-    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
-        value = value[()]
-    if isinstance(value, bool) or not isinstance(value, (Integral, Real)):
-        raise MapError(f"{name} must be an integer, got {type(value).__name__} {value!r}")
-    if isinstance(value, Integral):
-        return int(value)
-    try:
-        f = float(value)
-    except OverflowError:
-        f = math.inf
-    if not (math.isfinite(f) and f.is_integer()):
-        raise MapError(f"{name} must be an integer, got {str(value)[:60]}")
-    return int(f)
-
-
 def check_k(k: Any) -> int:
     """The number of views to select: an integer >= 1."""
-    value = _integer(k, "k")
+    value = check_integer(k, "k")
     if value < 1:
         raise MapError(f"k must be >= 1 (the number of views to select), got {value}")
     return value
@@ -60,7 +40,7 @@ def check_k(k: Any) -> int:
 
 def check_class_id(class_id: Any, num_classes: int) -> int:
     """A class id in 0..C-1."""
-    value = _integer(class_id, "class_id")
+    value = check_integer(class_id, "class_id")
     if not 0 <= value < num_classes:
         raise MapError(f"class_id {value} outside 0..{num_classes - 1}")
     return value
