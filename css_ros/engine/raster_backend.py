@@ -16,7 +16,23 @@ if TYPE_CHECKING:
     from .buffers import RenderBuffers
     from .camera import Camera
     from .info_gain import SelectedViews
+    from .label_input import FrameLabels
     from .sensor_model import SoftLabels
+
+
+class UpdateCounts:
+    """Pixel counts of one update (used, ignored, out of range, no depth), as a backend hands them over: the CPU's
+    are ready; a device backend's may arrive with the next view's one copy (:meth:`get` then costs nothing) or are
+    fetched by :meth:`get` (one synchronisation)."""
+
+    def __init__(self, counts: "np.ndarray | None" = None) -> None:
+        self._counts = None if counts is None else tuple(int(v) for v in np.asarray(counts)[:4])
+
+    def get(self) -> tuple[int, int, int, int]:
+        """(used, ignored, out_of_range, no_depth)."""
+        assert self._counts is not None
+        return self._counts  # type: ignore[return-value]
+
 
 class RasterBackend(ABC):
     """What SemanticMap needs from a rasteriser (the backend contract). ``frame`` is the backend's own
@@ -32,13 +48,15 @@ class RasterBackend(ABC):
     def prepare(self, camera: "Camera") -> Any: ...
 
     @abstractmethod
-    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
-               soft: "SoftLabels | None" = None) -> int:
-        """concentrations[n, c] += sum_i kappa_in y_i^c (labels (H, W) int32, -1 = none; weights (H, W)).
+    def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> "UpdateCounts":
+        """concentrations[n, c] += sum_i kappa_in y_i^c, each pixel's vote given by
+        :func:`~css_ros.engine.label_input.pixel_vote` of its label and confidence as they came in (``inputs``).
 
         With ``soft`` (a sensor model, docs/spec.md "Sensor model"), y_i^c = weight_i * table[label_i * B + b_i, c]
-        with b_i the depth bin of the pixel's expected depth sum kappa z / sum kappa. Returns the labelled pixels
-        without any contribution (no depth) when ``soft`` is given, else 0."""
+        with b_i the depth bin of the pixel's expected depth sum kappa z / sum kappa. Returns the pixel counts (used,
+        ignored, out of range and, with ``soft``, labelled pixels without any contribution), possibly still on a
+        device until :meth:`UpdateCounts.get`."""
 
     @abstractmethod
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,

@@ -15,6 +15,7 @@ from ..errors import InputError, MapError, SensorModelError
 from .atomic import atomic_file
 from .backends import make_backend
 from .final_form import RenderSettings, check_outputs
+from .label_input import FrameLabels, check_frame_labels
 from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
     from .info_gain import SelectedViews
+    from .raster_backend import UpdateCounts
     from .sensor_model import SensorModel, SoftLabels
 
 MAP_FORMAT_VERSION = 1
@@ -412,48 +414,24 @@ class SemanticMap:
         return e_b, e_b * (1.0 - e_b) / (1.0 + s_b), s_b
 
     # ------------------------------------------------------------------ inputs
-    def _check_size(self, camera: "Camera", image: np.ndarray, what: str) -> None:
-        if image.shape[:2] != (camera.height, camera.width):
-            raise InputError(f"{what} is {image.shape[1]}x{image.shape[0]} but the camera is "
-                             f"{camera.width}x{camera.height}")
-
-    def _prepare_labels(self, camera: "Camera", labels: np.ndarray,
-                        confidence: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, UpdateStats]:
-        if isinstance(labels, np.ma.MaskedArray):
-            raise InputError("labels is a masked array: give a plain array (ignore_label marks pixels without a label)")
-        labels = np.asarray(labels)
-        if labels.ndim != 2:
-            raise InputError(f"labels must be an (H, W) array, got shape {labels.shape}")
-        if not np.issubdtype(labels.dtype, np.integer):
-            raise InputError(f"labels must be integers, got {labels.dtype}")
-        self._check_size(camera, labels, "label image")
-        lab = labels.astype(np.int64)
-        ignored = lab == self.ignore_label
-        out_of_range = ~ignored & ((lab < 0) | (lab >= self.num_classes))
-        lab = np.where(ignored | out_of_range, -1, lab).astype(np.int32)
-        if confidence is None:
-            weights = np.ones(lab.shape, dtype=np.float32)
-        else:
-            conf = map_args.check_real_array(confidence, "confidence")
-            if conf.shape != lab.shape:
-                raise InputError(f"confidence shape {conf.shape} differs from labels {lab.shape}")
-            # clipped in float64 before the float32 cast (1e300 would overflow the cast with a RuntimeWarning)
-            weights = np.clip(np.nan_to_num(conf, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)
-        used = int(np.count_nonzero((lab >= 0) & (weights > 0)))
-        n_oor = int(np.count_nonzero(out_of_range))
-        stats = UpdateStats(used=used, ignored=int(lab.size) - used - n_oor, out_of_range=n_oor)
-        return np.ascontiguousarray(lab), np.ascontiguousarray(weights), stats
+    def _frame_labels(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None) -> FrameLabels:
+        """The frame's labels and confidence checked (shape, dtype) and handed on as they came
+        (:mod:`css_ros.engine.label_input`): the backend's compiled pass applies the label rule and counts."""
+        return check_frame_labels(labels, confidence, (camera.height, camera.width), self.num_classes,
+                                  self.ignore_label)
 
     # ------------------------------------------------------------------ engine
     def _update_frame(self, frame: Any, camera: "Camera", labels: np.ndarray,
-                      confidence: np.ndarray | None) -> UpdateStats:
-        lab, weights, stats = self._prepare_labels(camera, labels, confidence)
-        if self._soft is None:
-            self._backend.update(frame, lab, weights, self._concentrations)
-        else:
-            no_depth = self._backend.update(frame, lab, weights, self._concentrations, self._soft)
-            stats = UpdateStats(stats.used, stats.ignored, stats.out_of_range, int(no_depth))
+                      confidence: np.ndarray | None) -> "UpdateCounts":
+        """Update with one frame; the counts may still be on a device (:meth:`_finish_update` reads them)."""
+        inputs = self._frame_labels(camera, labels, confidence)
+        pending = self._backend.update(frame, inputs, self._concentrations, self._soft)
         self.frames_observed += 1
+        return pending
+
+    def _finish_update(self, pending: "UpdateCounts") -> UpdateStats:
+        used, ignored, out_of_range, no_depth = pending.get()
+        stats = UpdateStats(used, ignored, out_of_range, no_depth if self._soft is not None else 0)
         self.last_update = stats
         return stats
 
@@ -489,7 +467,7 @@ class SemanticMap:
             CameraError: ``camera`` is not a Camera.
         """
         frame = self._backend.prepare(map_args.check_camera(camera, "update"))
-        return self._update_frame(frame, camera, labels, confidence)
+        return self._finish_update(self._update_frame(frame, camera, labels, confidence))
 
     def observe(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None,
                 probabilities: bool = False, outputs: Iterable[str] | None = None) -> RenderedView:
@@ -499,8 +477,10 @@ class SemanticMap:
         the others are None in the view and cost no copy from the device."""
         settings = self.render_settings(outputs, probabilities)
         frame = self._backend.prepare(map_args.check_camera(camera, "observe"))
-        self._update_frame(frame, camera, labels, confidence)
-        return self._render_frame(frame, settings)
+        pending = self._update_frame(frame, camera, labels, confidence)
+        view = self._render_frame(frame, settings)
+        self._finish_update(pending)  # a device backend's counts came with the view's one copy
+        return view
 
     def render(self, camera: "Camera", probabilities: bool = False,
                outputs: Iterable[str] | None = None) -> RenderedView:

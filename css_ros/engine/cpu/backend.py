@@ -7,9 +7,11 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from ..raster_backend import RasterBackend
+from ..label_input import NO_DEPTH
+from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
+from .votes import votes
 from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
 
 if TYPE_CHECKING:
@@ -17,6 +19,7 @@ if TYPE_CHECKING:
     from ..camera import Camera
     from ..final_form import FrameImages, RenderSettings
     from ..gaussians import GaussianModel
+    from ..label_input import FrameLabels
     from ..sensor_model import SoftLabels
 
 
@@ -37,15 +40,17 @@ class NumbaBackend(RasterBackend):
         proj = project(self.geometry, camera, self._scratch)
         return proj, bin_tiles(proj, camera.width, camera.height), camera
 
-    def update(self, frame: Any, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
-               soft: "SoftLabels | None" = None) -> int:
+    def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> UpdateCounts:
         proj, bins, _ = frame
+        labels, weights, counts = votes(inputs)
         self._store.owner = None
         acc, acc_base, no_depth = accumulate_update(proj, bins, labels, weights, concentrations.shape[1],
                                                     self._store, soft)
         self._store.owner = frame
         add_increments(concentrations, proj.ids, acc, acc_base)
-        return no_depth
+        counts[NO_DEPTH] = no_depth
+        return UpdateCounts(counts)
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:

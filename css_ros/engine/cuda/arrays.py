@@ -99,6 +99,11 @@ class NumpyOps:
         """dev[:n] = 0 (the output buffer's header)."""
         dev[:n] = 0
 
+    def copy_words(self, dev: Any, offset: int, src: Any) -> None:
+        """dev[offset:...] = the int32 words of ``src`` (device to device, no synchronisation)."""
+        words = src.view(np.int32).reshape(-1)
+        dev[offset:offset + words.shape[0]] = words
+
     def download_words(self, dev: Any, n: int) -> np.ndarray:
         """A fresh host copy of dev[:n] (the frame's one copy): the caller's images are views into it."""
         return np.array(self.download(dev[:n]))
@@ -224,6 +229,11 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
 
     def zero_words(self, dev: Any, n: int) -> None:
         dev[:n].zero_()
+
+    def copy_words(self, dev: Any, offset: int, src: Any) -> None:
+        """dev[offset:...] = the int32 words of ``src`` (an asynchronous device-to-device copy)."""
+        words = src.view(self.torch.int32).reshape(-1)
+        dev[offset:offset + words.shape[0]].copy_(words, non_blocking=True)
 
     def download_words(self, dev: Any, n: int) -> np.ndarray:
         """dev[:n] into a page-locked host buffer in one asynchronous copy and one synchronisation; the returned

@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 import numpy as np
 
 from ...errors import CssError
-from ..raster_backend import RasterBackend
+from ..label_input import NUM_COUNTS
+from ..raster_backend import RasterBackend, UpdateCounts
 from ..buffers import RenderBuffers
 from ..final_form import IMAGE_OUTPUTS, FrameImages, RenderSettings, uncertainty_from_sums
 from ..info_gain import SelectedViews
@@ -27,10 +28,11 @@ from ..spec import INFO_GAIN_PRIOR
 from ..spec import TILE_SIZE
 from ..splat_math import CAM_COLS, camera_row
 from .arrays import import_cuda, make_ops, simulator_enabled
-from .layout import HEADER_WORDS, NUM_PLANES, plane_layout
+from .layout import COUNT_WORDS, HEADER_WORDS, NUM_PLANES, plane_layout
 
 if TYPE_CHECKING:
     from ..camera import Camera
+    from ..label_input import FrameLabels
     from ..sensor_model import SoftLabels
     from ..gaussians import GaussianModel
 
@@ -64,6 +66,27 @@ class CudaFrame:
     views: Any
     pair_row: Any
     rows: Any
+
+
+class DeviceCounts(UpdateCounts):
+    """An update's pixel counts (NUM_COUNTS,) int64 on the device: the next view's one copy brings them
+    (:meth:`arrived`), else :meth:`get` downloads them (one synchronisation)."""
+
+    def __init__(self, ops: Any, device: Any) -> None:
+        super().__init__()
+        self.ops = ops
+        self.device = device
+        self.ready = False
+
+    def arrived(self, counts: np.ndarray) -> None:
+        """The counts, copied to the host with a view's output."""
+        self._counts = tuple(int(v) for v in counts[:NUM_COUNTS])
+        self.ready = True
+
+    def get(self) -> tuple[int, int, int, int]:
+        if not self.ready:
+            self.arrived(self.ops.download(self.device))
+        return super().get()
 
 
 class CudaBackend(RasterBackend):
@@ -117,6 +140,8 @@ class CudaBackend(RasterBackend):
         self._empty_f64 = karr(ops.zeros(0, np.float64))
         self._empty_views = self._word_views(ops.zeros(HEADER_WORDS, np.int32))
         self._empty_scores = karr(ops.zeros((1, 2), np.float64))
+        self._no_confidence = ops.zeros((1, 1), np.float32)  # the confidence argument of a frame without one
+        self._pending_counts: DeviceCounts | None = None      # the last update's counts, still on the device
 
     def _probe(self) -> None:
         """Compile and run the smallest kernel once, so that a broken stack (numba-cuda vs numpy,
@@ -256,39 +281,42 @@ class CudaBackend(RasterBackend):
                          ids, views, pair_row, rows)
 
     # ------------------------------------------------------------------ update
-    def update(self, frame: CudaFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
-               soft: "SoftLabels | None" = None) -> int:
-        """concentrations[n, c] += sum_i kappa_in y_i^c on the device (labels (H, W) int32, -1 = none;
-        weights (H, W) float32). The host array is brought up to date lazily (``host_view``).
+    def update(self, frame: CudaFrame, inputs: "FrameLabels", concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> UpdateCounts:
+        """concentrations[n, c] += sum_i kappa_in y_i^c on the device. The labels and the confidence go to the device
+        as they came in (one copy each; no confidence: none) and the update kernel applies the label rule and counts
+        the pixels there (:func:`~css_ros.engine.cuda.kernels.pixel_input`). The host array is brought up to date
+        lazily (``host_view``).
 
         With ``soft`` (a sensor model's tables), the kernel variant of
         :func:`~css_ros.engine.cuda.kernels.make_update_kernel` with ``with_model`` runs instead (one more walk
-        per labelled pixel for its expected depth); returns the labelled pixels without any contribution (one
-        device -> host transfer), else 0."""
+        per labelled pixel for its expected depth) and also counts the labelled pixels without any contribution.
+        The counts stay on the device: the next :meth:`render_view` brings them with its one copy, else
+        :meth:`DeviceCounts.get` fetches them (one synchronisation)."""
         self._bind()
         conc = self._device_concentrations(concentrations)
         num_classes = int(conc.shape[1])
         if soft is not None and tuple(soft.table.shape) != (num_classes * soft.num_bins, num_classes):
             raise ValueError(f"sensor-model table of shape {tuple(soft.table.shape)} for {num_classes} classes and "
                              f"{soft.num_bins} depth bins")
-        if frame.num_pairs == 0:  # nothing is seen: every labelled pixel is without depth
-            return 0 if soft is None else int(np.count_nonzero((labels >= 0) & (weights > 0)))
         ops = self.ops
-        lab = ops.upload_frame("labels", labels, np.int32)
-        wts = ops.upload_frame("weights", weights, np.float32)
+        lab = ops.upload_frame("labels", inputs.labels, inputs.labels.dtype)
+        has_conf = inputs.confidence is not None
+        conf = ops.upload_frame("confidence", inputs.confidence, inputs.confidence.dtype) if has_conf \
+            else self._no_confidence
+        counts = ops.zeros(NUM_COUNTS, np.int64)
         launch = (frame.tiles_per_view, self.tile * self.tile)
+        args = (frame.offsets, frame.order, frame.packed, frame.ids, lab, conf, has_conf, int(inputs.ignore_label),
+                frame.tiles_x, conc, counts)
         if soft is None:
-            kernel = self.k.make_update_kernel(num_classes, self.tile)
-            kernel[launch](frame.offsets, frame.order, frame.packed, frame.ids, lab, wts, frame.tiles_x, conc)
-            self._device_newer = True
-            return 0
-        edges, table = self._soft_tables(soft)
-        no_depth = ops.zeros(1, np.int64)
-        kernel = self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins)
-        kernel[launch](frame.offsets, frame.order, frame.packed, frame.ids, lab, wts, frame.tiles_x, conc,
-                       edges, table, no_depth)
+            self.k.make_update_kernel(num_classes, self.tile)[launch](*args)
+        else:
+            edges, table = self._soft_tables(soft)
+            self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins)[launch](*args, edges, table)
         self._device_newer = True
-        return ops.scalars(no_depth[0])[0]
+        pending = DeviceCounts(ops, counts)
+        self._pending_counts = pending
+        return pending
 
     def _soft_tables(self, soft: "SoftLabels") -> tuple[Any, Any]:
         """The sensor model's edges and table on the device, uploaded once per SoftLabels object (SemanticMap
@@ -378,8 +406,13 @@ class CudaBackend(RasterBackend):
         layout = plane_layout(frame.height, frame.width, num_classes, settings)
         out, views = self._output_buffer(layout.words)
         self.ops.zero_words(out, HEADER_WORDS)
+        pending, self._pending_counts = self._pending_counts, None
+        if pending is not None and not pending.ready:  # an update's counts ride along in the header
+            self.ops.copy_words(out, COUNT_WORDS, pending.device)
         self._launch_render(frame, conc, settings, layout.planes, views, self._empty_scores, False)
         host = self.ops.download_words(out, layout.words)  # the frame's one copy (and synchronisation)
+        if pending is not None and not pending.ready:
+            pending.arrived(host[COUNT_WORDS:COUNT_WORDS + 2 * NUM_COUNTS].view(np.int64))
         return layout.images(host, frame.height, frame.width, num_classes)
 
     def render(self, frame: CudaFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,

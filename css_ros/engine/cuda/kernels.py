@@ -33,6 +33,7 @@ from typing import Any
 
 from numba import cuda, float32, float64, int32
 
+from ..label_input import IGNORED, NO_DEPTH, OUT_OF_RANGE, USED, pixel_vote
 from ..pixel_math import confidence_score, depth_bin, interp, to_byte
 from ..sh import sh_polynomial
 from .arrays import simulator_enabled
@@ -61,6 +62,37 @@ _to_byte = cuda.jit(device=True, inline=True)(to_byte)
 _depth_bin = cuda.jit(device=True, inline=True)(depth_bin)
 _interp = cuda.jit(device=True, inline=True)(interp)
 _confidence_score = cuda.jit(device=True, inline=True)(confidence_score)
+_pixel_vote = cuda.jit(device=True, inline=True)(pixel_vote)
+
+
+@cuda.jit(device=True, inline=True)
+def pixel_input(labels, confidence, has_confidence, num_classes, ignore_label, u, v):  # pragma: no cover
+    """(class or -1, float32 weight, status; -1 outside the image) of pixel (u, v) under the label rule
+    (:func:`css_ros.engine.label_input.pixel_vote`), read from the labels and confidence as they came in."""
+    height, width = labels.shape
+    if u >= width or v >= height:
+        return int32(-1), float32(0.0), -1
+    conf = 1.0
+    if has_confidence:
+        conf = float64(confidence[v, u])
+    c, w, status = _pixel_vote(labels[v, u], conf, num_classes, ignore_label)
+    return int32(c), w, status
+
+
+@cuda.jit(device=True, inline=True)
+def count_pixels(status, counts):  # pragma: no cover
+    """Add the block's pixel counts (used, ignored, out of range) to ``counts`` with one atomic each (a barrier:
+    every thread of the block must call it)."""
+    used = cuda.syncthreads_count(1 if status == USED else 0)
+    ignored = cuda.syncthreads_count(1 if status == IGNORED else 0)
+    oor = cuda.syncthreads_count(1 if status == OUT_OF_RANGE else 0)
+    if cuda.threadIdx.x == 0:
+        if used:
+            cuda.atomic.add(counts, USED, used)
+        if ignored:
+            cuda.atomic.add(counts, IGNORED, ignored)
+        if oor:
+            cuda.atomic.add(counts, OUT_OF_RANGE, oor)
 
 
 @cuda.jit(device=True, inline=True)
@@ -284,8 +316,10 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
 
     Launch: grid = tiles of the view, block = tile * tile threads (a multiple of 32). Kernel arguments:
     offsets (T + 1,) i64 tile ranges in ``order``; order (P,) i32 pair of each sorted key; packed (M, 8) f64;
-    ids (M,) i32 model rows; labels (H, W) i32 (-1 = none); weights (H, W) f32; tiles_x;
-    concentrations (N, C) f64, to which sum_i kappa_in * weight_i is added at [n, label_i].
+    ids (M,) i32 model rows; labels (H, W) uint8 / uint16 / int32 / int64 as they came in; confidence (H, W) f32 /
+    f64 (any (1, 1) array when has_confidence is False); has_confidence; ignore_label; tiles_x;
+    concentrations (N, C) f64, to which sum_i kappa_in * weight_i is added at [n, class_i]; counts (4,) i64, to
+    which the image's used / ignored / out-of-range pixels are added (the label rule, :func:`pixel_input`).
 
     The pixel walk is float32 (alpha, transmittance, kappa * weight); per staged Gaussian a warp
     whose contributing lanes share one label sums them with shuffles and one lane adds the sum to
@@ -301,7 +335,8 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
     batch = batch_size(4 * STAGE_COLS + 4 + 4 * C, nt, UPDATE_SHARED_BUDGET)
 
     @cuda.jit
-    def update_kernel(offsets, order, packed, ids, labels, weights, tiles_x, concentrations):  # pragma: no cover
+    def update_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
+                      concentrations, counts):  # pragma: no cover
         t = cuda.blockIdx.x
         tid = cuda.threadIdx.x
         lane = tid % WARP
@@ -309,13 +344,9 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
         tx = t - ty * tiles_x
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
-        height, width = labels.shape
-        lab = -1
-        w = float32(0.0)
-        if u < width and v < height:
-            lab = labels[v, u]
-            w = weights[v, u]
-        done = not (lab >= 0 and w > float32(0.0))
+        lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
+        count_pixels(status, counts)
+        done = status != USED
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
         s_acc = cuda.shared.array((batch, C), float32)
         s_id = cuda.shared.array(batch, int32)
@@ -377,8 +408,8 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
     (bin b: the largest with edges[b] <= d, clipped to [0, B - 1]) adds kappa * w * table[y B + b, c] to
     every class c of every Gaussian it composites.
 
-    Kernel arguments: those of the paper's update, then edges (B + 1,) f64 (splat units), table (C B, C) f64,
-    no_depth (1,) i64, to which the labelled pixels without any contribution are added (they add nothing).
+    Kernel arguments: those of the paper's update, then edges (B + 1,) f64 (splat units), table (C B, C) f64; the
+    labelled pixels without any contribution (they add nothing) are added to counts[NO_DEPTH].
 
     Per tile, two walks over its list: the first only sums kappa z and kappa per pixel (float32; z is the
     staged camera depth), which gives each pixel's row r = y B + b; the tile's distinct rows get slots
@@ -396,8 +427,8 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
     batch, S = model_update_layout(C, tile, B)
 
     @cuda.jit
-    def update_model_kernel(offsets, order, packed, ids, labels, weights, tiles_x, concentrations, edges, table,
-                            no_depth):  # pragma: no cover
+    def update_model_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
+                            concentrations, counts, edges, table):  # pragma: no cover
         t = cuda.blockIdx.x
         tid = cuda.threadIdx.x
         lane = tid % WARP
@@ -405,13 +436,9 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
         tx = t - ty * tiles_x
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
-        height, width = labels.shape
-        lab = -1
-        w = float32(0.0)
-        if u < width and v < height:
-            lab = labels[v, u]
-            w = weights[v, u]
-        labelled = lab >= 0 and w > float32(0.0)
+        lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
+        count_pixels(status, counts)
+        labelled = status == USED
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
         s_z = cuda.shared.array(batch, float32)
         s_acc = cuda.shared.array((batch, S), float32)
@@ -449,7 +476,7 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
             row = lab * B + _depth_bin(float64(zsum) / float64(ksum), edges)
         missing = cuda.syncthreads_count(1 if labelled and row < 0 else 0)  # also: walk 1 is over
         if tid == 0 and missing > 0:
-            cuda.atomic.add(no_depth, 0, missing)
+            cuda.atomic.add(counts, NO_DEPTH, missing)
         # slots: the first pixel of each distinct row leads it; slots numbered in pixel order
         s_key[tid] = row
         cuda.syncthreads()

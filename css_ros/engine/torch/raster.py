@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING, Iterator, Sequence
 import numpy as np
 import torch
 
-from ..raster_backend import RasterBackend
+from ..label_input import count_votes
+from ..raster_backend import RasterBackend, UpdateCounts
 from ..buffers import RenderBuffers
 from ..spec import ALPHA_MAX, ALPHA_MIN, COV2D_DILATION, FOV_CLAMP, NEAR_PLANE, T_MIN, TILE_SIZE
 from ..sh import eval_sh
@@ -17,6 +18,7 @@ from ..sh import eval_sh
 if TYPE_CHECKING:
     from ..camera import Camera
     from ..gaussians import GaussianModel
+    from ..label_input import FrameLabels
     from ..sensor_model import SoftLabels
 
 
@@ -152,9 +154,11 @@ class TorchBackend(RasterBackend):
             final_t = torch.prod(torch.where(keep, one_minus, torch.ones_like(one_minus)), dim=1)
             yield vv, uu, lst, kappa, final_t
 
-    def update(self, frame: TorchFrame, labels: np.ndarray, weights: np.ndarray, concentrations: np.ndarray,
-               soft: "SoftLabels | None" = None) -> int:
+    def update(self, frame: TorchFrame, inputs: "FrameLabels", concentrations: np.ndarray,
+               soft: "SoftLabels | None" = None) -> UpdateCounts:
         num_classes = concentrations.shape[1]
+        labels, weights, counts = count_votes(inputs.labels, inputs.confidence, inputs.num_classes,
+                                              inputs.ignore_label)
         lab = torch.as_tensor(labels, device=self.device).long()
         wts = torch.as_tensor(weights, device=self.device, dtype=self.dtype)
         acc = torch.zeros((len(frame.ids), num_classes), dtype=self.dtype, device=self.device)
@@ -182,7 +186,7 @@ class TorchBackend(RasterBackend):
                 no_depth += int((valid & (ksum <= 0)).sum())
             acc.index_add_(0, lst, kappa.T @ y)
         concentrations[frame.ids] += acc.cpu().numpy()
-        return no_depth if soft is not None else 0
+        return UpdateCounts(np.append(counts, no_depth if soft is not None else 0))
 
     def render(self, frame: TorchFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
