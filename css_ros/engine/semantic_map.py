@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Literal, Mapping, Sequence
 
 import numpy as np
 
-from ..errors import InputError, MapError, SensorModelError
+from ..errors import MapError, SensorModelError
 from .atomic import atomic_file
 from .backends import make_backend
 from .final_form import RenderSettings, check_outputs
