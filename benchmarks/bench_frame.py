@@ -294,12 +294,12 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
         smap.observe(cam, lab)
         t_cycle = time.perf_counter() - t_start
         # the stages one by one, a second pass at the same pose (the map receives the frame twice)
-        lab32, w32, _ = smap._prepare_labels(cam, lab, None)
+        inputs = smap._frame_labels(cam, lab, None)
         t = [time.perf_counter()]
         frame = backend.prepare(cam)
         sync()
         t.append(time.perf_counter())
-        backend.update(frame, lab32, w32, smap._concentrations)
+        backend.update(frame, inputs, smap._concentrations).get()
         sync()
         t.append(time.perf_counter())
         backend.render_view(frame, smap._concentrations, settings)  # moments, render, U, the one copy

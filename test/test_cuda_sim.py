@@ -28,6 +28,7 @@ sys.setswitchinterval(5e-4)
 
 from css_ros import GaussianModel, SemanticMap  # noqa: E402
 from css_ros.engine.cuda import kernels  # noqa: E402
+from css_ros.engine.cuda.layout import HEADER_WORDS  # noqa: E402
 from css_ros.engine.sh import eval_sh  # noqa: E402
 from css_ros.engine.sensor_model import SensorModel  # noqa: E402
 from css_reference import kappa_reference, project_reference, render_reference, update_reference  # noqa: E402
@@ -404,7 +405,8 @@ def test_final_outputs_with_a_confidence_map_match_numba():
 
 
 def test_one_copy_of_only_the_requested_bytes():
-    """A frame copies its outputs to the host once, and only the requested planes (plus the 16-byte header)."""
+    """A frame copies its outputs to the host once, and only the requested planes (plus the header: U sums, the
+    update's counts, the frame's sizes)."""
     model = random_scene(6, n=80)
     cam = camera(**CAMS[0])
     gpu = SemanticMap(model, C, backend="cuda")
@@ -414,10 +416,146 @@ def test_one_copy_of_only_the_requested_bytes():
     ops.download_words = lambda dev, n: (copies.append(4 * n), original(dev, n))[1]
     gpu.render(cam, outputs=("labels", "rgb"))
     hw = cam.width * cam.height
-    assert copies == [16 + 4 * hw + -(-3 * hw // 4) * 4]
+    header = 4 * HEADER_WORDS
+    assert header == 64
+    assert copies == [header + 4 * hw + -(-3 * hw // 4) * 4]
     copies.clear()
     gpu.observe(cam, np.zeros((cam.height, cam.width), dtype=np.int64), outputs=())
-    assert copies == [16]
+    assert copies == [header]
+
+
+def _reference_votes(labels, conf, ignore_label):
+    """The label rule written out pixel by pixel in float64 (independent of label_input): (classes, weights, counts)."""
+    cls = np.full(labels.shape, -1, dtype=np.int64)
+    wts = np.zeros(labels.shape)
+    counts = [0, 0, 0]
+    for idx, raw in np.ndenumerate(labels):
+        value = int(raw)
+        if value == ignore_label:
+            counts[1] += 1
+        elif not 0 <= value < C:
+            counts[2] += 1
+        else:
+            c = 1.0 if conf is None else float(conf[idx])
+            w = 0.0 if np.isnan(c) else min(max(c, 0.0), 1.0)
+            w = float(np.float32(w))
+            if w > 0:
+                cls[idx], wts[idx] = value, w
+                counts[0] += 1
+            else:
+                counts[1] += 1
+    return cls, wts, counts
+
+
+@pytest.mark.parametrize("dtype,conf_dtype,ignore", [(np.uint8, None, 255), (np.uint16, np.float32, 65535),
+                                                     (np.int32, np.float64, -1), (np.int64, np.float32, 255)])
+def test_labels_and_confidence_as_they_come(dtype, conf_dtype, ignore):
+    """The update kernel reads the labels in their own dtype and the confidence in its own (no int64 copy, no plane
+    of ones): ignore value, ids >= C, negative ids, NaN / negative / > 1 / inf confidences follow the label rule,
+    and the counts (made on the device) and the concentrations equal a pixel-by-pixel reference and the numba path."""
+    model = random_scene(8, n=120)
+    cam = camera(**CAMS[0])
+    rng = np.random.default_rng(5)
+    values = [0, 1, 2, 3, C, C + 7, ignore] + ([-3] if np.issubdtype(dtype, np.signedinteger) else [])
+    lab = rng.choice(values, (cam.height, cam.width)).astype(dtype)
+    conf = None
+    if conf_dtype is not None:
+        conf = rng.choice([0.5, 1.0, 2.0, 0.0, -1.0, np.nan, np.inf, 0.25], lab.shape).astype(conf_dtype)
+    uploads = []
+    gpu = SemanticMap(model, C, backend="cuda", ignore_label=ignore)
+    ops = gpu._backend.ops
+    original = ops.host_to_device
+    ops.host_to_device = lambda dev, host, name: (uploads.append((name, host.dtype)), original(dev, host, name))[1]
+    cpu = SemanticMap(model, C, ignore_label=ignore)
+    view = gpu.observe(cam, lab, conf)
+    stats = gpu.last_update
+    cpu.observe(cam, lab, conf)
+    cls, wts, counts = _reference_votes(lab, conf, ignore)
+    assert (stats.used, stats.ignored, stats.out_of_range) == tuple(counts) and counts[0] > 0 and counts[2] > 0
+    assert stats == cpu.last_update
+    assert ("labels", np.dtype(dtype)) in uploads
+    assert [n for n, _ in uploads if n == "confidence"] == ([] if conf is None else ["confidence"])
+    if conf is not None:
+        assert ("confidence", np.dtype(conf_dtype)) in uploads
+    kap, _ = reference(model, cam)
+    ref = update_reference(kap, np.full((model.num_gaussians, C), 1e-3), np.where(cls < 0, 255, cls), C,
+                           confidence=wts)
+    np.testing.assert_allclose(gpu.concentrations, ref, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    assert view.labels.shape == lab.shape
+
+
+def test_observe_and_query_make_one_synchronisation_and_bind_launches_once():
+    """After the first frame of a size, an observe and a query render each make exactly one device -> host copy (the
+    view's, which also brings the update's counts and the frame's sizes) and no other download, and launch only
+    launches bound at the first frame: project, emit keys, update, moments, render for an observe."""
+    model = random_scene(9, n=120)
+    gpu = SemanticMap(model, C, backend="cuda")
+    backend, ops = gpu._backend, gpu._backend.ops
+    cams = [camera(width=W, height=H, f=12.0, position=(0.05 * i, 0.0, 0.0)) for i in range(3)]
+    lab, conf = labels_and_confidence(cams[0], 30)
+    gpu.observe(cams[0], lab, conf)          # binds the launches of this size
+    gpu.render(cams[0])
+    calls: list[str] = []
+    depth = [0]   # the numpy ops' download_words calls download itself: count the outermost transfers only
+
+    def counted(name, original):
+        def call(*args):
+            if depth[0] == 0:
+                calls.append(name)
+            depth[0] += 1
+            try:
+                return original(*args)
+            finally:
+                depth[0] -= 1
+        return call
+
+    for name in ("download", "download_words", "scalars", "synchronize", "download_frame"):
+        setattr(ops, name, counted(name, getattr(ops, name)))
+    bindings, launches = backend.launches.bindings, backend.launches.count
+    for cam in cams[1:]:
+        calls.clear()
+        gpu.observe(cam, lab, conf)
+        assert calls == ["download_words"]
+        assert backend.launches.count - launches == 5
+        launches = backend.launches.count
+        calls.clear()
+        gpu.render(cam)
+        assert calls == ["download_words"]
+        assert backend.launches.count - launches == 4
+        launches = backend.launches.count
+    assert backend.launches.bindings == bindings
+
+
+def test_a_frame_beyond_the_plan_is_done_again_once():
+    """A single-view plan whose buffers are too small for the frame: the update adds nothing on the device, the
+    view's copy says so, the plan grows and the frame is done again: the map receives the frame exactly once and the
+    result equals the numba path's (also when the keys, not the pairs, overflow)."""
+    from css_ros.engine.cuda.view_plan import ViewPlan
+
+    model = random_scene(12, n=120)
+    cam = camera(**CAMS[0])
+    lab, conf = labels_and_confidence(cam, 40)
+    for pairs, keys in ((3, 400), (400, 5)):
+        gpu = SemanticMap(model, C, backend="cuda")
+        backend = gpu._backend
+        plan = ViewPlan(backend.ops, cam.width, cam.height, *_tiles(cam), pairs, keys)
+        backend._plans[(cam.width, cam.height)] = plan
+        cpu = SemanticMap(model, C)
+        a = gpu.observe(cam, lab, conf)
+        b = cpu.observe(cam, lab, conf)
+        assert plan.buffers.pairs > pairs or plan.buffers.keys > keys
+        assert gpu.last_update == cpu.last_update and gpu.frames_observed == 1
+        np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_allclose(a.expectation, b.expectation, atol=2e-6)
+
+
+def _tiles(cam):
+    from css_ros.engine.spec import TILE_SIZE
+
+    tx = -(-cam.width // TILE_SIZE)
+    return tx, tx * -(-cam.height // TILE_SIZE)
 
 
 def test_info_gain_and_greedy_batch_match_numba_with_a_sensor_model():
@@ -485,7 +623,7 @@ def test_float32_precull_keeps_exactly_the_cpu_pairs():
                                   rotations=base.rotations)
         gpu = SemanticMap(model, C, backend="cuda")
         frame = gpu._backend.prepare(cam)
-        kept = np.sort(np.asarray(frame.ids)[:frame.num_pairs])
+        kept = np.sort(gpu._backend.ops.download(frame.ids)[:frame.num_pairs])  # a device array on a GPU
         cpu_ids = np.sort(project(GaussianGeometry.from_model(model), cam).ids)
         np.testing.assert_array_equal(kept, cpu_ids)
 

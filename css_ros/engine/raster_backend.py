@@ -70,6 +70,18 @@ class RasterBackend(ABC):
                           np.asarray(settings.bg_rgb, dtype=np.float64), settings.probabilities)
         return finalize_host(buf, settings)
 
+    def observe_view(self, camera: "Camera", inputs: "FrameLabels", concentrations: np.ndarray,
+                     soft: "SoftLabels | None", settings: RenderSettings) -> tuple[FrameImages, UpdateCounts]:
+        """One observed frame (SPEC §7): rasterise once, update, render at the same pose; a backend may do it in
+        fewer steps (cuda: one synchronisation)."""
+        frame = self.prepare(camera)
+        counts = self.update(frame, inputs, concentrations, soft)
+        return self.render_view(frame, concentrations, settings), counts
+
+    def render_query(self, camera: "Camera", concentrations: np.ndarray, settings: RenderSettings) -> FrameImages:
+        """A query view's outputs (the map unchanged)."""
+        return self.render_view(self.prepare(camera), concentrations, settings)
+
     @abstractmethod
     def score_images(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                      s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None

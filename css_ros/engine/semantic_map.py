@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from .camera import Camera
     from .gaussians import GaussianModel
     from .info_gain import SelectedViews
+    from .final_form import FrameImages
     from .raster_backend import UpdateCounts
     from .sensor_model import SensorModel, SoftLabels
 
@@ -447,8 +448,8 @@ class SemanticMap:
                               None if self._sensor_model is None else self._sensor_model.confidence,
                               check_outputs(outputs), bool(probabilities))
 
-    def _render_frame(self, frame: Any, settings: RenderSettings) -> RenderedView:
-        img = self._backend.render_view(frame, self._concentrations, settings)
+    @staticmethod
+    def _view(img: "FrameImages") -> RenderedView:
         return RenderedView(labels=img.labels, expectation=img.expectation, variance=img.variance,  # type: ignore[arg-type]
                             background=img.background, evidence=img.evidence, rgb=img.rgb,  # type: ignore[arg-type]
                             u_var=img.u_var, u_exp=img.u_exp, probabilities=img.probabilities, depth=img.depth,
@@ -476,18 +477,20 @@ class SemanticMap:
         ``outputs``: the images to deliver (names of :data:`css_ros.engine.final_form.IMAGE_OUTPUTS`; None = all);
         the others are None in the view and cost no copy from the device."""
         settings = self.render_settings(outputs, probabilities)
-        frame = self._backend.prepare(map_args.check_camera(camera, "observe"))
-        pending = self._update_frame(frame, camera, labels, confidence)
-        view = self._render_frame(frame, settings)
+        camera = map_args.check_camera(camera, "observe")
+        inputs = self._frame_labels(camera, labels, confidence)
+        img, pending = self._backend.observe_view(camera, inputs, self._concentrations, self._soft, settings)
+        self.frames_observed += 1
         self._finish_update(pending)  # a device backend's counts came with the view's one copy
-        return view
+        return self._view(img)
 
     def render(self, camera: "Camera", probabilities: bool = False,
                outputs: Iterable[str] | None = None) -> RenderedView:
         """Render labels, E, Var, colour and U at ``camera`` without changing the map (query view); ``outputs`` as
         in :meth:`observe`."""
         settings = self.render_settings(outputs, probabilities)
-        return self._render_frame(self._backend.prepare(map_args.check_camera(camera, "render")), settings)
+        camera = map_args.check_camera(camera, "render")
+        return self._view(self._backend.render_query(camera, self._concentrations, settings))
 
     def score_views(self, cameras: Sequence["Camera"], importance: np.ndarray | None = None,
                     pixel_scale: float = 1.0) -> np.ndarray:

@@ -119,9 +119,31 @@ class NumpyOps:
         perm = self.xp.argsort(x, kind="stable")
         return x[perm], perm
 
-    def float32_bits(self, x: Any) -> Any:
-        """int32 bit patterns of x rounded to float32 (for x > 0 they order as the values)."""
-        return x.astype(np.float32).view(np.int32)
+    # ---- into preallocated outputs (the single-view plan's buffers keep their addresses frame to frame)
+    def fill(self, dev: Any, value: Any) -> None:
+        """dev[...] = value."""
+        dev[...] = value
+
+    def sort_into(self, x: Any, values: Any, indices: Any) -> None:
+        """values, indices = the stable sort of x and its permutation (int64)."""
+        perm = self.xp.argsort(x, kind="stable")
+        indices[...] = perm
+        values[...] = x[perm]
+
+    def take_into(self, x: Any, index: Any, out: Any) -> None:
+        """out = x[index] (1-D)."""
+        out[...] = x[index]
+
+    def cumsum_into(self, x: Any, out: Any) -> None:
+        """out (int64) = the inclusive prefix sum of x."""
+        self.xp.cumsum(x, dtype=np.int64, out=out)
+
+    def searchsorted_into(self, sorted_values: Any, values: Any, out: Any) -> None:
+        out[...] = self.xp.searchsorted(sorted_values, values)
+
+    def host_to_device(self, dev: Any, host: np.ndarray, name: str) -> None:
+        """dev[...] = host (same shape and dtype; asynchronous through a pinned buffer on torch)."""
+        dev[...] = host
 
     def scalars(self, *xs: Any) -> list[int]:
         """Several one-element device values -> Python ints in one transfer."""
@@ -166,7 +188,8 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
     """Array operations over torch CUDA tensors (device-wide radix sort and scan)."""
 
     _DTYPES = {np.dtype(np.float64): "float64", np.dtype(np.float32): "float32", np.dtype(np.int64): "int64",
-               np.dtype(np.int32): "int32", np.dtype(np.uint8): "uint8", np.dtype(np.bool_): "bool"}
+               np.dtype(np.int32): "int32", np.dtype(np.uint16): "uint16", np.dtype(np.uint8): "uint8",
+               np.dtype(np.bool_): "bool"}
 
     def __init__(self, device: int | None = None) -> None:
         import torch
@@ -269,8 +292,27 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
         res = self.torch.sort(x, stable=True)  # device-wide radix sort (CUB) for integer keys
         return res.values, res.indices
 
-    def float32_bits(self, x: Any) -> Any:
-        return x.to(self.torch.float32).view(self.torch.int32)
+    def fill(self, dev: Any, value: Any) -> None:
+        dev.fill_(value)
+
+    def sort_into(self, x: Any, values: Any, indices: Any) -> None:
+        self.torch.sort(x, stable=True, out=(values, indices))
+
+    def take_into(self, x: Any, index: Any, out: Any) -> None:
+        self.torch.index_select(x, 0, index, out=out)
+
+    def cumsum_into(self, x: Any, out: Any) -> None:
+        self.torch.cumsum(x, 0, dtype=self.torch.int64, out=out)
+
+    def searchsorted_into(self, sorted_values: Any, values: Any, out: Any) -> None:
+        self.torch.searchsorted(sorted_values, values, out=out)
+
+    def host_to_device(self, dev: Any, host: np.ndarray, name: str) -> None:
+        """dev[...] = host through a page-locked buffer kept per (name, shape, dtype), asynchronously (the frame's
+        final download synchronises, so the buffer is free again by the next frame)."""
+        buf = self._pinned(name, host.shape, host.dtype)
+        buf.numpy()[...] = host
+        dev.copy_(buf, non_blocking=True)
 
     def scalars(self, *xs: Any) -> list[int]:
         return [int(v) for v in self.torch.stack([x.reshape(()) for x in xs]).cpu().tolist()]

@@ -28,7 +28,9 @@ from ..spec import INFO_GAIN_PRIOR
 from ..spec import TILE_SIZE
 from ..splat_math import CAM_COLS, camera_row
 from .arrays import import_cuda, make_ops, simulator_enabled
-from .layout import COUNT_WORDS, HEADER_WORDS, NUM_PLANES, plane_layout
+from .launch import Launches
+from .layout import COUNT_WORDS, HEADER_WORDS, NUM_PLANES, SIZE_WORDS, PlaneLayout, plane_layout
+from .view_plan import ViewPlan
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -49,7 +51,10 @@ class CudaFrame:
         packed: (>= M, 8) f64 rows
         (u, v, a, b, c, opacity, qmax, depth). colors: (M, 3) f32. ids: (M,) i32 model rows.
         pair_row: (M,) i32 row of each pair in ``rows``. rows: (R,) i32 model rows whose moments
-        the render needs (each once).
+        the render needs (each once). sizes: (2,) i64 on the device, (kept pairs, keys) as the kernels counted
+        them. row_count: (1,) i64 on the device, the rows' count. plan: the single-view plan whose buffers these
+        are (:mod:`.view_plan`; its counts are known on the host only after the view's copy: ``num_pairs`` -1),
+        or None (a batch sized on the host).
     """
 
     cameras: list
@@ -66,6 +71,9 @@ class CudaFrame:
     views: Any
     pair_row: Any
     rows: Any
+    sizes: Any
+    row_count: Any
+    plan: "ViewPlan | None" = None
 
 
 class DeviceCounts(UpdateCounts):
@@ -141,6 +149,10 @@ class CudaBackend(RasterBackend):
         self._empty_views = self._word_views(ops.zeros(HEADER_WORDS, np.int32))
         self._empty_scores = karr(ops.zeros((1, 2), np.float64))
         self._no_confidence = ops.zeros((1, 1), np.float32)  # the confidence argument of a frame without one
+        self._counts_dev = ops.zeros(NUM_COUNTS, np.int64)    # the update's pixel counts (DeviceCounts)
+        self._inputs: dict[tuple, Any] = {}                   # per-frame input buffers (_frame_input)
+        self._plans: dict[tuple[int, int], ViewPlan] = {}     # single-view plans per image size
+        self.launches = Launches(self.simulated)
         self._pending_counts: DeviceCounts | None = None      # the last update's counts, still on the device
 
     def _probe(self) -> None:
@@ -150,7 +162,8 @@ class CudaBackend(RasterBackend):
         try:
             conc = self.ops.upload(np.ones((1, 2)), np.float64)
             out = self.ops.empty((1, 5), np.float32)
-            self.k.moments_kernel[1, 2](conc, self.ops.upload(np.zeros(1, np.int32)), out)
+            self.k.moments_kernel[1, 2](conc, self.ops.upload(np.zeros(1, np.int32)),
+                                        self.ops.upload(np.ones(1, np.int64)), out)
             got = self.ops.download(out)
         except Exception as exc:  # any failure of the CUDA stack: reported in one line
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
@@ -230,20 +243,21 @@ class CudaBackend(RasterBackend):
         cam_dev = ops.upload(cam_rows)
         cap = self._capacity.get(n_views, max(1, min(n_views * n, 4 * n)))
         while True:
-            counter = ops.zeros(1, np.int64)  # int64: cannot wrap (V N < 2^63)
+            counter = ops.zeros(2, np.int64)  # int64: cannot wrap (V N < 2^63); [1]: the keys, set below
             packed = ops.empty((cap, k.PACK_COLS), np.float64)
             bbox = ops.empty((cap, 4), np.int32)
             ids = ops.zeros(cap, np.int32)       # rows past the count: valid model rows ...
             views = ops.zeros(cap, np.int32)
             ntiles = ops.zeros(cap, np.int32)    # ... that emit no keys
             colors = ops.empty((cap, 3), np.float32)
+            depth = ops.empty(cap, np.float32)
             blocks, threads = self._launch_1d(n_views * n)
             if n_views * n:
                 k.project_kernel[blocks, threads](self.means, self.cov3d, self.opacities, self.max_std, self.sh,
                                                   cam_dev, float(width), float(height), self.tile, bool(want_color),
-                                                  cap, counter, packed, bbox, ids, views, ntiles, colors)
+                                                  cap, counter, packed, bbox, ids, views, ntiles, colors, depth)
             ends = ops.cumsum(ntiles)
-            m, total = ops.scalars(counter[0], ends[cap - 1])  # the frame's one device -> host sync
+            m, total = ops.scalars(counter[0], ends[cap - 1])  # the batch's device -> host sync
             if m <= cap:
                 break
             cap = m
@@ -251,14 +265,13 @@ class CudaBackend(RasterBackend):
         keys = ops.empty(max(total, 1), np.int32)
         order = ops.empty(max(total, 1), np.int32)
         if m:
-            # depth order of the pairs (positive float32 depths order as their int32 bit patterns), then the
-            # tile keys emitted front to back and sorted stably by (view, tile) alone: two 32-bit radix sorts
-            _, by_depth = ops.sort_stable(ops.float32_bits(packed[:m, 7]))
-            nt_depth = ntiles[by_depth]
-            first = ops.cumsum(nt_depth) - nt_depth
+            # depth order of the pairs (stable radix sort of their float32 depths), then the tile keys emitted front
+            # to back and sorted stably by (view, tile) alone: two 32-bit radix sorts
+            _, by_depth = ops.sort_stable(depth[:m])
+            ends = ops.cumsum(ntiles[by_depth])
             blocks, threads = self._launch_1d(m)
-            k.emit_keys_kernel[blocks, threads](bbox, views, by_depth, first, m, self.tile, tiles_x, tiles_per_view,
-                                                keys, order)
+            k.emit_keys_kernel[blocks, threads](bbox, views, by_depth, ends, counter, self.tile, tiles_x,
+                                                tiles_per_view, keys, order)
             sorted_keys, perm = ops.sort_stable(keys[:total])
             order = order[perm]
             offsets = ops.searchsorted(sorted_keys, ops.arange(n_views * tiles_per_view + 1, np.int32))
@@ -277,8 +290,74 @@ class CudaBackend(RasterBackend):
             rows = rows.to(ids.dtype) if hasattr(rows, "to") else rows.astype(np.int32)
         if m == 0:
             rows = rows[:0]
+        row_count = ops.upload(np.array([int(rows.shape[0])], dtype=np.int64))
         return CudaFrame(cams, width, height, tiles_x, tiles_per_view, m, offsets, order, packed, colors,
-                         ids, views, pair_row, rows)
+                         ids, views, pair_row, rows, counter, row_count)
+
+    # ------------------------------------------------------------------ single views: one synchronisation
+    def _plan(self, width: int, height: int) -> ViewPlan:
+        """The single-view plan of this image size (capacities start at every Gaussian kept, 4 tiles each)."""
+        key = (int(width), int(height))
+        plan = self._plans.get(key)
+        if plan is None:
+            if len(self._plans) >= 8:  # image sizes of a long-lived process: bounded
+                self._plans.clear()
+                self.launches.clear()
+            tiles_x = (width + self.tile - 1) // self.tile
+            tiles_per_view = tiles_x * ((height + self.tile - 1) // self.tile)
+            n = max(1, self.num_gaussians)
+            plan = self._plans[key] = ViewPlan(self.ops, width, height, tiles_x, tiles_per_view, n, 4 * n)
+        return plan
+
+    def _plan_frame(self, camera: "Camera", want_color: bool) -> CudaFrame:
+        """Project, sort and bin one view into its plan's buffers without waiting for the device: sizes stay on the
+        device (the kernels read them), launches are bound once per plan."""
+        self._bind()
+        plan = self._plan(int(camera.width), int(camera.height))
+        b = plan.start(camera)
+        k, go = self.k, self.launches.launch
+        blocks, threads = self._launch_1d(self.num_gaussians)
+        if self.num_gaussians:
+            go(k.project_kernel, blocks, threads, self.means, self.cov3d, self.opacities, self.max_std, self.sh,
+               b.cam, float(plan.width), float(plan.height), self.tile, bool(want_color), b.pairs, b.sizes, b.packed,
+               b.bbox, b.ids, b.views, b.ntiles, b.colors, b.depth)
+        plan.sort_pairs()
+        blocks, threads = self._launch_1d(b.pairs)
+        go(k.emit_keys_kernel, blocks, threads, b.bbox, b.views, b.by_depth, b.ends, b.sizes, self.tile,
+           plan.tiles_x, plan.tiles_per_view, b.keys_raw, b.pairs_raw)
+        plan.sort_keys()
+        return CudaFrame([camera], plan.width, plan.height, plan.tiles_x, plan.tiles_per_view, -1, b.offsets,
+                         b.order, b.packed, b.colors, b.ids, b.views, b.pair_row, b.ids, b.sizes, b.sizes, plan)
+
+    def _plan_done(self, frame: CudaFrame, host: np.ndarray) -> bool:
+        """After a plan frame's copy: whether its pairs and keys fitted (else the plan has grown: do it again)."""
+        assert frame.plan is not None
+        pairs, keys = (int(v) for v in host[SIZE_WORDS:SIZE_WORDS + 4].view(np.int64))
+        before = frame.plan.buffers
+        fitted = frame.plan.fits(pairs, keys)
+        if frame.plan.buffers is not before:
+            self.launches.clear()  # the old buffers' bindings go with them
+        return fitted
+
+    def observe_view(self, camera: "Camera", inputs: "FrameLabels", concentrations: np.ndarray,
+                     soft: "SoftLabels | None", settings: RenderSettings) -> tuple[FrameImages, UpdateCounts]:
+        """One observed frame with one synchronisation: project, sort, update and render in bound launches, then one
+        copy of the outputs (with the update's counts and the frame's sizes). A frame that did not fit the plan's
+        buffers added nothing; it is done again with larger ones."""
+        while True:
+            frame = self._plan_frame(camera, settings.wants("rgb"))
+            counts = self.update(frame, inputs, concentrations, soft)
+            out = self._render_host(frame, concentrations, settings)
+            if self._plan_done(frame, out[0]):
+                return self._images(frame, *out), counts
+
+    def render_query(self, camera: "Camera", concentrations: np.ndarray, settings: RenderSettings) -> FrameImages:
+        """A query view with one synchronisation (as :meth:`observe_view`, without the update)."""
+        while True:
+            frame = self._plan_frame(camera, settings.wants("rgb"))
+            out = self._render_host(frame, concentrations, settings)
+            if self._plan_done(frame, out[0]):
+                return self._images(frame, *out)
 
     # ------------------------------------------------------------------ update
     def update(self, frame: CudaFrame, inputs: "FrameLabels", concentrations: np.ndarray,
@@ -300,23 +379,43 @@ class CudaBackend(RasterBackend):
             raise ValueError(f"sensor-model table of shape {tuple(soft.table.shape)} for {num_classes} classes and "
                              f"{soft.num_bins} depth bins")
         ops = self.ops
-        lab = ops.upload_frame("labels", inputs.labels, inputs.labels.dtype)
+        lab = self._frame_input("labels", inputs.labels)
         has_conf = inputs.confidence is not None
-        conf = ops.upload_frame("confidence", inputs.confidence, inputs.confidence.dtype) if has_conf \
-            else self._no_confidence
-        counts = ops.zeros(NUM_COUNTS, np.int64)
-        launch = (frame.tiles_per_view, self.tile * self.tile)
-        args = (frame.offsets, frame.order, frame.packed, frame.ids, lab, conf, has_conf, int(inputs.ignore_label),
-                frame.tiles_x, conc, counts)
+        conf = self._frame_input("confidence", inputs.confidence) if has_conf else self._no_confidence
+        counts = self._counts_dev
+        ops.fill(counts, 0)
+        args: tuple[Any, ...] = (frame.offsets, frame.order, frame.packed, frame.ids, lab, conf, has_conf,
+                                 int(inputs.ignore_label), frame.tiles_x, conc, counts, frame.sizes)
         if soft is None:
-            self.k.make_update_kernel(num_classes, self.tile)[launch](*args)
+            kernel = self.k.make_update_kernel(num_classes, self.tile)
         else:
-            edges, table = self._soft_tables(soft)
-            self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins)[launch](*args, edges, table)
+            kernel = self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins)
+            args = (*args, *self._soft_tables(soft))
+        self._go(frame, kernel, frame.tiles_per_view, self.tile * self.tile, args)
         self._device_newer = True
         pending = DeviceCounts(ops, counts)
         self._pending_counts = pending
         return pending
+
+    def _frame_input(self, name: str, host: np.ndarray) -> Any:
+        """A device buffer per (name, shape, dtype) holding ``host`` (copied asynchronously): the same address every
+        frame of that size, so the update's launch stays bound."""
+        key = (name, host.shape, host.dtype.str)
+        dev = self._inputs.get(key)
+        if dev is None:
+            if len(self._inputs) >= 16:  # image sizes and dtypes of a long-lived process: bounded
+                self._inputs.clear()
+                self.launches.clear()
+            dev = self._inputs[key] = self.ops.empty(host.shape, host.dtype)
+        self.ops.host_to_device(dev, host, name)
+        return dev
+
+    def _go(self, frame: CudaFrame, kernel: Any, grid: int, block: int, args: tuple[Any, ...]) -> None:
+        """Launch ``kernel``: bound once for a plan frame (its buffers keep their addresses), plainly for a batch."""
+        if frame.plan is not None:
+            self.launches.launch(kernel, grid, block, *args)
+        else:
+            kernel[grid, block](*args)
 
     def _soft_tables(self, soft: "SoftLabels") -> tuple[Any, Any]:
         """The sensor model's edges and table on the device, uploaded once per SoftLabels object (SemanticMap
@@ -327,12 +426,15 @@ class CudaBackend(RasterBackend):
 
     # ------------------------------------------------------------------ render
     def _moments(self, frame: CudaFrame, conc: Any) -> Any:
-        ops = self.ops
+        num_classes = int(conc.shape[1])
         r = int(frame.rows.shape[0])
-        mom = ops.empty((max(r, 1), 2 * int(conc.shape[1]) + 1), np.float32)
+        if frame.plan is not None:
+            mom = frame.plan.moment_buffer(num_classes)
+        else:
+            mom = self.ops.empty((max(r, 1), 2 * num_classes + 1), np.float32)
         if r:
-            blocks, threads = self._launch_1d(r * int(conc.shape[1]))  # a thread per (row, class)
-            self.k.moments_kernel[blocks, threads](conc, frame.rows, mom)
+            blocks, threads = self._launch_1d(r * num_classes)  # a thread per (row, class)
+            self._go(frame, self.k.moments_kernel, blocks, threads, (conc, frame.rows, frame.row_count, mom))
         return mom
 
     def _params(self, settings: "RenderSettings") -> tuple[Any, Any]:
@@ -391,16 +493,23 @@ class CudaBackend(RasterBackend):
                                       k.RENDER_CLASS_CHUNK, mass is not None)
         mass_w, mass_edges, mass_out = mass if mass is not None else (self._empty_f64, self._empty_f64,
                                                                      self._empty_f64)
-        kernel[len(frame.cameras) * frame.tiles_per_view, self.tile * self.tile](
-            frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom, params, knots,
-            self._planes(planes), frame.width, frame.height, frame.tiles_x, frame.tiles_per_view,
-            *out_views, scores,
-            mass_w, mass_edges, mass_out)
+        self._go(frame, kernel, len(frame.cameras) * frame.tiles_per_view, self.tile * self.tile,
+                 (frame.offsets, frame.order, frame.packed, frame.colors, frame.pair_row, mom, params, knots,
+                  self._planes(planes), frame.width, frame.height, frame.tiles_x, frame.tiles_per_view,
+                  *out_views, scores, mass_w, mass_edges, mass_out))
 
     def render_view(self, frame: CudaFrame, concentrations: np.ndarray, settings: "RenderSettings") -> FrameImages:
         """The view's requested outputs made on the device in final form (:mod:`css_ros.engine.final_form`): the
         render kernel writes each requested plane, packed, into one reused device buffer and reduces U_var / U_exp
         there; one copy brings exactly those bytes to the host, and the images are views into that copy."""
+        if frame.plan is not None:
+            raise ValueError("a plan frame is rendered by observe_view / render_query (it may need doing again)")
+        return self._images(frame, *self._render_host(frame, concentrations, settings))
+
+    def _render_host(self, frame: CudaFrame, concentrations: np.ndarray,
+                     settings: "RenderSettings") -> tuple[np.ndarray, PlaneLayout, int]:
+        """Render ``frame`` into the output buffer and copy it to the host (the one synchronisation): the header
+        brings the U sums, the pending update's counts and the frame's sizes."""
         conc = self._device_concentrations_for_read(concentrations)
         num_classes = int(conc.shape[1])
         layout = plane_layout(frame.height, frame.width, num_classes, settings)
@@ -409,10 +518,16 @@ class CudaBackend(RasterBackend):
         pending, self._pending_counts = self._pending_counts, None
         if pending is not None and not pending.ready:  # an update's counts ride along in the header
             self.ops.copy_words(out, COUNT_WORDS, pending.device)
+        self.ops.copy_words(out, SIZE_WORDS, frame.sizes)
         self._launch_render(frame, conc, settings, layout.planes, views, self._empty_scores, False)
         host = self.ops.download_words(out, layout.words)  # the frame's one copy (and synchronisation)
         if pending is not None and not pending.ready:
             pending.arrived(host[COUNT_WORDS:COUNT_WORDS + 2 * NUM_COUNTS].view(np.int64))
+        return host, layout, num_classes
+
+    @staticmethod
+    def _images(frame: CudaFrame, host: np.ndarray, layout: PlaneLayout, num_classes: int) -> FrameImages:
+        """The view's images: numpy views into the copied words."""
         return layout.images(host, frame.height, frame.width, num_classes)
 
     def render(self, frame: CudaFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,

@@ -80,6 +80,13 @@ def pixel_input(labels, confidence, has_confidence, num_classes, ignore_label, u
 
 
 @cuda.jit(device=True, inline=True)
+def overflowed(sizes, packed, order):  # pragma: no cover
+    """True when the frame's pairs or keys (sizes (2,) i64, written by the projection and the key emission) did not
+    fit its buffers: the frame's lists are incomplete, and an update must add nothing (it is done again)."""
+    return sizes[0] > packed.shape[0] or sizes[1] > order.shape[0]
+
+
+@cuda.jit(device=True, inline=True)
 def count_pixels(status, counts):  # pragma: no cover
     """Add the block's pixel counts (used, ignored, out of range) to ``counts`` with one atomic each (a barrier:
     every thread of the block must call it)."""
@@ -136,7 +143,8 @@ def _surely_culled(cam, means, i, max_std, width, height):  # pragma: no cover
 
 @cuda.jit
 def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, want_color, capacity,
-                   counter, out_packed, out_bbox, out_id, out_view, out_ntiles, out_color):  # pragma: no cover
+                   counter, out_packed, out_bbox, out_id, out_view, out_ntiles, out_color,
+                   out_depth):  # pragma: no cover
     """Project every (view, Gaussian) pair (:func:`css_ros.engine.splat_math.ewa_splat`, the CPU's
     maths); append the kept ones at ``counter`` (atomic).
 
@@ -147,7 +155,9 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
     Outputs (row = slot, valid below min(counter, capacity)):
         out_packed (cap, 8) f64 (u, v, a, b, c, opacity, qmax, depth); out_bbox (cap, 4) i32 inclusive
         pixel box (u0, u1, v0, v1) of the alpha >= 1/255 ellipse; out_id / out_view (cap,) i32;
-        out_ntiles (cap,) i32 tiles the box overlaps; out_color (cap, 3) f32.
+        out_ntiles (cap,) i32 tiles the box overlaps; out_color (cap, 3) f32; out_depth (cap,) f32 the camera
+        depth rounded to float32 (the depth sort's key; rows past the count keep what they held, +inf for the
+        single-view plan). counter[0] ends as the number of kept pairs, also where it exceeds ``capacity``.
     """
     n_views = cams.shape[0]
     total = means.shape[0] * n_views
@@ -175,6 +185,7 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
         bv1 = int32(splat[11])
         out_id[slot] = i
         out_view[slot] = view
+        out_depth[slot] = float32(splat[7])
         out_ntiles[slot] = (bu1 // tile - bu0 // tile + 1) * (bv1 // tile - bv0 // tile + 1)
         if want_color:
             x, y, z = _view_direction(cam, means, i)
@@ -187,17 +198,25 @@ def project_kernel(means, cov3d, opac, max_std, sh, cams, width, height, tile, w
 
 
 @cuda.jit
-def emit_keys_kernel(bbox, view, by_depth, first, num_pairs, tile, tiles_x, tiles_per_view, keys,
+def emit_keys_kernel(bbox, view, by_depth, ends, counter, tile, tiles_x, tiles_per_view, keys,
                      pairs):  # pragma: no cover
-    """Tile keys in depth order: for the r-th nearest pair j = by_depth[r] and the k-th tile of its box,
-    keys[first[r] + k] = view_j * T + tile_k (int32) and pairs[first[r] + k] = j. The keys are written
-    front to back, so a stable sort of these 32-bit keys alone gives every (view, tile) its
-    front-to-back list."""
+    """Tile keys in depth order: for the r-th nearest pair j = by_depth[r] (r < min(counter[0], rows)) and the k-th
+    tile of its box, keys[ends[r] - n_j + k] = view_j * T + tile_k (int32) and pairs[...] = j, n_j the tiles of
+    j's box and ends the inclusive prefix sum of the tile counts in depth order. The keys are written front to
+    back, so a stable sort of these 32-bit keys alone gives every (view, tile) its front-to-back list. The last
+    pair's thread sets counter[1] to the number of keys; pairs whose keys would pass the end of ``keys`` write none
+    (the single-view plan sees counter[1] > its capacity and renders the frame again with more room)."""
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
+    num_pairs = min(counter[0], by_depth.shape[0])
     for r in range(start, num_pairs, stride):
         j = by_depth[r]
-        pos = first[r]
+        end = ends[r]
+        if r == num_pairs - 1:
+            counter[1] = end
+        if end > keys.shape[0]:
+            continue
+        pos = end - (bbox[j, 1] // tile - bbox[j, 0] // tile + 1) * (bbox[j, 3] // tile - bbox[j, 2] // tile + 1)
         base = view[j] * tiles_per_view
         for ty in range(bbox[j, 2] // tile, bbox[j, 3] // tile + 1):
             for tx in range(bbox[j, 0] // tile, bbox[j, 1] // tile + 1):
@@ -207,8 +226,9 @@ def emit_keys_kernel(bbox, view, by_depth, first, num_pairs, tile, tiles_x, tile
 
 
 @cuda.jit
-def moments_kernel(concentrations, rows, out):  # pragma: no cover
-    """out[r] = (E_0..E_{C-1}, Var_0..Var_{C-1}, S) in float32 for Gaussian rows[r] (SPEC §4):
+def moments_kernel(concentrations, rows, count, out):  # pragma: no cover
+    """out[r] = (E_0..E_{C-1}, Var_0..Var_{C-1}, S) in float32 for Gaussian rows[r], r < min(count[0], rows)
+    (SPEC §4):
     S = sum_c alpha^c, E = alpha / S, Var = E (1 - E) / (1 + S) (computed in float64).
 
     One thread per (row, class), the classes of a row on neighbouring lanes: each thread sums its row's C
@@ -218,7 +238,7 @@ def moments_kernel(concentrations, rows, out):  # pragma: no cover
     num_classes = concentrations.shape[1]
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
-    for flat in range(start, rows.shape[0] * num_classes, stride):
+    for flat in range(start, min(count[0], rows.shape[0]) * num_classes, stride):
         r = flat // num_classes
         c = flat - r * num_classes
         n = rows[r]
@@ -319,7 +339,8 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
     ids (M,) i32 model rows; labels (H, W) uint8 / uint16 / int32 / int64 as they came in; confidence (H, W) f32 /
     f64 (any (1, 1) array when has_confidence is False); has_confidence; ignore_label; tiles_x;
     concentrations (N, C) f64, to which sum_i kappa_in * weight_i is added at [n, class_i]; counts (4,) i64, to
-    which the image's used / ignored / out-of-range pixels are added (the label rule, :func:`pixel_input`).
+    which the image's used / ignored / out-of-range pixels are added (the label rule, :func:`pixel_input`);
+    sizes (2,) i64 the frame's (pairs, keys): beyond the frame's buffers (:func:`overflowed`) nothing is added.
 
     The pixel walk is float32 (alpha, transmittance, kappa * weight); per staged Gaussian a warp
     whose contributing lanes share one label sums them with shuffles and one lane adds the sum to
@@ -336,7 +357,9 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
 
     @cuda.jit
     def update_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
-                      concentrations, counts):  # pragma: no cover
+                      concentrations, counts, sizes):  # pragma: no cover
+        if overflowed(sizes, packed, order):
+            return
         t = cuda.blockIdx.x
         tid = cuda.threadIdx.x
         lane = tid % WARP
@@ -428,7 +451,9 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
 
     @cuda.jit
     def update_model_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
-                            concentrations, counts, edges, table):  # pragma: no cover
+                            concentrations, counts, sizes, edges, table):  # pragma: no cover
+        if overflowed(sizes, packed, order):
+            return
         t = cuda.blockIdx.x
         tid = cuda.threadIdx.x
         lane = tid % WARP

@@ -1,8 +1,8 @@
 """The CUDA backend's output buffer: where the render kernel writes each requested plane of a view, and how the
 host reads the one copy back as the view's images (no numba here; :mod:`.kernels` imports the plane indices).
 
-One int32 buffer per frame: 12 header words (two float64 sums: sum log max(Var, floor) and sum E, for U_var and
-U_exp; the pixel counts of the update before the render), then the requested planes packed in a fixed order, each
+One int32 buffer per frame: 16 header words (two float64 sums: sum log max(Var, floor) and sum E, for U_var and
+U_exp; the pixel counts of the update before the render; the frame's pair and key counts), then the requested planes packed in a fixed order, each
 (H, W) plane H W words (int32 labels, float32 E, Var, kappa_b, evidence, depth [m], confidence), the colour
 (H, W, 3) uint8 in ceil(3 H W / 4) words, the probabilities (H, W, C) float32. Only requested planes take space,
 so the copy moves only requested bytes.
@@ -17,10 +17,12 @@ from ..final_form import FrameImages, RenderSettings, uncertainty_from_sums
 
 PL_LABELS, PL_E, PL_VAR, PL_BG, PL_EVIDENCE, PL_DEPTH, PL_CONFIDENCE, PL_RGB, PL_PROBS = range(9)
 NUM_PLANES = 9
-#: int32 words before the planes: two float64 U sums (words 0-3), then an update's NUM_COUNTS int64 pixel counts
-#: (words COUNT_WORDS.., see :class:`~css_ros.engine.cuda.backend.DeviceCounts`)
-HEADER_WORDS = 12
+#: int32 words before the planes: two float64 U sums (words 0-3), an update's NUM_COUNTS int64 pixel counts
+#: (words COUNT_WORDS.., see :class:`~css_ros.engine.cuda.backend.DeviceCounts`), the frame's (pairs, keys) as int64
+#: (words SIZE_WORDS..: a single-view plan's frame learns there whether it fitted)
+HEADER_WORDS = 16
 COUNT_WORDS = 4
+SIZE_WORDS = 12
 #: image name -> (plane index, numpy dtype) of the (H, W) planes
 _PLANES: dict[str, tuple[int, type]] = {
     "labels": (PL_LABELS, np.int32), "expectation": (PL_E, np.float32), "variance": (PL_VAR, np.float32),

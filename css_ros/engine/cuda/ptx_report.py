@@ -94,20 +94,21 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
     from . import kernels as k
 
     f64_2, f32_2, i32_2 = float64[:, ::1], float32[:, ::1], int32[:, ::1]
-    i32_1, i64_1, f64_1 = int32[::1], int64[::1], float64[::1]
+    i32_1, i64_1, f64_1, f32_1 = int32[::1], int64[::1], float64[::1], float32[::1]
     nt = tile * tile
     out = [
         ("project", k.project_kernel.py_func,
          (f64_2, f64_2, f64_1, f64_1, float32[:, :, ::1], f64_2, float64, float64, int64, boolean, int64, i64_1,
-          f64_2, i32_2, i32_1, i32_1, i32_1, f32_2), 256),
-        ("emit_keys", k.emit_keys_kernel.py_func, (i32_2, i32_1, i64_1, i64_1, int64, int64, int64, int64, i32_1,
+          f64_2, i32_2, i32_1, i32_1, i32_1, f32_2, f32_1), 256),
+        ("emit_keys", k.emit_keys_kernel.py_func, (i32_2, i32_1, i64_1, i64_1, i64_1, int64, int64, int64, i32_1,
                                                    i32_1), 256),
-        ("moments", k.moments_kernel.py_func, (f64_2, i32_1, f32_2), 256),
-        (f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func,
-         (i64_1, i32_1, f64_2, i32_1, i32_2, f32_2, int64, f64_2), nt),
-        (f"update_model_C{num_classes}", k.make_update_kernel(num_classes, tile, True, MODEL_BINS).py_func,
-         (i64_1, i32_1, f64_2, i32_1, i32_2, f32_2, int64, f64_2, f64_1, f64_2, i64_1), nt),
+        ("moments", k.moments_kernel.py_func, (f64_2, i32_1, i64_1, f32_2), 256),
     ]
+    # the update reads the labels as the segmentation topic carries them (here uint8, mono8) and a float32 confidence
+    update_args = (i64_1, i32_1, f64_2, i32_1, uint8[:, ::1], f32_2, boolean, int64, int64, f64_2, i64_1, i64_1)
+    out += [(f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func, update_args, nt),
+            (f"update_model_C{num_classes}", k.make_update_kernel(num_classes, tile, True, MODEL_BINS).py_func,
+             (*update_args, f64_1, f64_2), nt)]
     render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, f64_1, f64_2, i64_1, int64, int64, int64, int64,
                   i32_1, float32[::1], uint8[::1], f64_1, f64_2, f64_1, f64_1, f64_1)
     for score, probs, mass, label in ((False, False, False, "render"), (False, True, False, "render_probs"),
