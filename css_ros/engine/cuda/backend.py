@@ -381,7 +381,7 @@ class CudaBackend(RasterBackend):
         ops = self.ops
         lab = self._frame_input("labels", inputs.labels)
         has_conf = inputs.confidence is not None
-        conf = self._frame_input("confidence", inputs.confidence) if has_conf else self._no_confidence
+        conf = self._no_confidence if inputs.confidence is None else self._frame_input("confidence", inputs.confidence)
         counts = self._counts_dev
         ops.fill(counts, 0)
         args: tuple[Any, ...] = (frame.offsets, frame.order, frame.packed, frame.ids, lab, conf, has_conf,

@@ -46,7 +46,8 @@ def _bind(kernel: Any, grid: int, block: int, args: tuple[Any, ...]) -> Callable
     try:
         from numba.cuda._compat import CUDA_CORE_GE_1_0
         from numba.cuda.cudadrv import driver
-        from numba.cuda.dispatcher import LaunchConfig, launch, normalize_kernel_dimensions
+        from numba.cuda.dispatcher import (LaunchConfig, launch,  # type: ignore[attr-defined]
+                                           normalize_kernel_dimensions)
 
         argtypes = tuple(kernel.typeof_pyval(a) for a in args)
         compiled = kernel.compile(argtypes)
@@ -62,7 +63,7 @@ def _bind(kernel: Any, grid: int, block: int, args: tuple[Any, ...]) -> Callable
         opts = {"is_cooperative": False} if CUDA_CORE_GE_1_0 else {"cooperative_launch": False}
         config = LaunchConfig(grid=griddim, block=blockdim, shmem_size=0, **opts)
         cu_kernel = compiled._codelibrary.get_cufunc().kernel
-        stream = driver._to_core_stream(0)  # the default stream, as kernel[grid, block](...) uses
+        stream = driver._to_core_stream(0)  # type: ignore[attr-defined]  # the default stream, as kernel[grid, block](...) uses
     except (ImportError, AttributeError, TypeError):
         return None
     return lambda: launch(stream, config, cu_kernel, *kernelargs)

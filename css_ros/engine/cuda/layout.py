@@ -2,10 +2,10 @@
 host reads the one copy back as the view's images (no numba here; :mod:`.kernels` imports the plane indices).
 
 One int32 buffer per frame: 16 header words (two float64 sums: sum log max(Var, floor) and sum E, for U_var and
-U_exp; the pixel counts of the update before the render; the frame's pair and key counts), then the requested planes packed in a fixed order, each
-(H, W) plane H W words (int32 labels, float32 E, Var, kappa_b, evidence, depth [m], confidence), the colour
-(H, W, 3) uint8 in ceil(3 H W / 4) words, the probabilities (H, W, C) float32. Only requested planes take space,
-so the copy moves only requested bytes.
+U_exp; the pixel counts of the update before the render; the frame's pair and key counts), then the requested
+planes packed in a fixed order, each (H, W) plane H W words (int32 labels, float32 E, Var, kappa_b, evidence,
+depth [m], confidence), the colour (H, W, 3) uint8 in ceil(3 H W / 4) words, the probabilities (H, W, C) float32.
+Only requested planes take space, so the copy moves only requested bytes.
 """
 from __future__ import annotations
 
