@@ -271,6 +271,8 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
     model, gt, cams = build_scene(cfg, frames + warmup + 1)
     build_s = time.perf_counter() - t0
     C = cfg["classes"]
+    if cfg.get("stub_device"):  # the host's own work per frame, no GPU (benchmarks/cuda_host.py)
+        return host_time(model, cams, C, cfg, max(frames, 50))
     gt_map = SemanticMap(model, C, backend="cuda")   # ground-truth segmentations, outside the timings
     conc = np.full((model.num_gaussians, C), 1e-3)
     conc[np.arange(model.num_gaussians), gt % C] = 1e3
@@ -341,8 +343,20 @@ def run_scene_cuda(cfg: dict, frames: int, warmup: int, candidates: int, cand_w:
     result.update(gpu_memory())
     result.update(gsplat_anchor(model, gt, cams[warmup + 1:], C, cfg["width"], cfg["height"]))
     result.update(paper_estimate(model, C, cams[1], labels[1], cand if candidates else None))
+    result.update(host_time(model, cams, C, cfg, max(frames, 50)))
     result["peak_rss_mib"] = peak_rss_mib()
     return result
+
+
+def host_time(model, cams: list, num_classes: int, cfg: dict, frames: int) -> dict:
+    """The host's own work per observe and per query render with the stub device of benchmarks/cuda_host.py
+    (uint8 labels, as a mono8 segmentation arrives): ms, launches and synchronisations per frame."""
+    from cuda_host import measure
+
+    rng = np.random.default_rng(0)
+    labels = [rng.integers(0, num_classes, (cfg["height"], cfg["width"])).astype(np.uint8) for _ in cams[:8]]
+    r = measure(model, cams[:8], labels, num_classes, frames)
+    return {"host_" + k: v for k, v in r.items()}
 
 
 def paper_estimate(model, num_classes: int, cam, labels, candidates) -> dict:
@@ -439,7 +453,23 @@ def gpu_memory() -> dict:
 CUDA_TARGETS_MS = {"100k": 2.5, "1M": 5.5, "3M": 18.0}
 
 
+def print_host_table(results: list[dict]) -> None:
+    """The host's own time per frame (stub device) of every scene that measured it."""
+    hosted = [r for r in results if "host_observe_ms" in r]
+    if hosted:
+        print()
+        print("host time per frame (stub device: the backend's Python with no kernel run; target <= 0.5 ms per "
+              "observe at 1M):")
+        for r in hosted:
+            print(f"{r['name']:>7}: observe {r['host_observe_ms']:.3f} ms (p90 {r['host_observe_p90_ms']:.3f}), query "
+                  f"{r['host_query_ms']:.3f} ms; per observe {r['host_launches_per_observe']:.0f} launches, "
+                  f"{r['host_syncs_per_observe']:.0f} synchronisation, {r['host_array_ops_per_observe']:.0f} array ops")
+
+
 def print_cuda_table(results: list[dict]) -> None:
+    if all("cycle_ms" not in r for r in results):
+        print_host_table(results)
+        return
     print()
     print(f"{'scene':>7} {'Gaussians':>9} {'res':>10} {'C':>3} {'pairs':>8} {'cycle ms':>8} {'paper':>6} "
           f"{'target':>6} {'query ms':>8} {'peak GPU MiB':>12} {'score ms':>12}")
@@ -467,6 +497,7 @@ def print_cuda_table(results: list[dict]) -> None:
             print(f"{r['name']:>7} {r['cycle_ms']:>8.2f} {r['gsplat_fwd_bwd_ms']:>10.2f} "
                   f"{r['cycle_ms'] / r['gsplat_fwd_bwd_ms']:>6.2f} {r['query_ms']:>8.2f} {r['gsplat_fwd_ms']:>10.2f} "
                   f"{r['query_ms'] / r['gsplat_fwd_ms']:>6.2f}")
+    print_host_table(results)
     for r in results:
         if "score_ms" in r:
             print(f"score_views: {r['candidates']} views at {r['candidate_size']} on {r['name']}: "
@@ -482,6 +513,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--simulate", action="store_true",
                    help="with --backend cuda: run the tiny scene under the numba-cuda simulator (no GPU; checks "
                         "the code path, timings meaningless)")
+    p.add_argument("--stub-device", action="store_true",
+                   help="with --backend cuda: only the host's own time per observe and query render, measured on "
+                        "the CPU with a stub device (benchmarks/cuda_host.py; no GPU needed)")
     p.add_argument("--gaussians", type=int, help="custom scene: number of Gaussians")
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
@@ -519,13 +553,16 @@ def main(argv: list[str] | None = None) -> int:
         names = [n for n in names if not SCENES[n].get("ply") or BIKER_PLY.exists()]
         jobs = {k: dict(SCENES[k]) for k in names}
     env = dict(os.environ)
+    if args.simulate or args.stub_device:
+        env["NUMBA_ENABLE_CUDASIM"] = "1"   # the stub device needs numba.cuda importable, nothing more
     if args.simulate:
-        env["NUMBA_ENABLE_CUDASIM"] = "1"
         args.frames, args.warmup = min(args.frames, 2), min(args.warmup, 1)
     results = []
     for name, cfg in jobs.items():
         cfg = dict(cfg, name=name, sh_degree=args.sh_degree, backend=args.backend, sensor_model=args.sensor_model)
-        if args.backend == "cuda":
+        if args.backend == "cuda" and args.stub_device:
+            cfg["stub_device"] = True
+        elif args.backend == "cuda":
             if name in ("1M", "tiny"):
                 cfg["candidates"] = 0 if args.no_candidates else (8 if args.simulate else 256)
                 if args.simulate:
@@ -545,8 +582,9 @@ def main(argv: list[str] | None = None) -> int:
         res = json.loads(lines[-1][7:])
         res["name"] = name
         results.append(res)
-        print(f"    {res['fps']:.2f} frames/s, {res['query_fps']:.2f} views/s, peak {res['peak_rss_mib']:.0f} MiB",
-              flush=True)
+        if "fps" in res:
+            print(f"    {res['fps']:.2f} frames/s, {res['query_fps']:.2f} views/s, peak {res['peak_rss_mib']:.0f} MiB",
+                  flush=True)
     if args.backend == "cuda":
         print_cuda_table(results)
         if args.simulate:

@@ -656,3 +656,24 @@ def test_one_exchange_warp_sum_equals_the_five_shuffles(dtype):
         assert np.all(fast[32 * w:32 * w + 32] == fast[32 * w])
         np.testing.assert_allclose(fast[32 * w], x[32 * w:32 * w + 32].astype(np.float64).sum(),
                                    rtol=1e-6 if dtype == np.float32 else 1e-14)
+
+
+def test_stub_device_counts_the_host_work_of_a_frame():
+    """benchmarks/cuda_host.py's stub device runs the backend's Python as on a GPU with no kernel: an observe is 5
+    launches (project, emit keys, update, moments, render), a query render 4, one synchronisation each, no launch
+    bound again after the warm-up, and the host time is measured (> 0)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "cuda_host.py"
+    spec = importlib.util.spec_from_file_location("cuda_host", path)
+    cuda_host = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cuda_host)
+    model = random_scene(13, n=200)
+    cams = [camera(width=W, height=H, f=12.0, position=(0.05 * i, 0.0, 0.0)) for i in range(3)]
+    labels = [np.random.default_rng(i).integers(0, C, (H, W)).astype(np.uint8) for i in range(3)]
+    r = cuda_host.measure(model, cams, labels, C, frames=5)
+    assert r["launches_per_observe"] == 5 and r["launches_per_query"] == 4
+    assert r["syncs_per_observe"] == 1 and r["syncs_per_query"] == 1
+    assert r["new_bindings"] == 0 and r["uploads_per_observe"] == 2   # the camera row and the labels
+    assert 0 < r["observe_ms"] < 1e3 and 0 < r["query_ms"] < 1e3
