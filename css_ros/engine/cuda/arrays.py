@@ -119,6 +119,10 @@ class NumpyOps:
         perm = self.xp.argsort(x, kind="stable")
         return x[perm], perm
 
+    def copy(self, x: Any) -> Any:
+        """A new device array with x's values (a slice's copy no longer holds its base's memory)."""
+        return x.copy()
+
     # ---- into preallocated outputs (the single-view plan's buffers keep their addresses frame to frame)
     def fill(self, dev: Any, value: Any) -> None:
         """dev[...] = value."""
@@ -294,6 +298,9 @@ class TorchOps:  # pragma: no cover - needs a CUDA build of torch and a GPU
 
     def fill(self, dev: Any, value: Any) -> None:
         dev.fill_(value)
+
+    def copy(self, x: Any) -> Any:
+        return x.clone()
 
     def sort_into(self, x: Any, values: Any, indices: Any) -> None:
         self.torch.sort(x, stable=True, out=(values, indices))

@@ -30,7 +30,7 @@ from ..splat_math import CAM_COLS, camera_row
 from .arrays import import_cuda, make_ops, simulator_enabled
 from .launch import Launches
 from .layout import COUNT_WORDS, HEADER_WORDS, NUM_PLANES, SIZE_WORDS, PlaneLayout, plane_layout
-from .view_plan import ViewPlan
+from .view_plan import HEADROOM, ViewPlan
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -74,6 +74,24 @@ class CudaFrame:
     sizes: Any
     row_count: Any
     plan: "ViewPlan | None" = None
+
+
+#: (view, Gaussian) pairs one scoring batch may hold: its buffers take ~250 bytes per pair (projection rows 108,
+#: depth sort 24, tile keys and their sort ~24 per key, evidence mass 8, ...), so ~2 GiB at this bound, which keeps
+#: a 256-candidate scoring of a 1M splat within 4 GiB of GPU memory with the model and the map
+SCORE_BATCH_PAIRS = 8_000_000
+
+
+@dataclass
+class PairMasses:
+    """What the info gain needs of a scoring batch, kept after its frame is gone: the batch's view indices, its M
+    pairs' view rows (M,) i32, model ids (M,) i32 and evidence mass (M,) f64 on the device (None when M = 0)."""
+
+    idx: list[int]
+    num_pairs: int
+    views: Any
+    ids: Any
+    mass: Any
 
 
 class DeviceCounts(UpdateCounts):
@@ -153,6 +171,7 @@ class CudaBackend(RasterBackend):
         self._inputs: dict[tuple, Any] = {}                   # per-frame input buffers (_frame_input)
         self._plans: dict[tuple[int, int], ViewPlan] = {}     # single-view plans per image size
         self.launches = Launches(self.simulated)
+        self._pairs_per_view: dict[tuple[int, int], float] = {}  # scoring batches' pairs per view, per size
         self._pending_counts: DeviceCounts | None = None      # the last update's counts, still on the device
 
     def _probe(self) -> None:
@@ -577,11 +596,22 @@ class CudaBackend(RasterBackend):
             assert img.expectation is not None and img.variance is not None
             yield img.expectation.astype(np.float64), img.variance.astype(np.float64), mass
 
+    def _score_chunks(self, idx: list[int], width: int, height: int) -> list[list[int]]:
+        """``idx`` (views of one size) cut into batches whose (view, Gaussian) pairs should fit
+        :data:`SCORE_BATCH_PAIRS` (the pairs per view of this size measured at the last batch, :data:`HEADROOM`
+        above; a quarter of the model before any), so that a batch's buffers stay within a bounded memory whatever
+        the number of candidates."""
+        per_view = self._pairs_per_view.get((width, height), max(1.0, self.num_gaussians / 4))
+        size = max(1, int(SCORE_BATCH_PAIRS // max(1.0, HEADROOM * per_view)))
+        return [idx[i:i + size] for i in range(0, len(idx), size)]
+
     def _scored_groups(self, cameras: list["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                        s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None"
                        ) -> Iterator[tuple[list[int], CudaFrame, Any, Any]]:
-        """Per image size: (indices into ``cameras``, the batch's frame, its (V, 2) f64 score sums on the device,
-        the (M,) f64 evidence mass per pair on the device or None), every stage one launch for the batch."""
+        """Per batch of views of one size (:meth:`_score_chunks`): (indices into ``cameras``, the batch's frame, its
+        (V, 2) f64 score sums on the device, the (M,) f64 evidence mass per pair on the device or None), every stage
+        one launch for the batch. Callers keep of a batch only what they need (the frame's buffers are the largest
+        part of a scoring's memory)."""
         conc = self._device_concentrations_for_read(concentrations)
         settings = self._score_settings(e_bg, v_bg, s_bg)
         no_planes = np.full(NUM_PLANES, -1, dtype=np.int64)
@@ -589,17 +619,27 @@ class CudaBackend(RasterBackend):
         if mass_weights is not None:
             edges_dev = self.ops.upload(mass_weights[0], np.float64)
             weights_dev = self.ops.upload(mass_weights[1], np.float64)
-        for idx in self._groups(cameras).values():
-            frame = self.prepare_views([cameras[i] for i in idx], want_color=False)
-            scores = self.ops.zeros((len(idx), 2), np.float64)
-            mass = None
-            if weights_dev is not None:
-                mass = self.ops.zeros(max(frame.num_pairs, 1), np.float64)
-                self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True,
-                                    (weights_dev, edges_dev, mass))
-            else:
-                self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True)
-            yield idx, frame, scores, mass
+        for (width, height), same_size in self._groups(cameras).items():
+            for idx in self._score_chunks(same_size, width, height):
+                frame = self.prepare_views([cameras[i] for i in idx], want_color=False)
+                self._pairs_per_view[(width, height)] = max(1.0, frame.num_pairs / len(idx))
+                scores = self.ops.zeros((len(idx), 2), np.float64)
+                mass = None
+                if weights_dev is not None:
+                    mass = self.ops.zeros(max(frame.num_pairs, 1), np.float64)
+                    self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True,
+                                        (weights_dev, edges_dev, mass))
+                else:
+                    self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True)
+                yield idx, frame, scores, mass
+
+    def _pair_masses(self, idx: list[int], frame: CudaFrame, mass: Any) -> "PairMasses":
+        """What the gains need of a batch, copied out of its frame so that the frame's buffers can go."""
+        m = frame.num_pairs
+        if m == 0 or mass is None:
+            return PairMasses(idx, 0, None, None, None)
+        return PairMasses(idx, m, self.ops.copy(frame.views[:m]), self.ops.copy(frame.ids[:m]),
+                          self.ops.copy(mass[:m]))
 
     def _moment_sums(self, concentrations: np.ndarray) -> Any:
         """(N, 2) f64 (S, Q) of every Gaussian with the scoring prior (info_gain.MomentSums.of), on the device."""
@@ -610,39 +650,50 @@ class CudaBackend(RasterBackend):
             self.k.moment_sums_kernel[blocks, threads](conc, float(INFO_GAIN_PRIOR), sq)
         return sq
 
-    def _gains(self, groups: list[tuple[list[int], CudaFrame, Any, Any]], sq: Any, importance: Any, scale: float,
-               num_views: int) -> Any:
-        """(V,) f64 info gain of every view on the device: one launch per image size over its pairs."""
-        gains = self.ops.zeros(max(num_views, 1), np.float64)
-        for idx, frame, _, mass in groups:
-            if frame.num_pairs == 0 or mass is None:
-                continue
-            slot = self.ops.upload(np.asarray(idx, dtype=np.int32))[frame.views[:frame.num_pairs]]
-            blocks, threads = self._launch_1d(frame.num_pairs)
-            self.k.view_gain_kernel[blocks, threads](mass, slot, frame.ids[:frame.num_pairs], sq, importance,
-                                                     float(scale), gains)
+    def _gains(self, batches: list["PairMasses"], sq: Any, importance: Any, scale: float, num_views: int,
+               gains: Any = None) -> Any:
+        """(V,) f64 info gain of every view on the device (added to ``gains`` when given): one launch per batch over
+        its pairs."""
+        if gains is None:
+            gains = self.ops.zeros(max(num_views, 1), np.float64)
+        for pm in batches:
+            self._add_gains(pm.idx, pm.num_pairs, pm.views, pm.ids, pm.mass, sq, importance, scale, gains)
         return gains
+
+    def _add_gains(self, idx: list[int], num_pairs: int, views: Any, ids: Any, mass: Any, sq: Any, importance: Any,
+                   scale: float, gains: Any) -> None:
+        """gains[idx[view]] += each pair's drop of the expected variance (one launch over the batch's pairs)."""
+        if num_pairs == 0 or mass is None:
+            return
+        slot = self.ops.upload(np.asarray(idx, dtype=np.int32))[views[:num_pairs]]
+        blocks, threads = self._launch_1d(num_pairs)
+        self.k.view_gain_kernel[blocks, threads](mass, slot, ids[:num_pairs], sq, importance, float(scale), gains)
 
     def score_views(self, cameras: Sequence["Camera"], concentrations: np.ndarray, e_bg: float, v_bg: float,
                     s_bg: float, mass_weights: "tuple[np.ndarray, np.ndarray] | None",
                     importance: np.ndarray | None, pixel_scale: float) -> np.ndarray:
-        """(V, 3) float64 (U_var, U_exp, info_gain) per view: all views of one size projected, sorted and rendered
-        in one launch per stage; the U sums and each pair's evidence mass are reduced on the device, the gains by
-        one more launch; 3 V numbers come back."""
+        """(V, 3) float64 (U_var, U_exp, info_gain) per view: the views of one size projected, sorted and rendered
+        in one launch per stage per batch (:meth:`_score_chunks`); the U sums and each pair's evidence mass are
+        reduced on the device, the gains by one more launch per batch before its buffers go; 3 V numbers come
+        back."""
         cams = list(cameras)
         result = np.full((len(cams), 3), np.nan)
         if not cams:
             return result
-        groups = list(self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights))
-        gains = None
+        gains = sq = imp = None
         if mass_weights is not None:
             imp = self._empty_f64 if importance is None else self.ops.upload(importance, np.float64)
-            gains = self._gains(groups, self._moment_sums(concentrations), imp, pixel_scale, len(cams))
-        for idx, frame, scores, _ in groups:
-            sums = self.ops.download(scores)
+            sq = self._moment_sums(concentrations)
+            gains = self.ops.zeros(len(cams), np.float64)
+        sums: list[tuple[list[int], int, Any]] = []
+        for idx, frame, scores, mass in self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights):
+            sums.append((idx, frame.width * frame.height, scores))
+            if gains is not None:
+                self._add_gains(idx, frame.num_pairs, frame.views, frame.ids, mass, sq, imp, pixel_scale, gains)
+        for idx, pixels, scores in sums:
+            values = self.ops.download(scores)
             for row, i in enumerate(idx):
-                result[i, :2] = uncertainty_from_sums(float(sums[row, 0]), float(sums[row, 1]),
-                                                      frame.width * frame.height)
+                result[i, :2] = uncertainty_from_sums(float(values[row, 0]), float(values[row, 1]), pixels)
         if gains is not None:
             result[:, 2] = self.ops.download(gains)[:len(cams)]
         return result
@@ -673,7 +724,8 @@ class CudaBackend(RasterBackend):
         size, V gains back, and one launch moving the chosen view's Gaussians' (S, Q) as its expected observation
         would (the numba path's result within float32 rounding of the mass)."""
         cams = list(cameras)
-        groups = list(self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights))
+        groups = [self._pair_masses(idx, frame, mass)
+                  for idx, frame, _, mass in self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights)]
         sq = self._moment_sums(concentrations)
         imp = self._empty_f64 if importance is None else self.ops.upload(importance, np.float64)
         chosen: list[int] = []
@@ -684,10 +736,9 @@ class CudaBackend(RasterBackend):
             best = int(np.argmax(scores))
             chosen.append(best)
             gains.append(float(scores[best]))
-            for idx, frame, _, mass in groups:
-                if best in idx and frame.num_pairs and mass is not None:
-                    blocks, threads = self._launch_1d(frame.num_pairs)
-                    self.k.observe_expected_kernel[blocks, threads](mass, frame.views[:frame.num_pairs],
-                                                                    frame.ids[:frame.num_pairs], idx.index(best),
+            for pm in groups:
+                if best in pm.idx and pm.num_pairs:
+                    blocks, threads = self._launch_1d(pm.num_pairs)
+                    self.k.observe_expected_kernel[blocks, threads](pm.mass, pm.views, pm.ids, pm.idx.index(best),
                                                                     float(pixel_scale), sq)
         return SelectedViews(np.array(chosen, dtype=np.int64), np.array(gains))
