@@ -1,7 +1,8 @@
 """The CUDA backend in an ordinary test run (no GPU needed).
 
 - test_simulated_kernels runs test/test_cuda_sim.py in a subprocess with NUMBA_ENABLE_CUDASIM=1
-  (the simulator must be chosen before numba is imported; this process has numba CPU kernels loaded).
+  (the simulator must be chosen before numba is imported; this process has numba CPU kernels loaded); on a machine
+  with a GPU it runs the same checks on the device.
 - Without a GPU and without the simulator, asking for backend "cuda" is a clear CssError.
 - On a machine with a GPU, the same comparison with the numba path runs on the device.
 """
@@ -37,10 +38,14 @@ def _env(sim: bool) -> dict[str, str]:
 
 @needs_numba_cuda
 def test_simulated_kernels():
-    """Every check of test_cuda_sim.py (brute-force reference and numba path) under the simulator."""
+    """Every check of test_cuda_sim.py (brute-force reference and numba path) under the simulator; on a machine with
+    a GPU the same checks on the device (the simulator's pace is the CPU's, not the hardware's: minutes)."""
+    env = _env(not GPU)
+    if GPU:
+        env["CSS_CUDA_CHECKS"] = "device"
     out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                           str(ROOT / "test" / "test_cuda_sim.py")],
-                         env=_env(True), cwd=ROOT, capture_output=True, text=True, timeout=900)
+                         env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-3000:]
     assert " passed" in out.stdout and "skipped" not in out.stdout.splitlines()[-1], out.stdout[-2000:]
 

@@ -2,8 +2,8 @@
 reference (test/css_reference.py) and the numba CPU path, on tiny scenes.
 
 The simulator must be switched on before numba is imported, so these tests run in a subprocess
-started by test/test_cuda_backend.py with NUMBA_ENABLE_CUDASIM=1; collected in a process without
-it (the ordinary pytest run) this module skips itself.
+started by test/test_cuda_backend.py with NUMBA_ENABLE_CUDASIM=1 (on a machine with a GPU: on the device, with
+CSS_CUDA_CHECKS=device); collected in a process without either (the ordinary pytest run) this module skips itself.
 """
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import os
 import numpy as np
 import pytest
 
-if os.environ.get("NUMBA_ENABLE_CUDASIM", "0") in ("", "0"):
-    pytest.skip("simulated CUDA checks run in a subprocess (test_cuda_backend.py::test_simulated_kernels)",
-                allow_module_level=True)
+if os.environ.get("NUMBA_ENABLE_CUDASIM", "0") in ("", "0") and os.environ.get("CSS_CUDA_CHECKS") != "device":
+    pytest.skip("CUDA checks run in a subprocess (test_cuda_backend.py::test_simulated_kernels: simulated, or on the "
+                "GPU where there is one)", allow_module_level=True)
 pytest.importorskip("numba.cuda", reason="numba-cuda is not installed (pip install -e '.[cuda]')")
 
 import sys  # noqa: E402
