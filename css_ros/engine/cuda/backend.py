@@ -80,6 +80,9 @@ class CudaFrame:
 #: depth sort 24, tile keys and their sort ~24 per key, evidence mass 8, ...), so ~2 GiB at this bound, which keeps
 #: a 256-candidate scoring of a 1M splat within 4 GiB of GPU memory with the model and the map
 SCORE_BATCH_PAIRS = 8_000_000
+#: attempts of a single view in its plan before it takes the batched path (each attempt grows the plan to its need:
+#: the pairs first, then the keys of all of them; two suffice)
+PLAN_ATTEMPTS = 4
 
 
 @dataclass
@@ -362,21 +365,24 @@ class CudaBackend(RasterBackend):
                      soft: "SoftLabels | None", settings: RenderSettings) -> tuple[FrameImages, UpdateCounts]:
         """One observed frame with one synchronisation: project, sort, update and render in bound launches, then one
         copy of the outputs (with the update's counts and the frame's sizes). A frame that did not fit the plan's
-        buffers added nothing; it is done again with larger ones."""
-        while True:
+        buffers added nothing; it is done again with larger ones (each attempt grows the plan to the need it saw;
+        after PLAN_ATTEMPTS the frame takes the path that sizes its sorts on the host)."""
+        for _ in range(PLAN_ATTEMPTS):
             frame = self._plan_frame(camera, settings.wants("rgb"))
             counts = self.update(frame, inputs, concentrations, soft)
             out = self._render_host(frame, concentrations, settings)
             if self._plan_done(frame, out[0]):
                 return self._images(frame, *out), counts
+        return super().observe_view(camera, inputs, concentrations, soft, settings)
 
     def render_query(self, camera: "Camera", concentrations: np.ndarray, settings: RenderSettings) -> FrameImages:
         """A query view with one synchronisation (as :meth:`observe_view`, without the update)."""
-        while True:
+        for _ in range(PLAN_ATTEMPTS):
             frame = self._plan_frame(camera, settings.wants("rgb"))
             out = self._render_host(frame, concentrations, settings)
             if self._plan_done(frame, out[0]):
                 return self._images(frame, *out)
+        return super().render_query(camera, concentrations, settings)
 
     # ------------------------------------------------------------------ update
     def update(self, frame: CudaFrame, inputs: "FrameLabels", concentrations: np.ndarray,
