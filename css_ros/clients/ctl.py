@@ -40,7 +40,9 @@ examples:
   css_ctl save                                # write the checkpoint now
   css_ctl reset                               # all concentrations back to the prior
   css_ctl load                                # replace the map by the checkpoint at checkpoint_path
-  css_ctl query 0.5 0.2 1.0  -1 0 0.3         # SPEC §9 point queries (x y z triples, map frame, metres)
+  css_ctl query -1.4 0.3 0.75  0 1.5 0  -1 3 1.5
+                                              # SPEC §9 point queries (x y z triples, map frame, metres): on the
+                                              # demo room's table, floor and north wall; "unknown" = free space
   css_ctl query --file points.txt             # one "x y z" per line
   css_ctl candidates 0 0 1.5 -0.5 0.5 -0.5 0.5
                                               # score views (x y z qx qy qz qw of the optical frame, map frame:
