@@ -24,8 +24,8 @@ from .spec import MAX_FRAMES
 if TYPE_CHECKING:
     from .gaussians import GaussianModel
 
-__all__ = ["MAP_FORMAT_VERSION", "MAX_SOURCES", "MAX_RECEIVED_SOURCES", "MapContents", "MapInfo", "SourceEvidence",
-           "check_map_headers", "read_map_file", "read_map_info", "write_map_file"]
+__all__ = ["MAP_FORMAT_VERSION", "MAX_SOURCES", "MAX_RECEIVED_SOURCES", "MapContents", "MapHeader", "MapInfo",
+           "SourceEvidence", "check_map_headers", "read_map_file", "read_map_info", "write_map_file"]
 
 MAP_FORMAT_VERSION = 1
 #: npz members of a map file: name -> (dtype kinds accepted, shape; "G"/"C" = Gaussians / classes).
@@ -118,6 +118,15 @@ class MapContents:
         return int(self.concentrations.shape[1])
 
 
+@dataclass(frozen=True)
+class MapHeader:
+    """The scalars :func:`check_map_headers` reads before any large member: N, C and the model's fingerprint."""
+
+    num_gaussians: int
+    num_classes: int
+    fingerprint: str
+
+
 # ---------------------------------------------------------------------------------------------------- writing
 def write_map_file(path: Path, contents: MapContents) -> None:
     """Write ``contents`` as a versioned ``.npz`` of plain arrays, atomically (:func:`~.atomic.atomic_file`: a crash
@@ -203,7 +212,7 @@ def _member_shapes(path: Path) -> dict[str, tuple]:
     return shapes
 
 
-def check_map_headers(path: Path, model: "GaussianModel | None" = None, num_classes: int | None = None) -> None:
+def check_map_headers(path: Path, model: "GaussianModel | None" = None, num_classes: int | None = None) -> MapHeader:
     """Check every member's declared dtype, shape and size from the npy headers, and the file's own
     model fingerprint and class count, before reading any large data.
 
@@ -214,7 +223,8 @@ def check_map_headers(path: Path, model: "GaussianModel | None" = None, num_clas
     is not (the model's N, the file's own ``num_classes``) (a decompression bomb or a header declaring a
     huge array is refused here, without the caller passing C); with ``num_classes`` given, a map of
     another class count. A corrupt compressed stream is a MapError too. ``model`` None (css_map reading a map
-    without its model): the file's own number of Gaussians (>= 1) is taken, no fingerprint check.
+    without its model): the file's own number of Gaussians (>= 1) is taken, no fingerprint check. Returns the
+    file's N, C and model fingerprint (only headers and scalars were read).
     """
     try:
         shapes = _member_shapes(path)
@@ -246,6 +256,7 @@ def check_map_headers(path: Path, model: "GaussianModel | None" = None, num_clas
     if num_classes is not None and file_classes != num_classes:
         raise MapError(f"map file {path} has {file_classes} classes, expected {num_classes}")
     _check_received_shapes(path, shapes, n_model, file_classes)
+    return MapHeader(n_model, file_classes, fingerprint)
 
 
 def _check_received_shapes(path: Path, shapes: dict[str, tuple], n: int, c: int) -> None:
@@ -265,13 +276,16 @@ def _check_received_shapes(path: Path, shapes: dict[str, tuple], n: int, c: int)
                        f"{shapes['received_evidence']}; at most {n} rows per source)")
 
 
-def read_map_file(path: Path, model: "GaussianModel | None" = None, num_classes: int | None = None) -> MapContents:
+def read_map_file(path: Path, model: "GaussianModel | None" = None, num_classes: int | None = None,
+                  received: bool = True) -> MapContents:
     """The checked contents of a map file written by :func:`write_map_file`.
 
     Args:
         path: the file (a regular file: the callers check the path first).
         model: the splat model the map must belong to; None: no fingerprint check (css_map without the model).
         num_classes: refuse a map with another number of classes before reading it (None: any).
+        received: read the received sources' evidence (an (N, C) float64 array per source, up to
+            MAX_RECEIVED_SOURCES; their shapes are checked either way); False: ``received`` stays empty.
     Raises:
         MapError (naming ``path``): everything :func:`check_map_headers` refuses; an unknown format version;
             concentrations not finite or outside (0, MAX_CONCENTRATION]; prior or background outside
@@ -293,7 +307,7 @@ def read_map_file(path: Path, model: "GaussianModel | None" = None, num_classes:
             sensor_model = str(data["sensor_model"]) if "sensor_model" in files else NO_SENSOR_MODEL
             evidence_origin = str(data["evidence_origin"]) if "evidence_origin" in files else ""
             evidence_epoch = int(data["evidence_epoch"]) if "evidence_epoch" in files else 0
-            received = {k: np.array(data[k]) for k in _RECEIVED_MEMBERS if k in files}
+            members = {k: np.array(data[k]) for k in _RECEIVED_MEMBERS if k in files and received}
             conc = np.array(data["concentrations"], dtype=np.float64)
     except MapError:
         raise
@@ -311,7 +325,7 @@ def read_map_file(path: Path, model: "GaussianModel | None" = None, num_classes:
     return MapContents(fingerprint=fingerprint, concentrations=conc, prior=prior, background=background,
                        frames_observed=frames, sources=sources, sensor_model=sensor_model,
                        evidence_origin=evidence_origin, evidence_epoch=evidence_epoch,
-                       received=_received_sources(path, received, conc, prior))
+                       received=_received_sources(path, members, conc, prior))
 
 
 def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarray,
@@ -402,7 +416,7 @@ def read_map_info(path: str | os.PathLike[str]) -> MapInfo:
         raise MapError(f"{path} is a folder, not a map file (a css_replay output folder holds map.npz)")
     if not path.is_file():
         raise MapError(f"map file not found: {path}")
-    m = read_map_file(path)
+    m = read_map_file(path, received=False)   # a summary: the received sources' (N, C) arrays are not needed
     evidence = m.concentrations - m.prior
     per_gaussian = evidence.sum(axis=1)
     return MapInfo(path=path, fingerprint=m.fingerprint, num_gaussians=m.num_gaussians, num_classes=m.num_classes,
