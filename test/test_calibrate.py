@@ -113,12 +113,14 @@ def test_calibrate_refuses_too_few_pixels_and_writes_nothing(bags, tmp_path, cap
 
 
 def test_replay_with_the_sensor_model_reports_both_updates(bags, tmp_path, monkeypatch):
-    sm = tmp_path / "sm.yaml"
-    assert calibrate_main([str(bags / "studio" / "bag"), "--out", str(sm), "--quiet"]) == 0
     monkeypatch.chdir(tmp_path)   # default output folders: one per update, neither overwrites the other
+    assert calibrate_main([str(bags / "studio" / "bag"), "--quiet"]) == 0   # the README's command: the default --out
+    sm = tmp_path / "out" / "calibration" / "sensor_model.yaml"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]   # nothing beside out/ in the working folder
+    assert sorted(p.name for p in sm.parent.iterdir()) == sorted([sm.name, *(p.name for p in figure_paths(sm).values())])
     assert replay_main([str(bags / "room" / "bag"), "--quiet", "--sensor-model", str(sm)]) == 0
     assert replay_main([str(bags / "room" / "bag"), "--quiet", "--no-output-bag"]) == 0
-    out, paper_out = tmp_path / "out" / "replay_room_sm", tmp_path / "out" / "replay_room"
+    out, paper_out = tmp_path / "out" / "replay_room_sensor_model", tmp_path / "out" / "replay_room"
     m = json.loads((out / "metrics.json").read_text())
     alone = json.loads((paper_out / "metrics.json").read_text())
     assert alone["sensor_model"] is None and m["sensor_model"] is not None

@@ -101,13 +101,32 @@ def test_missing_out_folder_is_refused_not_created(tmp_path, capsys):
     assert not (tmp_path / "typo").exists()
 
 
+def test_the_default_out_folder_is_made_only_once_the_options_are_right(tmp_path, capsys, monkeypatch):
+    """The default --out (out/calibration/sensor_model.yaml under the working folder, beside css_replay's
+    out/replay_<bag>) is the one folder css_calibrate makes; not on a usage error, and never inside an input bag."""
+    from css_ros.calibration.cli import DEFAULT_OUT, build_parser, option_error
+
+    assert DEFAULT_OUT == Path("out") / "calibration" / "sensor_model.yaml"
+    bag = _scene(tmp_path / "scene")
+    monkeypatch.chdir(tmp_path)
+    assert main([str(bag), "--heldout-every", "1"]) == 2     # another option wrong: no folder made
+    assert not (tmp_path / "out").exists()
+    args = build_parser().parse_args([str(bag)])
+    assert args.out == DEFAULT_OUT and option_error(args) is None
+    assert (tmp_path / "out" / "calibration").is_dir() and not any((tmp_path / "out" / "calibration").iterdir())
+    monkeypatch.chdir(tmp_path / "scene" / "bag")   # run from inside the bag: the default would land in it
+    line = _usage_error(capsys, [str(bag)])
+    assert "would be written inside the input bag" in line and not (bag / "out").exists(), line
+
+
 def test_help_states_the_out_rules():
     """L: the decision is in --help (the console script, as a user runs it)."""
     proc = subprocess.run([sys.executable, "-m", "css_ros.calibration.cli", "--help"], capture_output=True,
                           text=True, timeout=60)
     text = " ".join(proc.stdout.split())
     assert proc.returncode == 0
-    assert "Its folder must exist and be writable: css_calibrate creates no folder" in text, text
+    assert "default out/calibration/sensor_model.yaml, whose folder is made when missing" in text, text
+    assert "The folder of any other --out must exist and be writable: css_calibrate creates no other folder" in text
     assert "must not be inside an input bag nor be an input of the run" in text, text
 
 

@@ -79,7 +79,7 @@ def test_quaternion_to_matrix_batch_of_mixed_magnitudes():
     np.testing.assert_allclose(R, [R_180_XY, ninety_z, ninety_z], atol=1e-15)
 
 
-@pytest.mark.parametrize("q,match", [("abcd", "numeric"), ([1j, 0, 0, 1], "complex"), ([None, 0, 0, 1], "quaternion"),
+@pytest.mark.parametrize("q,match", [("abcd", "real numbers"), ([1j, 0, 0, 1], "complex"), ([None, 0, 0, 1], "quaternion"),
                                      ([np.inf, 0, 0, 1], "non-finite"), ([0, 0, 0, 0], "zero quaternion"),
                                      ([1e-13, 0, 0, 0], "zero quaternion"), ([[0, 0, 0, 1], [0, 0, 0, 0]], "zero"),
                                      ([0, 0, 1], "4 components")])
@@ -136,8 +136,8 @@ def test_look_at_across_the_float_range_and_huge_up():
     (dict(up=[[0, 0, 1, 0]]), "up must have 3 components"),
     (dict(position=[0, np.nan, 0]), "position holds non-finite"),
     (dict(target=[np.inf, 0, 0]), "target holds non-finite"),
-    (dict(position="abc"), "position must be numeric"),
-    (dict(position=[1j, 0, 0]), "position holds complex"),
+    (dict(position="abc"), "position must hold real numbers"),
+    (dict(position=[1j, 0, 0]), r"position must hold real numbers, got dtype complex128 \(complex values\)"),
     (dict(up=(0.0, 0.0, 0.0)), "up must be a non-zero vector"),
     (dict(target=[0, 0, 5]), "position and target coincide"),
     (dict(target=[1, 0, 5], up=(2.0, 0.0, 0.0)), "parallel to 'up'"),
@@ -194,15 +194,15 @@ def test_resized_refuses_bad_sizes(w, h, match):
 
 
 def test_from_pose_refuses_complex_and_text():
-    with pytest.raises(CameraError, match="intrinsics K holds complex"):
+    with pytest.raises(CameraError, match=r"intrinsics K must hold real numbers.*\(complex values\)"):
         Camera.from_pose(K + 1j, W, H, [0, 0, 0], [0, 0, 0, 1])
-    with pytest.raises(CameraError, match="position must be numeric"):
+    with pytest.raises(CameraError, match="position must hold real numbers, got dtype <U1"):
         Camera.from_pose(K, W, H, ["0", "0", "0"], [0, 0, 0, 1])
-    with pytest.raises(CameraError, match="T_map_cam holds complex"):
+    with pytest.raises(CameraError, match=r"T_map_cam must hold real numbers.*\(complex values\)"):
         Camera(K, W, H, np.eye(4) + 0j)
 
 
 def test_object_arrays_holding_text_are_not_read_as_numbers():
-    with pytest.raises(CameraError, match="must hold numbers only"):
+    with pytest.raises(CameraError, match=r"quaternion must hold real numbers, got dtype object \(it holds text"):
         quaternion_xyzw_to_matrix(np.array(["1", 0, 0, 1], dtype=object))
     np.testing.assert_allclose(quaternion_xyzw_to_matrix(np.array([0, 0, 0, 1], dtype=object)), np.eye(3))

@@ -30,12 +30,13 @@ def test_ctl_save_query_candidates_reset(tmp_path):
     client = rh.RosClient(domain)
     try:
         assert client.wait_connected(60.0), node.log()
-        # before any camera_info: every row NaN, and css_ctl says why from the node's own counters (it used to guess
-        # "more than its max_candidates, or no camera_info yet")
+        # before any frame (no camera_info): every row NaN; css_ctl prints no NaN table, but why, from the node's own
+        # counters (it used to guess "more than its max_candidates, or no camera_info yet"), and what to do
         r = css_ctl(domain, "candidates", "0", "0", "1.5", "-0.5", "0.5", "-0.5", "0.5")
-        assert r.returncode == 1, r.stderr
-        assert "scored none of the 1 views (every row NaN); css_node's status: no camera_info received yet (+1)" \
-            in r.stderr, r.stderr
+        assert r.returncode == 1 and r.stdout == "", r.stdout + r.stderr
+        assert r.stderr.startswith("css_ctl: error: the node scored none of the 1 views: the node has seen no frame "
+                                   "yet") and "play data into it first" in r.stderr, r.stderr
+        assert r.stderr.rstrip().endswith("(css_node's status: no camera_info received yet)"), r.stderr
         assert client.send_frame_until_processed(10**9, output="view_uncertainty"), node.log()[-3000:]
 
         r = css_ctl(domain, "save")
@@ -75,9 +76,9 @@ def test_ctl_save_query_candidates_reset(tmp_path):
         many = tmp_path / "poses.txt"   # one more than the node's max_candidates (256): every row NaN
         many.write_text("\n".join("0 0 0 0 0 0 1" for _ in range(257)) + "\n")
         r = css_ctl(domain, "candidates", "--file", str(many))
-        assert r.returncode == 1 and "scored none of the 257 views (every row NaN); css_node's status: too many " \
-            "candidates (+1)" in r.stderr, r.stderr
-        assert "<- most uncertain" not in r.stdout and "<- best next view" not in r.stdout
+        assert r.returncode == 1 and r.stdout == "" and "scored none of the 257 views: more views than the node's " \
+            "max_candidates parameter: send fewer per request (css_node's status: too many candidates)" in r.stderr, \
+            r.stderr
 
         r = css_ctl(domain, "reset")
         assert r.returncode == 0 and "True" in r.stdout
@@ -103,6 +104,28 @@ def test_candidates_table_marks_finite_maxima_only():
     assert lines[3].endswith("<- most uncertain") and not any("info gain)" in ln for ln in lines)
     rows["info_gain"][1] = 2.0
     assert candidates_table(rows).splitlines()[3].endswith("<- most uncertain  <- best next view (info gain)")
+
+
+def test_nan_rows_are_explained_by_the_nodes_statuses():
+    from css_ros.clients.ctl import NAN_CAUSES, NAN_HINTS, explain_nan
+
+    assert explain_nan(["no camera_info received yet"]) == (
+        "the node has seen no frame yet, so it has no camera to render candidates with: play data into it first "
+        "(css_demo plays the demo bag; a robot or a bag publishes camera_info, pose and segmentation), then ask "
+        "again (css_node's status: no camera_info received yet)")
+    two = explain_nan(["request queue full", "time budget exceeded"]).split("; ")
+    assert two == [f"{NAN_HINTS[s]} (css_node's status: {s})" for s in ("request queue full", "time budget exceeded")]
+    assert explain_nan(["a status of a newer node"]) == "css_node's status: a status of a newer node"
+    assert explain_nan([]) == NAN_CAUSES and "seen no frame yet" in NAN_CAUSES
+    # every status css_node answers NaN rows with (ros/gate.py, ros/worker.py, ros/node.py) has a hint
+    import re
+    from pathlib import Path
+    ros = Path(__file__).resolve().parents[1] / "css_ros" / "ros"
+    said = set()
+    for f in ("gate.py", "worker.py", "node.py"):
+        text = (ros / f).read_text()
+        said |= set(re.findall(r'NanAnswer\([^)]*"([^"]+)"\)', text)) | set(re.findall(r'finish_request\([^)]*"([^"]+)"\)', text))
+    assert said and said <= set(NAN_HINTS), said - set(NAN_HINTS)
 
 
 def test_timeout_must_be_a_finite_number_of_seconds():

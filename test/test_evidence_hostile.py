@@ -10,7 +10,8 @@ import time
 import numpy as np
 import pytest
 
-from css_ros.engine.semantic_map import MAX_RECEIVED_SOURCES, SemanticMap, SourceEvidence
+from css_ros.engine.map_file import MAX_RECEIVED_SOURCES, SourceEvidence
+from css_ros.engine.semantic_map import SemanticMap
 from css_ros.io import evidence as ev
 from css_ros.io.evidence import DELTA, SNAPSHOT, EvidenceLedger, OriginBuckets, decode_packet
 from scenes import small_wall

@@ -16,7 +16,8 @@ pytest.importorskip("rclpy")
 from rclpy.serialization import serialize_message  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
 
-from css_ros.engine.semantic_map import MAX_RECEIVED_SOURCES, MAX_SOURCES, SemanticMap  # noqa: E402
+from css_ros.engine.map_file import MAX_RECEIVED_SOURCES, MAX_SOURCES  # noqa: E402
+from css_ros.engine.semantic_map import SemanticMap  # noqa: E402
 from css_ros.errors import ConfigError  # noqa: E402
 from css_ros.io import evidence as ev  # noqa: E402
 from css_ros.ros import evidence as link_mod  # noqa: E402

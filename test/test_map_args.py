@@ -146,6 +146,43 @@ def test_importance_that_is_complex_or_all_nan_is_refused_without_warnings(smap)
             smap.score_views([camera()], importance=np.full(n, np.nan))
 
 
+#: (bad array, what every caller's message says after the argument's name): engine/real_array.py is the one converter
+BAD_ARRAYS = [
+    (np.full(4, 0.5 + 1j), r"must hold real numbers, got dtype complex128 \(complex values\)"),
+    (np.array(["1", "0", "0", "1"]), "must hold real numbers, got dtype <U1"),
+    (np.array([1.0, "a", 0, 1], dtype=object), r"must hold real numbers, got dtype object \(it holds text or other"),
+    (np.array([10**400, 0, 0, 1], dtype=object), "must hold real numbers within float64"),
+    ([[1.0, 0.0], [1.0]], "is not an array of numbers"),
+    (np.ma.masked_array(np.ones(4), mask=True), "is a masked array"),
+]
+
+
+@pytest.mark.parametrize("value, says", BAD_ARRAYS)
+def test_one_real_array_conversion_with_each_callers_error_type(smap, value, says):
+    from css_ros.engine.camera import quaternion_xyzw_to_matrix
+    from css_ros.engine.final_form import image_uncertainty
+
+    with pytest.raises(CameraError, match="quaternion " + says):
+        quaternion_xyzw_to_matrix(value)
+    with pytest.raises(InputError, match="image_uncertainty: expectation " + says):
+        image_uncertainty(value, np.ones(4))
+    with pytest.raises(MapError, match="background_rgb " + says):
+        SemanticMap(smap.model, C, background_rgb=value)
+
+
+def test_real_arrays_of_numbers_convert_and_a_camera_keeps_its_own_copy():
+    from css_ros import Camera
+
+    q = np.array([0, 0, 0, 1], dtype=object)   # an object array of numbers is numbers
+    assert map_args.check_real_array(q, "q").dtype == np.float64
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    cam = Camera(K, 64, 48, np.eye(4))
+    K[0, 0] = 99.0
+    assert cam.fx == 50.0 and K.flags.writeable   # the camera copied K: the caller's array is not frozen or shared
+    f = np.ones(3)
+    assert map_args.check_real_array(f, "f") is f   # a float64 array is not copied unless asked
+
+
 def test_merge_checks_every_map_and_wants_one_name_each(model):
     a = SemanticMap(model, C)
     other_prior = SemanticMap(model, C, prior=0.5)

@@ -106,6 +106,26 @@ def test_css_map_cli_info_merge_and_refusals(tmp_path, capsys):
     assert run.returncode == 0 and "transfer" in run.stdout
 
 
+@pytest.mark.parametrize("member, value, says", [
+    ("format_version", np.int64(2), "has format version 2, this css_ros reads 1"),
+    ("prior", np.float64(1e300), r"prior=1e\+300 outside \[1e-12, 1e\+15\]"),
+    ("frames_observed", np.int64(-1), r"frames_observed=-1 outside"),
+    ("concentrations", np.full((40, 3), 1e300), "holds invalid concentrations"),
+])
+def test_css_map_info_and_load_refuse_the_same_files(tmp_path, member, value, says):
+    """One reader (engine/map_file.py) for both: a file SemanticMap.load refuses, css_map info refuses alike."""
+    model = random_scene(5, n=40)
+    path = _fused(model, 3, 0).save(tmp_path / "good.npz")
+    with np.load(path, allow_pickle=False) as data:
+        members = {k: data[k] for k in data.files}
+    members[member] = value
+    np.savez(tmp_path / "bad.npz", **members)
+    for read in (read_map_info, lambda p: SemanticMap.load(p, model)):
+        with pytest.raises(MapError, match=says):
+            read(tmp_path / "bad.npz")
+    assert read_map_info(path).num_gaussians == 40 and SemanticMap.load(path, model).frames_observed == 3
+
+
 # ------------------------------------------------------------------ transfer
 def test_transfer_to_the_same_splat_reordered_is_a_permutation():
     model = random_scene(7, n=200)

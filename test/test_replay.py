@@ -335,6 +335,25 @@ def test_usage_error_returns_2(capsys):
     assert "Traceback" not in capsys.readouterr().err
 
 
+def test_help_shows_example_command_lines_that_parse():
+    """css_replay --help ends with example command lines like the other tools; each one is a command line the parser
+    takes (its options exist and their values have the right types), and the console script prints them."""
+    import shlex
+    import subprocess
+    import sys
+
+    from css_ros.evaluation.cli import EXAMPLES, build_parser
+
+    commands = [shlex.split(line.split("#")[0]) for line in EXAMPLES.splitlines() if line.startswith("  css_replay")]
+    assert len(commands) >= 5 and any("--sensor-model" in c for c in commands)
+    for argv in commands:
+        args = build_parser().parse_args(argv[1:])
+        assert argv[1:2] == [] or str(args.bag) == argv[1]
+    r = subprocess.run([sys.executable, "-m", "css_ros.evaluation.cli", "--help"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and r.stdout.rstrip().endswith(EXAMPLES.rstrip()), r.stdout[-2000:]
+
+
 def test_online_metrics_match_output_bag(clean_run):
     """css_online accuracy recomputed independently from /css_node/semantic and the input bag's GT."""
     _, out, bag = clean_run

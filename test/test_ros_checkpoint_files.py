@@ -258,3 +258,21 @@ def test_another_models_map_is_refused_by_fingerprint_not_by_shape(model, tmp_pa
     path = SemanticMap(other, 4).save(tmp_path / "other_map.npz")
     with pytest.raises(MapError, match=rf"this map belongs to model {other.fingerprint[:16]}, not .*wall.ply"):
         SemanticMap.load(path, model)
+
+
+def test_checkpoint_fingerprint_reads_the_headers_only_and_refuses_what_is_no_map(tmp_path):
+    """The model-watch start (newest_watched_model) reads a checkpoint's fingerprint through the map file module:
+    headers and scalars only, None for anything that is no map file."""
+    from css_ros.engine.map_file import check_map_headers
+    from css_ros.ros.startup import checkpoint_fingerprint
+
+    model = GaussianModel.from_ply(rh.write_wall_model(tmp_path / "wall.ply"))
+    path = SemanticMap(model, 4).save(tmp_path / "map.npz")
+    header = check_map_headers(path)
+    assert (header.num_gaussians, header.num_classes, header.fingerprint) == (model.num_gaussians, 4, model.fingerprint)
+    assert checkpoint_fingerprint(path) == model.fingerprint
+    (tmp_path / "text.npz").write_text("not a map")
+    with zipfile.ZipFile(tmp_path / "other.npz", "w") as zf:   # a zip without the map's members
+        zf.writestr("model_fingerprint.npy", b"")
+    for bad in ("missing.npz", "text.npz", "other.npz"):
+        assert checkpoint_fingerprint(tmp_path / bad) is None

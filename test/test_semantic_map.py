@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from css_ros import InputError, MapError, SemanticMap
+from css_ros.engine.map_file import MapContents, write_map_file
 from css_reference import kappa_reference, render_reference, update_reference
 from scenes import camera, edge_case_scene, random_scene
 
@@ -183,7 +184,9 @@ def test_load_refuses_foreign_corrupt_or_invalid(tmp_path):
     with pytest.raises(MapError, match="must be loadable"):  # save never writes what load refuses
         smap.save(tmp_path / "nan.npz")
     assert not (tmp_path / "nan.npz").exists()
-    smap._write(tmp_path / "nan.npz")  # a file written past that check (another writer, a crafted file)
+    # a file written past that check (another writer, a crafted file)
+    write_map_file(tmp_path / "nan.npz", MapContents(model.fingerprint, smap.concentrations_readonly, smap.prior,
+                                                     smap.background))
     with pytest.raises(MapError, match="invalid"):
         SemanticMap.load(tmp_path / "nan.npz", model)
 

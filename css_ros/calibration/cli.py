@@ -41,6 +41,9 @@ MAX_DEPTH_M = 1000.0
 MAX_PSEUDO_COUNT = 1e9
 #: Largest --heldout-every [frames].
 MAX_HELDOUT_EVERY = 1_000_000
+#: --out when none is given, relative to the working folder (beside css_replay's out/replay_<bag>): the only folder
+#: css_calibrate makes when it is missing.
+DEFAULT_OUT = Path("out") / "calibration" / "sensor_model.yaml"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,12 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learn how reliable the segmentation is per class and depth from labelled bags (the bags carry "
                     "/segmentation_gt; css_import --gt makes such bags from image folders), and calibrate the map's "
                     "confidence. Each bag's model.ply and classes.yaml are found as css_replay finds them.",
-        epilog="Example: css_calibrate bags/calib_range/bag --out sensor_model.yaml; then css_replay BAG "
-               "--sensor-model sensor_model.yaml, or css_node with sensor_model:=sensor_model.yaml")
+        epilog=f"Example: css_calibrate bags/calib_range/bag (writes {DEFAULT_OUT} and its three figures); then "
+               f"css_replay BAG --sensor-model {DEFAULT_OUT}, or css_node with sensor_model:={DEFAULT_OUT}")
     p.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="labelled bag directories")
-    p.add_argument("--out", type=Path, required=True, metavar="YAML",
-                   help="sensor model file to write (.yaml; its figures go beside it). Its folder must exist and be "
-                        "writable: css_calibrate creates no folder (a typo would create directories anywhere). It "
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="YAML",
+                   help=f"sensor model file to write (.yaml; its figures go beside it; default {DEFAULT_OUT}, whose "
+                        "folder is made when missing). The folder of any other --out must exist and be writable: "
+                        "css_calibrate creates no other folder (a typo would create directories anywhere). It "
                         "must not be inside an input bag nor be an input of the run (a bag's model, class or "
                         "parameter file). Checked before any work (exit 2)")
     p.add_argument("--model", type=Path, default=None, metavar="PLY",
@@ -176,9 +180,9 @@ def out_error(args: argparse.Namespace) -> str | None:
     """What is wrong with --out as a destination, or None; checked when parsed, before any work (a usage error).
 
     Refused: --out (or one of its figures) an existing directory; its folder missing (css_calibrate creates no
-    folder) or not a directory; --out or a figure inside an input bag folder or equal to an input file (it would
-    overwrite the bag's metadata or the class file the run reads); a folder where no file can be created (a
-    temporary file is made and removed there to know)."""
+    folder but the default's, :data:`DEFAULT_OUT`, once the other checks passed) or not a directory; --out or a figure
+    inside an input bag folder or equal to an input file (it would overwrite the bag's metadata or the class file the
+    run reads); a folder where no file can be created (a temporary file is made and removed there to know)."""
     out = Path(args.out)
     name = shorten(str(out), 200)
     outputs = [out, *figure_paths(out).values()]
@@ -188,10 +192,11 @@ def out_error(args: argparse.Namespace) -> str | None:
             if path.is_dir():
                 return (f"--out {name} is a directory: name the .yaml file to write" if path == out else
                         f"--out {name}: its figure {path} would replace a directory")
-        if not parent.exists():
+        make_default = out == DEFAULT_OUT and not parent.exists()
+        if not parent.exists() and not make_default:
             return (f"--out {name}: its folder {shorten(str(parent), 200)} does not exist (css_calibrate creates no "
                     "folder: make it first)")
-        if not parent.is_dir():
+        if parent.exists() and not parent.is_dir():
             return f"--out {name}: {shorten(str(parent), 200)} is not a directory"
     except OSError as exc:
         return f"--out {name}: {exc.strerror or exc}"
@@ -206,6 +211,8 @@ def out_error(args: argparse.Namespace) -> str | None:
             if _same_file(path, file):
                 return f"{what} is an input of this run ({kind} {file}): it would be overwritten"
     try:
+        if make_default:
+            parent.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=parent, prefix=f".{out.stem}.", suffix=".probe")
         os.close(fd)
         os.unlink(probe)

@@ -40,7 +40,9 @@ examples:
   css_ctl save                                # write the checkpoint now
   css_ctl reset                               # all concentrations back to the prior
   css_ctl load                                # replace the map by the checkpoint at checkpoint_path
-  css_ctl query 0.5 0.2 1.0  -1 0 0.3         # SPEC §9 point queries (x y z triples, map frame, metres)
+  css_ctl query -1.4 0.3 0.75  0 1.5 0  -1 3 1.5
+                                              # SPEC §9 point queries (x y z triples, map frame, metres): on the
+                                              # demo room's table, floor and north wall; "unknown" = free space
   css_ctl query --file points.txt             # one "x y z" per line
   css_ctl candidates 0 0 1.5 -0.5 0.5 -0.5 0.5
                                               # score views (x y z qx qy qz qw of the optical frame, map frame:
@@ -275,7 +277,8 @@ class NanStatusWatch:
         self.before = self._latest
 
     def statuses(self, timeout: float) -> list[str]:
-        """The statuses counted since :meth:`take_before` (``name (+n)``); empty when they cannot be known."""
+        """The statuses whose counters grew since :meth:`take_before` (e.g. ``no camera_info received yet``), sorted;
+        empty when they cannot be known."""
         before = self.before
         if before is None:
             return []
@@ -283,14 +286,35 @@ class NanStatusWatch:
         if not self._link.wait(lambda: self._latest is not None and self._latest != before, timeout):
             return []
         after = self._latest or {}
-        return [f"{k[k.index('[') + 1:-1].removeprefix('candidates: ')} (+{v - before.get(k, 0)})"
-                for k, v in sorted(after.items()) if v > before.get(k, 0)]
+        return [k[k.index("[") + 1:-1].removeprefix("candidates: ") for k, v in sorted(after.items())
+                if v > before.get(k, 0)]
 
 
+#: What to do about each status css_node gives NaN rows for (docs/reliability.md, "Every candidate request").
+NAN_HINTS = {
+    "no camera_info received yet": "the node has seen no frame yet, so it has no camera to render candidates with: "
+                                   "play data into it first (css_demo plays the demo bag; a robot or a bag publishes "
+                                   "camera_info, pose and segmentation), then ask again",
+    "too many candidates": "more views than the node's max_candidates parameter: send fewer per request",
+    "time budget exceeded": "scoring took longer than the node's candidate_time_budget: send fewer views or raise it",
+    "request queue full": "more requests were pending at the node than it queues: ask again",
+    "invalid candidate poses": "the node refused some poses (its log names them)",
+    "node stopping": "the node is shutting down",
+    "processing failed": "the node failed while scoring (its log says why)",
+}
 #: Why css_node answers NaN rows when its diagnostics cannot say (docs/reliability.md, "Every candidate request").
-NAN_CAUSES = ("possible causes: no camera_info at the node yet, more views than its max_candidates, invalid poses, "
-              "its candidate_time_budget exceeded or its request queue full; its log and /diagnostics "
-              "(requests_nan[<status>]) say which")
+NAN_CAUSES = ("possible causes: the node has seen no frame yet (no camera_info: play data into it first), more views "
+              "than its max_candidates, invalid poses, its candidate_time_budget exceeded or its request queue full; "
+              "its log and /diagnostics (requests_nan[<status>]) say which")
+
+
+def explain_nan(statuses: Sequence[str]) -> str:
+    """Why css_node answered NaN rows, from the statuses it counted for the request (:meth:`NanStatusWatch.statuses`):
+    each status and what to do about it; :data:`NAN_CAUSES` when there are none."""
+    if not statuses:
+        return NAN_CAUSES
+    return "; ".join(f"{NAN_HINTS[s]} (css_node's status: {s})" if s in NAN_HINTS else f"css_node's status: {s}"
+                     for s in statuses)
 
 
 def _argmax_finite(values: np.ndarray) -> int:
@@ -380,14 +404,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             watch = NanStatusWatch(link, args.node)
             scores = candidates(link, args.node, data, args.timeout,
                                 before_send=lambda: watch.take_before(min(args.timeout, 1.0)))
-            print(candidates_table(scores))
             nan = int(np.count_nonzero(~np.isfinite(scores["u_var"])))
+            why = explain_nan(watch.statuses(min(args.timeout, 2.0))) if nan else ""
+            if nan == len(scores):   # a table of NaN rows says nothing: only why, and what to do
+                raise CssError(f"the node scored none of the {len(scores)} views: {why}")
+            print(candidates_table(scores))
             if nan:
-                found = watch.statuses(min(args.timeout, 2.0))
-                why = f"css_node's status: {', '.join(found)}" if found else NAN_CAUSES
-                if nan == len(scores):
-                    raise CssError(f"the node scored none of the {len(scores)} views (every row NaN); {why}")
-                print(f"css_ctl: {nan} of {len(scores)} views not scored (NaN); {why}", file=sys.stderr)
+                print(f"css_ctl: {nan} of {len(scores)} views not scored (NaN rows): {why}", file=sys.stderr)
             return 0
         finally:
             link.close()

@@ -10,6 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import CameraError
+from .real_array import check_real_array
 
 __all__ = [
     "Camera",
@@ -41,25 +42,6 @@ MAX_CAMERA_PIXELS = 8192 * 8192
 _ZERO_QUATERNION = 1e-12
 
 
-def _real_array(name: str, value: object) -> np.ndarray:
-    """``value`` as a float64 array; CameraError naming ``name`` for complex, text or non-numeric values."""
-    try:
-        a = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise CameraError(f"{name} is not a numeric array ({exc})") from None
-    if a.dtype.kind == "c":
-        raise CameraError(f"{name} holds complex values")
-    if a.dtype.kind not in "biufO":
-        raise CameraError(f"{name} must be numeric, got dtype {a.dtype}")
-    if a.dtype.kind == "O" and not all(isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
-                                       for v in a.flat):
-        raise CameraError(f"{name} must hold numbers only (an object array holds text or other objects)")
-    try:
-        return np.array(a, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise CameraError(f"{name} cannot be converted to float ({exc})") from None
-
-
 def _unit_rows(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(v / |v| along the last axis, |v| (..., 1)) without overflow or underflow: rows whose largest |component|
     lies outside [1e-100, 1e100] are divided by it before the norm (the others exactly as v / |v|).
@@ -79,7 +61,7 @@ def quaternion_xyzw_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
 
     Raises CameraError for non-numeric, complex, non-finite or zero (norm < 1e-12) quaternions.
     """
-    q = _real_array("quaternion", q)
+    q = check_real_array(q, "quaternion", CameraError)
     if q.shape[-1:] != (4,):
         raise CameraError(f"quaternion must have 4 components (x, y, z, w), got shape {q.shape}")
     if not np.all(np.isfinite(q)):
@@ -110,7 +92,7 @@ def matrix_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
     Raises CameraError unless every matrix is finite and a rotation within :data:`MATRIX_TO_QUATERNION_TOLERANCE`
     (max |R^T R - I| and |det R - 1|).
     """
-    R = _real_array("rotation matrix", R)
+    R = check_real_array(R, "rotation matrix", CameraError)
     if R.ndim < 2 or R.shape[-2:] != (3, 3):
         raise CameraError(f"rotation matrix must be (..., 3, 3), got {R.shape}")
     if not np.all(np.isfinite(R)):
@@ -174,7 +156,7 @@ def intrinsics_from_fov(width: int, height: int, fov_x_deg: float) -> np.ndarray
 
 
 def _as_K(K: np.ndarray | Sequence[float]) -> np.ndarray:
-    k = _real_array("intrinsics K", K)
+    k = check_real_array(K, "intrinsics K", CameraError, copy=True)
     if k.shape == (9,):
         k = k.reshape(3, 3)
     if k.shape != (3, 3):
@@ -215,7 +197,7 @@ def _real_number(name: str, v: object) -> float:
 
 def _vector3(name: str, v: object) -> np.ndarray:
     """``v`` as a finite (3,) float64 vector, else CameraError naming ``name``."""
-    a = _real_array(name, v)
+    a = check_real_array(v, name, CameraError)
     if a.size != 3:
         raise CameraError(f"{name} must have 3 components, got shape {a.shape}")
     a = a.reshape(3)
@@ -252,7 +234,7 @@ class Camera:
         if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
             raise CameraError(f"intrinsics K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), "
                               f"got {K.tolist()}")
-        T = _real_array("T_map_cam", self.T_map_cam)
+        T = check_real_array(self.T_map_cam, "T_map_cam", CameraError, copy=True)
         if T.shape != (4, 4):
             raise CameraError(f"T_map_cam must be (4, 4), got {T.shape}")
         if not np.all(np.isfinite(T)):
@@ -292,8 +274,8 @@ class Camera:
         while a larger deviation (e.g. a zero quaternion from an uninitialised message, or xyzw/wxyz mix-ups
         with scaled values) means a bug upstream and is rejected with CameraError.
         """
-        pos = _real_array("position", position_xyz).reshape(-1)
-        q = _real_array("quaternion", quaternion_xyzw).reshape(-1)
+        pos = check_real_array(position_xyz, "position", CameraError).reshape(-1)
+        q = check_real_array(quaternion_xyzw, "quaternion", CameraError).reshape(-1)
         if pos.shape != (3,):
             raise CameraError(f"position must have 3 components, got {pos.shape}")
         if q.shape != (4,):

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import InputError
 from .camera import MAX_CAMERA_PIXELS
+from .real_array import check_real_array
 from .spec import VAR_FLOOR
 
 if TYPE_CHECKING:
@@ -114,22 +115,16 @@ def uncertainty_from_sums(sum_log_var: float, sum_e: float, num_pixels: int) -> 
 _UNCERTAINTY_TOL = 1e-6
 
 
-def _uncertainty_input(name: str, a: object) -> np.ndarray:
-    """``a`` as a finite real float64 array, else InputError naming ``name``."""
-    try:
-        arr = np.asarray(a)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"image_uncertainty: {name} is not an array ({exc})") from None
-    if arr.dtype.kind not in "biuf":
-        what = "complex values" if arr.dtype.kind == "c" else f"dtype {arr.dtype} ({type(a).__name__})"
-        raise InputError(f"image_uncertainty: {name} must be a real numeric array, got {what}")
+def _uncertainty_image(name: str, a: object) -> np.ndarray:
+    """``a`` as a finite real float64 array of at most MAX_CAMERA_PIXELS values, else InputError naming ``name``."""
+    what = f"image_uncertainty: {name}"
+    arr = a if isinstance(a, np.ndarray) else check_real_array(a, what)   # an array is sized before any copy
     if arr.size > MAX_CAMERA_PIXELS:
-        raise InputError(f"image_uncertainty: {name} has {arr.size} values, more than an image of the largest camera "
+        raise InputError(f"{what} has {arr.size} values, more than an image of the largest camera "
                          f"(MAX_CAMERA_PIXELS = {MAX_CAMERA_PIXELS})")
-    with np.errstate(over="ignore"):  # a long double beyond float64 becomes inf: refused below
-        arr = arr.astype(np.float64, copy=False)
+    arr = check_real_array(arr, what)
     if not np.all(np.isfinite(arr)):
-        raise InputError(f"image_uncertainty: {name} holds non-finite values")
+        raise InputError(f"{what} holds non-finite values")
     return arr
 
 
@@ -144,8 +139,8 @@ def image_uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[fl
     Raises:
         InputError: naming the array and the problem.
     """
-    e = _uncertainty_input("expectation", expectation)
-    var = _uncertainty_input("variance", variance)
+    e = _uncertainty_image("expectation", expectation)
+    var = _uncertainty_image("variance", variance)
     if e.shape != var.shape:
         raise InputError(f"image_uncertainty: expectation {e.shape} and variance {var.shape} differ in shape")
     if e.size == 0:

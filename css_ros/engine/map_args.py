@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import CameraError, InputError, MapError
+from .real_array import check_real_array
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -160,20 +161,6 @@ def check_camera(camera: Any, what: str) -> "Camera":
     if not isinstance(camera, Camera):
         raise CameraError(f"{what}: camera must be a Camera, got {type(camera).__name__}")
     return camera
-
-
-def check_real_array(value: Any, name: str, error: type[Exception] = InputError) -> np.ndarray:
-    """``value`` as a float64 array of real numbers: bool, integer and float arrays are accepted; complex, string,
-    object and other non-numeric arrays are refused (numpy would drop an imaginary part with only a warning, or parse
-    strings). Masked arrays are refused: their mask would be ignored."""
-    if isinstance(value, np.ma.MaskedArray):
-        raise error(f"{name} is a masked array: give a plain array (mask the values out another way, e.g. NaN or 0)")
-    arr = np.asarray(value) if not isinstance(value, np.ndarray) else value
-    if arr.dtype.kind not in "biuf":
-        raise error(f"{name} must hold real numbers, got dtype {arr.dtype}"
-                    + (" (complex values)" if arr.dtype.kind == "c" else ""))
-    with np.errstate(over="ignore"):  # a long double beyond float64 becomes inf, which the callers handle
-        return np.asarray(arr, dtype=np.float64)
 
 
 def check_query_points(points: Any, num_classes: int) -> np.ndarray:

@@ -3,8 +3,6 @@ probabilistic rendering (SPEC §5), image-level uncertainty (SPEC §6) and atomi
 from __future__ import annotations
 
 import os
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Literal, Mapping, Sequence
@@ -12,7 +10,6 @@ from typing import TYPE_CHECKING, Any, Iterable, Literal, Mapping, Sequence
 import numpy as np
 
 from ..errors import MapError, SensorModelError
-from .atomic import atomic_file
 from .backends import make_backend
 from .final_form import RenderSettings, check_outputs
 from .label_input import FrameLabels, check_frame_labels
@@ -22,7 +19,8 @@ from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENC
                    DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from .spec import MAX_FRAMES
 from . import map_args, view_args
-from .map_args import MAX_CLASSES, MAX_CONCENTRATION, MIN_CONCENTRATION
+from .map_args import MAX_CONCENTRATION
+from .map_file import MapContents, SourceEvidence, read_map_file, write_map_file
 
 if TYPE_CHECKING:
     from .camera import Camera
@@ -31,174 +29,6 @@ if TYPE_CHECKING:
     from .final_form import FrameImages
     from .raster_backend import UpdateCounts
     from .sensor_model import SensorModel, SoftLabels
-
-MAP_FORMAT_VERSION = 1
-#: npz members of a map file: name -> (dtype kinds accepted, shape; "G"/"C" = Gaussians / classes).
-_MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
-    "format_version": ("iu", ()),
-    "concentrations": ("f", ("G", "C")),
-    "prior": ("f", ()),
-    "background": ("f", ()),
-    "num_classes": ("iu", ()),
-    "num_gaussians": ("iu", ()),
-    "model_fingerprint": ("U", ()),
-    "frames_observed": ("iu", ()),
-    "sources": ("U", ("S",)),
-    "sensor_model": ("U", ()),
-    # evidence exchange (css_node, docs/maps.md): the origin id of the map's own evidence and, per received source,
-    # its id, (epoch, last sequence number, frames, in step) and its evidence as sparse rows (counts per source)
-    "evidence_origin": ("U", ()),
-    "evidence_epoch": ("u", ()),
-    "received_sources": ("U", ("S",)),
-    "received_state": ("u", ("S", 4)),
-    "received_counts": ("iu", ("S",)),
-    "received_rows": ("iu", ("R",)),
-    "received_evidence": ("f", ("R", "C")),
-}
-_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model", "evidence_origin", "evidence_epoch",
-                     "received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
-_RECEIVED_MEMBERS = ("received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
-#: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
-MAX_SOURCES = 4096
-#: Most received sources whose evidence a map file keeps apart (each becomes an (N, C) float64 array when loaded).
-MAX_RECEIVED_SOURCES = 64
-
-
-#: Largest byte size of a scalar member of a map file (the fingerprint string is 64 characters of 4 bytes).
-_MAX_SCALAR_BYTES = 4096
-
-
-def _read_npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, name: str) -> tuple[tuple, np.dtype, int]:
-    """(shape, dtype, header length [bytes]) of one npy member (only its first bytes are inflated)."""
-    from numpy.lib import format as npformat
-
-    with zf.open(info) as fh:
-        version = npformat.read_magic(fh)
-        if version == (1, 0):
-            dshape, _fortran, dtype = npformat.read_array_header_1_0(fh)
-        elif version in ((2, 0), (3, 0)):
-            dshape, _fortran, dtype = npformat.read_array_header_2_0(fh)
-        else:
-            raise MapError(f"map file {path}: {name} has npy format version {version}")
-        return dshape, dtype, fh.tell()
-
-
-def _check_map_headers(path: Path, model: "GaussianModel | int", num_classes: int | None = None) -> None:
-    """Check every member's declared dtype, shape and size from the npy headers, and the file's own
-    model fingerprint and class count, before reading any large data.
-
-    Refuses (MapError naming ``path``) a file that is not a zip, lacks members, declares other dtypes
-    (complex, bool, object, ...) or shapes, whose members hold another number of bytes than their
-    headers declare, or whose scalars are larger than :data:`_MAX_SCALAR_BYTES`; a map of another model
-    ("this map belongs to model <fingerprint>, not <model file>"); concentrations whose declared shape
-    is not (the model's N, the file's own ``num_classes``) (a decompression bomb or a header declaring a
-    huge array is refused here, without the caller passing C); with ``num_classes`` given, a map of
-    another class count. A corrupt compressed stream is a MapError too. ``model`` may be just its number of
-    Gaussians (css_map reading a map without its model: no fingerprint check).
-    """
-    if not zipfile.is_zipfile(path):
-        raise MapError(f"map file {path} is not an .npz archive")
-    try:
-        with zipfile.ZipFile(path) as zf:
-            infos = {i.filename[:-4]: i for i in zf.infolist() if i.filename.endswith(".npy")}
-            missing = [k for k in _MAP_MEMBERS if k not in infos and k not in _OPTIONAL_MEMBERS]
-            if missing:
-                raise MapError(f"map file {path} lacks {', '.join(missing)}")
-            shapes: dict[str, tuple] = {}
-            for name, (kinds, shape) in _MAP_MEMBERS.items():
-                info = infos.get(name)
-                if info is None:
-                    continue
-                dshape, dtype, header_len = _read_npy_header(zf, info, path, name)
-                if dtype.kind not in kinds or dtype.hasobject:
-                    raise MapError(f"map file {path}: {name} has dtype {dtype}, expected kind {kinds}")
-                if len(dshape) != len(shape):
-                    raise MapError(f"map file {path}: {name} has shape {dshape}, expected {len(shape)} dimension(s)")
-                declared = int(np.prod(dshape, dtype=np.int64)) * dtype.itemsize + header_len
-                if info.file_size != declared:
-                    raise MapError(f"map file {path}: {name} holds {info.file_size} bytes, its header declares "
-                                   f"{declared}")
-                if shape == ("S",) and dshape[0] > MAX_SOURCES:
-                    raise MapError(f"map file {path} lists {dshape[0]} sources, at most {MAX_SOURCES}")
-                if not shape and declared > _MAX_SCALAR_BYTES:
-                    raise MapError(f"map file {path}: {name} is a scalar of {declared} bytes")
-                shapes[name] = dshape
-            # The scalars are a few bytes each (checked above): read them before the concentrations.
-            with np.load(path, allow_pickle=False) as data:
-                file_gaussians = int(data["num_gaussians"])
-                fingerprint = str(data["model_fingerprint"])
-                file_classes = int(data["num_classes"])
-    except MapError:
-        raise
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, RuntimeError, zlib.error) as exc:
-        raise MapError(f"cannot read map file {path}: {exc}") from exc
-    n_model = model if isinstance(model, int) else model.num_gaussians
-    if isinstance(model, int):
-        if file_gaussians != n_model:
-            raise MapError(f"map file {path}: {file_gaussians} Gaussians declared, {n_model} expected")
-    elif fingerprint != model.fingerprint or file_gaussians != model.num_gaussians:
-        source = getattr(model, "source", None) or "the given model"
-        raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not {source} (model "
-                       f"{model.fingerprint[:16]}; {file_gaussians} vs {model.num_gaussians} Gaussians)")
-    if not 1 <= file_classes <= MAX_CLASSES:
-        raise MapError(f"map file {path}: num_classes={file_classes} outside 1..{MAX_CLASSES}")
-    dshape = shapes["concentrations"]
-    if tuple(dshape) != (n_model, file_classes):
-        raise MapError(f"map file {path}: concentrations have shape {dshape}, the file's own num_classes and "
-                       f"the model give ({n_model}, {file_classes})")
-    if num_classes is not None and file_classes != num_classes:
-        raise MapError(f"map file {path} has {file_classes} classes, expected {num_classes}")
-    present = [k for k in _RECEIVED_MEMBERS if k in shapes]
-    if present and len(present) != len(_RECEIVED_MEMBERS):
-        raise MapError(f"map file {path} has {', '.join(present)} but not all of {', '.join(_RECEIVED_MEMBERS)}")
-    if present:
-        s, r = shapes["received_sources"][0], shapes["received_rows"][0]
-        if s > MAX_RECEIVED_SOURCES:
-            raise MapError(f"map file {path} keeps the evidence of {s} received sources, at most {MAX_RECEIVED_SOURCES}")
-        if (tuple(shapes["received_state"]) != (s, 4) or tuple(shapes["received_counts"]) != (s,)
-                or tuple(shapes["received_evidence"]) != (r, file_classes) or r > s * n_model):
-            raise MapError(f"map file {path}: received evidence of inconsistent shapes (sources {s}, state "
-                           f"{shapes['received_state']}, counts {shapes['received_counts']}, rows {r}, evidence "
-                           f"{shapes['received_evidence']}; at most {n_model} rows per source)")
-
-def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarray,
-                      prior: float) -> dict[str, SourceEvidence]:
-    """The received sources of a map file (``received_*`` members, shapes checked by :func:`_check_map_headers`):
-    ids of 1..32 ASCII characters, each once; rows strictly increasing per source; evidence finite, >= 0, and in
-    total at most what the concentrations hold above the prior, up to the rounding of float64 sums: 1e-9 of α per
-    Gaussian and class. css_node keeps that by construction (css_ros/io/evidence.py: α is recomputed as
-    α_0 + own + Σ sources on every row a snapshot changes; deltas and frames only add, each rounding by at most
-    half an ulp of α). An old file without them: none."""
-    if not members:
-        return {}
-    names, state, counts = members["received_sources"], members["received_state"], members["received_counts"]
-    rows, values = members["received_rows"].astype(np.int64), members["received_evidence"].astype(np.float64)
-    n, c = conc.shape
-    ids = [str(v) for v in names]
-    if len(set(ids)) != len(ids) or not all(0 < len(i) <= 32 and i.isascii() for i in ids):
-        raise MapError(f"map file {path}: received source ids must be distinct, 1..32 ASCII characters")
-    if np.any(counts < 0) or int(counts.sum()) != rows.size:
-        raise MapError(f"map file {path}: received_counts do not add up to the {rows.size} received rows")
-    if not np.all(np.isfinite(values)) or np.any(values < 0) or np.any(values > MAX_CONCENTRATION):
-        raise MapError(f"map file {path}: received evidence must be finite and in [0, {MAX_CONCENTRATION:g}]")
-    out: dict[str, SourceEvidence] = {}
-    total = np.zeros((n, c))
-    start = 0
-    for k, name in enumerate(ids):
-        r = rows[start:start + int(counts[k])]
-        if r.size and (np.any(np.diff(r) <= 0) or r[0] < 0 or r[-1] >= n):
-            raise MapError(f"map file {path}: rows of received source {name!r} not increasing within 0..{n - 1}")
-        ev = np.zeros((n, c))
-        ev[r] = values[start:start + r.size]
-        total += ev
-        epoch, seq, frames, in_step = (int(v) for v in state[k])
-        if frames > MAX_FRAMES:
-            raise MapError(f"map file {path}: received source {name!r} claims {frames} frames (> {MAX_FRAMES})")
-        out[name] = SourceEvidence(ev, epoch, seq, frames, bool(in_step))
-        start += r.size
-    if np.any(total > (conc - prior) + 1e-9 * conc):   # 1e-9 α: rounding only (see the docstring)
-        raise MapError(f"map file {path}: the received evidence exceeds what the concentrations hold")
-    return out
 
 
 def _update_name(fingerprint: str) -> str:
@@ -248,22 +78,6 @@ class RenderedView:
     probabilities: np.ndarray | None = None
     depth: np.ndarray | None = None
     confidence: np.ndarray | None = None
-
-
-@dataclass
-class SourceEvidence:
-    """The evidence of one other node (source) that a map holds (css_node's evidence exchange, docs/maps.md).
-
-    ``evidence`` is that source's (N, C) float64 part of the concentrations; ``epoch``, ``last_seq`` and ``frames``
-    are those of its last packet applied, ``in_step`` whether the next delta of that epoch can be applied. Saved
-    with the map so that a resumed node knows which evidence is its own and which it received.
-    """
-
-    evidence: np.ndarray
-    epoch: int = 0
-    last_seq: int = 0
-    frames: int = 0
-    in_step: bool = False
 
 
 @dataclass(frozen=True)
@@ -634,44 +448,13 @@ class SemanticMap:
             raise MapError(f"cannot save the map to {path}: frames_observed={self.frames_observed} outside "
                            f"[0, {MAX_FRAMES}]")
         try:
-            self._write(path)
+            write_map_file(path, MapContents(
+                fingerprint=self.model.fingerprint, concentrations=conc, prior=self.prior, background=self.background,
+                frames_observed=self.frames_observed, sources=self.sources, sensor_model=self.fused_sensor_model,
+                evidence_origin=self.evidence_origin, evidence_epoch=self.evidence_epoch, received=self.received))
         except OSError as exc:
             raise MapError(f"cannot save the map to {path}: {exc.strerror or exc}") from exc
         return path
-
-    def _write(self, path: Path) -> None:
-        """The npz members of :meth:`save`, written atomically to ``path``."""
-        with atomic_file(path) as fh:
-            np.savez(
-                fh,
-                format_version=np.int64(MAP_FORMAT_VERSION),
-                concentrations=self.concentrations_readonly,
-                prior=np.float64(self.prior),
-                background=np.float64(self.background),
-                num_classes=np.int64(self.num_classes),
-                num_gaussians=np.int64(self.model.num_gaussians),
-                model_fingerprint=np.array(self.model.fingerprint),
-                frames_observed=np.int64(self.frames_observed),
-                sources=np.array(sorted(self.sources), dtype=str).reshape(-1),
-                sensor_model=np.array(self.fused_sensor_model),
-                evidence_origin=np.array(self.evidence_origin),
-                evidence_epoch=np.uint64(self.evidence_epoch),
-                **self._received_members(),
-            )
-
-    def _received_members(self) -> dict[str, Any]:
-        """The ``received_*`` members of a map file: each source's nonzero rows, in sorted source order."""
-        names = sorted(self.received)
-        rows = [np.flatnonzero(np.any(self.received[n].evidence != 0.0, axis=1)) for n in names]
-        return dict(
-            received_sources=np.array(names, dtype=str).reshape(-1),
-            received_state=np.array([[s.epoch, s.last_seq, s.frames, int(s.in_step)]
-                                     for s in (self.received[n] for n in names)], dtype=np.uint64).reshape(-1, 4),
-            received_counts=np.array([r.size for r in rows], dtype=np.int64),
-            received_rows=np.concatenate(rows + [np.zeros(0, np.int64)]).astype(np.int64),
-            received_evidence=np.concatenate([self.received[n].evidence[r] for n, r in zip(names, rows)]
-                                             + [np.zeros((0, self.num_classes))]),
-        )
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], model: "GaussianModel", expected_classes: int | None = None,
@@ -697,56 +480,20 @@ class SemanticMap:
         fixed = sorted({"prior", "background", "num_classes"} & set(kwargs))
         if fixed:
             raise MapError(f"load takes {', '.join(fixed)} from the map file, not as an argument")
-        _check_map_headers(path, model, expected_classes)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                version = int(data["format_version"])
-                if version != MAP_FORMAT_VERSION:
-                    raise MapError(f"map file {path} has format version {version}, "
-                                   f"this css_ros reads {MAP_FORMAT_VERSION}")
-                fingerprint = str(data["model_fingerprint"])
-                num_classes = int(data["num_classes"])
-                num_gaussians = int(data["num_gaussians"])
-                prior = float(data["prior"])
-                background = float(data["background"])
-                frames = int(data["frames_observed"]) if "frames_observed" in data.files else 0
-                sources = [str(v) for v in data["sources"]] if "sources" in data.files else []
-                fused_sm = str(data["sensor_model"]) if "sensor_model" in data.files else NO_SENSOR_MODEL
-                evidence_origin = str(data["evidence_origin"]) if "evidence_origin" in data.files else ""
-                evidence_epoch = int(data["evidence_epoch"]) if "evidence_epoch" in data.files else 0
-                received = {k: np.array(data[k]) for k in _RECEIVED_MEMBERS if k in data.files}
-                if fingerprint != model.fingerprint or num_gaussians != model.num_gaussians:
-                    raise MapError(f"map file {path}: this map belongs to model {fingerprint[:16]}, not "
-                                   f"{getattr(model, 'source', None) or 'the given model'}")
-                conc = np.array(data["concentrations"], dtype=np.float64)
-        except MapError:
-            raise
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, RuntimeError, zlib.error) as exc:
-            raise MapError(f"cannot read map file {path}: {exc}") from exc
-        if conc.shape != (num_gaussians, num_classes) or not np.all(np.isfinite(conc)) or np.any(conc <= 0) \
-                or np.any(conc > MAX_CONCENTRATION):
-            raise MapError(f"map file {path} holds invalid concentrations (shape {conc.shape}, "
-                           f"expected ({num_gaussians}, {num_classes}), all finite, > 0 and <= "
-                           f"{MAX_CONCENTRATION:g})")
-        for name, value in (("prior", prior), ("background", background)):
-            if not (np.isfinite(value) and MIN_CONCENTRATION <= value <= MAX_CONCENTRATION):
-                raise MapError(f"map file {path}: {name}={value!r} outside [{MIN_CONCENTRATION:g}, "
-                               f"{MAX_CONCENTRATION:g}]")
-        if not 0 <= frames <= MAX_FRAMES:
-            raise MapError(f"map file {path}: frames_observed={frames} outside [0, {MAX_FRAMES}]")
-        smap = cls(model, num_classes, prior=prior, background=background, **kwargs)
-        has_evidence = bool(np.any(conc != prior))
-        if "sensor_model" in kwargs and fused_sm != smap.sensor_fingerprint and has_evidence:
-            raise MapError(f"map file {path} was fused with {_update_name(fused_sm)}, this map uses "
+        f = read_map_file(path, model, expected_classes)
+        smap = cls(model, f.num_classes, prior=f.prior, background=f.background, **kwargs)
+        has_evidence = bool(np.any(f.concentrations != f.prior))
+        if "sensor_model" in kwargs and f.sensor_model != smap.sensor_fingerprint and has_evidence:
+            raise MapError(f"map file {path} was fused with {_update_name(f.sensor_model)}, this map uses "
                            f"{_update_name(smap.sensor_fingerprint)}: their evidence is not in the same units (start a new "
                            "map, or use the sensor model it was made with)")
-        smap.concentrations[...] = conc
-        smap.frames_observed = frames
-        smap.sources = sources
-        smap.evidence_origin = evidence_origin
-        smap.evidence_epoch = evidence_epoch
-        smap.received = _received_sources(path, received, conc, prior)
+        smap.concentrations[...] = f.concentrations
+        smap.frames_observed = f.frames_observed
+        smap.sources = f.sources
+        smap.evidence_origin = f.evidence_origin
+        smap.evidence_epoch = f.evidence_epoch
+        smap.received = f.received
         # a map holding only the prior carries no evidence of any update: it takes the sensor model the caller names
         empty = "sensor_model" in kwargs and not has_evidence
-        smap.fused_sensor_model = smap.sensor_fingerprint if empty else fused_sm
+        smap.fused_sensor_model = smap.sensor_fingerprint if empty else f.sensor_model
         return smap

@@ -174,7 +174,8 @@ def transfer_map(smap: "SemanticMap", new_model: GaussianModel,
     The evidence-exchange bookkeeping moves too: each received source's evidence is moved with the same factors
     (so what is the node's own stays its own, and a peer's evidence is never re-published as this node's), out of
     step (its next snapshot re-states it); the origin id and epoch are kept."""
-    from .semantic_map import SemanticMap, SourceEvidence
+    from .map_file import SourceEvidence
+    from .semantic_map import SemanticMap
 
     names = sorted(smap.received)
     conc, report, moved = _transfer(smap.model, smap.concentrations, smap.prior, new_model, tolerance,

@@ -28,6 +28,22 @@ from .replay import default_out_dir, headline, run
 #: Printed on stderr before the kernels are compiled (numba's on-disk cache is cold).
 COMPILE_NOTICE = "css_replay: compiling kernels (first run, ~1 min)"
 
+EXAMPLES = """\
+examples:
+  css_replay                                  # the shipped demo bags/demo/bag -> out/replay_demo/report.md
+  css_replay data/train --out out/train       # your bag (data/train/bag; model.ply and classes.yaml beside it)
+  css_replay bags/demo --max-frames 10 --no-output-bag
+                                              # a quick look: the first 10 frames, no output bag
+  css_replay bags/demo_range/bag --sensor-model out/calibration/sensor_model.yaml
+                                              # css_calibrate's sensor model beside the paper's update (same frames)
+  css_replay bags/demo --train-frames 60      # fuse the first 60 frames only, evaluate all 120
+  css_replay BAG --model splat.ply --classes classes.yaml --pose-source tf --map-frame odom
+                                              # another model and class file, camera poses from /tf
+A css_node parameter file (css_node.yaml) beside the bag folder gives poses, cameras and frames (or --params FILE).
+Exit codes: 0 done; 1 refused in one line (a bag, model, class file or option value that cannot be used);
+2 a malformed command line.
+"""
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -35,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Replay a rosbag2 bag (sqlite3 or MCAP) through Continuous Semantic Splatting: fuse the "
                     "segmentation into the splat model, write the node's output topics to a bag and evaluate "
                     "against the ground-truth segmentation (metrics.json, plots, report.md).",
+        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("bag", nargs="?", type=Path, default=None,
                    help="bag directory (default: the shipped demo bags/demo/bag)")

@@ -60,7 +60,7 @@ from typing import TYPE_CHECKING, Callable, Mapping
 import numpy as np
 from numba import njit
 
-from ..engine.semantic_map import MAX_RECEIVED_SOURCES, SourceEvidence
+from ..engine.map_file import MAX_RECEIVED_SOURCES, SourceEvidence
 from ..engine.spec import MAX_FRAMES
 from ..errors import InputError
 

@@ -18,7 +18,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import UInt8MultiArray
 
-from ..engine.semantic_map import MAX_SOURCES
+from ..engine.map_file import MAX_SOURCES
 from ..errors import InputError
 from ..io.evidence import (FLAG_RESUMED, FLOOD_REASON, HEADER_SIZE, NOT_NEEDED_REASON, ORIGIN_BYTES, RETURN,
                            RETURN_WINDOW_S, EvidenceLedger, EvidenceOutbox, EvidenceRecovery, OriginBuckets,

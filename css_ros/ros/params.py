@@ -16,7 +16,7 @@ from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN
 from ..engine.backends import BACKENDS
 from ..engine.camera import MAX_CAMERA_PIXELS
 from ..engine.map_args import MAX_CONCENTRATION, MIN_CONCENTRATION
-from ..engine.semantic_map import MAX_RECEIVED_SOURCES
+from ..engine.map_file import MAX_RECEIVED_SOURCES
 from ..errors import ConfigError
 from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsics
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS

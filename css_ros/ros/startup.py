@@ -10,18 +10,14 @@ from __future__ import annotations
 
 import os
 import time
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 from ..engine.classes import ClassSet
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
-from ..engine.map_file import read_map_info
+from ..engine.map_file import check_map_headers, read_map_info
 from ..engine.sensor_model import NO_SENSOR_MODEL, SensorModel, shorten
 from ..engine.similarity import Similarity
 from ..engine.warmup import warm_up_kernels
@@ -143,14 +139,11 @@ def describe_sensor_model(model: SensorModel | None) -> str:
 def checkpoint_fingerprint(path: Path) -> str | None:
     """The model fingerprint a checkpoint file records (None: no such file, or not a readable map file).
 
-    Reads one small member only (its size checked first); the full checks are SemanticMap.load's."""
+    Reads the members' headers and scalars only (:func:`~css_ros.engine.map_file.check_map_headers`); the full
+    checks are SemanticMap.load's."""
     try:
-        with zipfile.ZipFile(path) as zf:
-            if zf.getinfo("model_fingerprint.npy").file_size > 4096:
-                return None
-        with np.load(path, allow_pickle=False) as data:
-            return str(data["model_fingerprint"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error):
+        return check_map_headers(path).fingerprint
+    except (CssError, OSError):
         return None
 
 
