@@ -681,24 +681,23 @@ def test_stub_device_counts_the_host_work_of_a_frame():
 
 def test_scoring_in_batches_of_bounded_pairs_equals_one_batch(monkeypatch):
     """score_views and select_views cut many candidates into batches of at most SCORE_BATCH_PAIRS pairs (bounded GPU
-    memory): with a bound of a few views' pairs the columns and the picks equal those of one batch."""
+    memory): with a bound of two views' pairs the columns and the picks equal those of one batch."""
     from css_ros.engine.cuda import backend as cuda_backend
+    from css_ros.engine.cuda.view_plan import HEADROOM
 
-    model = random_scene(14, n=150)
+    model = random_scene(14, n=100)
     rng = np.random.default_rng(14)
     alpha = rng.gamma(0.5, 2.0, (model.num_gaussians, C)) + 1e-3
-    views = [camera(width=8, height=6, f=6.0, position=(0.15 * i, -0.05 * i, 0.0)) for i in range(5)]
+    views = [camera(width=8, height=6, f=6.0, position=(0.15 * i, -0.05 * i, 0.0)) for i in range(4)]
     gpu = SemanticMap(model, C, backend="cuda")
     gpu.concentrations[...] = alpha
-    whole = gpu.score_views(views)
+    whole = gpu.score_views(views)                              # one batch (the bound is far away)
     picks = gpu.select_views(views, 3)
-    monkeypatch.setattr(cuda_backend, "SCORE_BATCH_PAIRS", 150)  # two views of ~60 pairs per batch
-    small = SemanticMap(model, C, backend="cuda")
-    small.concentrations[...] = alpha
-    small.score_views(views[:1])                                # learns the pairs per view of this size
-    chunks = small._backend._score_chunks(list(range(5)), 8, 6)
-    assert len(chunks) >= 2 and sorted(sum(chunks, [])) == list(range(5))
-    np.testing.assert_allclose(small.score_views(views), whole, rtol=1e-12)
-    again = small.select_views(views, 3)
+    per_view = gpu._backend._pairs_per_view[(8, 6)]
+    monkeypatch.setattr(cuda_backend, "SCORE_BATCH_PAIRS", int(2.5 * HEADROOM * per_view))
+    chunks = gpu._backend._score_chunks(list(range(4)), 8, 6)
+    assert len(chunks) == 2 and sorted(sum(chunks, [])) == list(range(4))
+    np.testing.assert_allclose(gpu.score_views(views), whole, rtol=1e-12)
+    again = gpu.select_views(views, 3)
     np.testing.assert_array_equal(again.indices, picks.indices)
     np.testing.assert_allclose(again.gains, picks.gains, rtol=1e-12)

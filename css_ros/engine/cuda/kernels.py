@@ -367,12 +367,14 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
         tx = t - ty * tiles_x
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
-        lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
-        count_pixels(status, counts)
-        done = status != USED
+        # the shared arrays before the first barrier: the simulator makes a block's shared array when its first
+        # thread reaches the line, and threads released together by a barrier could each make their own
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
         s_acc = cuda.shared.array((batch, C), float32)
         s_id = cuda.shared.array(batch, int32)
+        lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
+        count_pixels(status, counts)
+        done = status != USED
         fu = float32(u)
         fv = float32(v)
         trans = float32(1.0)
@@ -461,16 +463,16 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
         tx = t - ty * tiles_x
         u = tx * tile + tid % tile
         v = ty * tile + tid // tile
-        lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
-        count_pixels(status, counts)
-        labelled = status == USED
-        s_g = cuda.shared.array((batch, STAGE_COLS), float32)
+        s_g = cuda.shared.array((batch, STAGE_COLS), float32)   # (before the first barrier: see update_kernel)
         s_z = cuda.shared.array(batch, float32)
         s_acc = cuda.shared.array((batch, S), float32)
         s_id = cuda.shared.array(batch, int32)
         s_key = cuda.shared.array(nt, int32)     # per pixel: its row, then whether it leads its row's slot
         s_slot = cuda.shared.array(nt, int32)    # per leading pixel: its slot
         s_row = cuda.shared.array(S, int32)      # per slot: its (label, depth bin) row of the table
+        lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
+        count_pixels(status, counts)
+        labelled = status == USED
         fu = float32(u)
         fv = float32(v)
         start = offsets[t]

@@ -81,9 +81,41 @@ def warp_xor_sum(x: Any) -> Any:
 
 
 def install() -> None:
-    """Add the missing warp intrinsics to the simulator's fake ``cuda`` module (idempotent)."""
-    from numba.cuda.simulator.kernelapi import FakeCUDAModule
+    """Add the missing warp intrinsics to the simulator's fake ``cuda`` module, and make its shared arrays one per
+    block and line even when the block's threads reach the line together (idempotent)."""
+    from numba.cuda.simulator.kernelapi import FakeCUDAModule, FakeCUDAShared
 
     for fn in (shfl_sync, shfl_xor_sync, shfl_down_sync, ballot_sync, all_sync, any_sync):
         if not hasattr(FakeCUDAModule, fn.__name__):
             setattr(FakeCUDAModule, fn.__name__, staticmethod(fn))
+    if not getattr(FakeCUDAShared, "_css_locked", False):
+        FakeCUDAShared.array = _locked_shared_array(FakeCUDAShared.array)  # type: ignore[method-assign]
+        FakeCUDAShared._css_locked = True  # type: ignore[attr-defined]
+
+
+def _locked_shared_array(make: Any) -> Any:
+    """The simulator's ``cuda.shared.array`` under one lock: it looks a block's array up by the calling line and
+    makes it when missing, without a lock, so threads released together by a barrier could each make their own
+    array and never see each other's writes (seen as garbage staged rows under load). The lookup is by the caller's
+    frame, which this wrapper adds to the stack: the wrapped call sees its caller one frame further up, so the
+    wrapper passes through the same key the original would compute."""
+    import sys
+    import traceback
+
+    lock = threading.Lock()
+
+    def array(self: Any, shape: Any, dtype: Any, alignment: Any = None) -> Any:
+        if shape == 0 or alignment is not None:
+            return make(self, shape, dtype, alignment)
+        from numba.cuda import types  # what the simulator's own array() uses
+        from numba.cuda.np import numpy_support
+
+        if isinstance(dtype, types.Type):
+            dtype = numpy_support.as_dtype(dtype)
+        caller = traceback.extract_stack(sys._getframe(1), limit=1)[-1][0:2]
+        with lock:
+            res = self._allocations.get(caller)
+            if res is None:
+                res = self._allocations[caller] = np.empty(shape, dtype)
+        return res
+    return array
