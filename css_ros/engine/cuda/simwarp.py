@@ -110,7 +110,7 @@ def _locked_shared_array(make: Any) -> Any:
         from numba.cuda import types  # what the simulator's own array() uses
         from numba.cuda.np import numpy_support
 
-        if isinstance(dtype, types.Type):
+        if isinstance(dtype, types.Type):  # type: ignore[attr-defined]
             dtype = numpy_support.as_dtype(dtype)
         caller = traceback.extract_stack(sys._getframe(1), limit=1)[-1][0:2]
         with lock:
