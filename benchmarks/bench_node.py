@@ -31,7 +31,6 @@ import argparse
 import json
 import os
 import signal
-import statistics
 import struct
 import subprocess
 import sys
