@@ -10,8 +10,9 @@ the functions a frame passes through, so that the node's own work per frame can 
   which ``decode`` is the label image's decode (``frame_gate.decode_labels``);
 - ``worker``: ``MapWorker.process_frame`` as a whole, of which ``observe`` is ``SemanticMap.observe`` (the engine)
   and ``publish_frame`` the per-frame outputs (``OutputPublisher.publish_frame``), itself split into ``images``
-  (``frame_output_images``: the colour-mapped labels), ``image_msgs`` (``conversions.image_msg``), ``view_msg``
-  (``conversions.view_points_msg``) and ``publish`` (``Publisher.publish``: rclpy's serialisation and the DDS write).
+  (``frame_output_images``: the colour-mapped labels), ``image_msgs`` (``conversions.image_bytes`` or ``image_msg``),
+  ``view_msg`` (``conversions.view_points_msg``) and ``publish`` (``Publisher.publish``: rclpy's serialisation of
+  a message object, and the DDS write).
 
 Every timer records wall time (``time.perf_counter``) and the calling thread's CPU time (``time.thread_time``), per
 frame (keyed by the input stamp [ns]). Work between frames (``ViewPublisher.tick``, ``OutputPublisher.publish_cloud``,
@@ -213,6 +214,7 @@ def install(probe: Probe, engine_stub: bool) -> None:
         "publish_frame", outputs.OutputPublisher.publish_frame)
     outputs.frame_output_images = probe.in_frame("images", outputs.frame_output_images)
     conversions.image_msg = probe.in_frame("image_msgs", conversions.image_msg)
+    conversions.image_bytes = probe.in_frame("image_msgs", conversions.image_bytes)
     conversions.view_points_msg = probe.in_frame("view_msg", conversions.view_points_msg)
     rclpy.publisher.Publisher.publish = probe.in_frame(  # type: ignore[method-assign]
         "publish", rclpy.publisher.Publisher.publish)
