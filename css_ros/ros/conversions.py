@@ -15,8 +15,8 @@ from ..io.clouds import pack_scored_views
 from ..io.messages import array_to_image_fields, image_cdr, ns_to_sec_nanosec
 
 __all__ = [
-    "time_msg", "header_msg", "image_msg", "image_bytes", "serialised_images_supported", "view_points_msg", "camera_info_msg", "pose_msg",
-    "pose_stamped_msg", "pose_array_msg", "to_rclpy",
+    "time_msg", "header_msg", "image_msg", "image_bytes", "serialised_images_supported", "view_points_msg",
+    "camera_info_msg", "pose_msg", "pose_stamped_msg", "pose_array_msg", "to_rclpy",
 ]
 
 
