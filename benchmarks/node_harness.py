@@ -213,8 +213,9 @@ def install(probe: Probe, engine_stub: bool) -> None:
     outputs.OutputPublisher.publish_frame = probe.in_frame(  # type: ignore[method-assign]
         "publish_frame", outputs.OutputPublisher.publish_frame)
     outputs.frame_output_images = probe.in_frame("images", outputs.frame_output_images)
-    conversions.image_msg = probe.in_frame("image_msgs", conversions.image_msg)
-    conversions.image_bytes = probe.in_frame("image_msgs", conversions.image_bytes)
+    for name in ("image_msg", "image_bytes"):   # image_bytes: serialised images (absent from older versions)
+        if hasattr(conversions, name):
+            setattr(conversions, name, probe.in_frame("image_msgs", getattr(conversions, name)))
     conversions.view_points_msg = probe.in_frame("view_msg", conversions.view_points_msg)
     rclpy.publisher.Publisher.publish = probe.in_frame(  # type: ignore[method-assign]
         "publish", rclpy.publisher.Publisher.publish)
