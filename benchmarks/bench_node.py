@@ -332,6 +332,7 @@ def stage_table(records: dict[int, dict[str, list[float]]], stamps: list[int]) -
                     "publish_frame": publish_frame, "images": get("images", i), "image_msgs": get("image_msgs", i),
                     "view_msg": get("view_msg", i), "publish": get("publish", i)}
             vals["own"] = vals["take"] + vals["callback"] + worker - observe
+            vals["own_without_publish"] = vals["own"] - vals["publish"]
             for k, v in vals.items():
                 rows.setdefault(k + suffix, []).append(v * 1e3)
     return {k: percentiles(v) for k, v in rows.items()} | {"frames": len(rows.get("own", []))}
@@ -473,8 +474,9 @@ def report(r: dict[str, Any]) -> str:
         return (f"  {label:<44s} {w['mean']:7.3f} {w['p50']:7.3f} {w['p90']:7.3f} {w['p99']:7.3f}   "
                 f"{c['mean']:7.3f}\n")
     lat, m = r["latency_ms"], r["machine"]
-    own = st.get("own", {"mean": float("nan"), "p50": float("nan"), "p90": float("nan")})
-    verdict = "met" if own["p50"] <= OWN_TARGET_MS else "NOT met"
+    nan = {"mean": float("nan"), "p50": float("nan"), "p90": float("nan")}
+    own, own_cpu = st.get("own", nan), st.get("own_cpu", nan)
+    verdict = "met" if own_cpu["mean"] <= OWN_TARGET_MS else "NOT met"
     return (
         f"\ncss_node end to end: backend {r['backend']}{' (engine stubbed)' if r['engine_stub'] else ''}, "
         f"{r['gaussians']} Gaussians, {r['width']}x{r['height']}, {r['classes']} classes, {r['rate_hz']:g} Hz input\n"
@@ -484,7 +486,7 @@ def report(r: dict[str, Any]) -> str:
         f"frames/s: {r['frames_per_s']:.2f}\n"
         f"latency stamp -> last output received [ms]: p50 {lat['p50']:.1f}, p90 {lat['p90']:.1f}, "
         f"p99 {lat['p99']:.1f}, max {lat['max']:.1f} (first output p50 {r['first_output_latency_ms']['p50']:.1f})\n"
-        f"per frame [ms]                                  mean     p50     p90     p99   cpu mean\n"
+        f"per frame [ms], wall time in the stage         mean     p50     p90     p99   cpu mean\n"
         + row("own", "node's own work")
         + row("take", "  rclpy take (deserialise inputs)")
         + row("callback", "  input callbacks (gate)")
@@ -495,13 +497,16 @@ def report(r: dict[str, Any]) -> str:
         + row("image_msgs", "    Image messages")
         + row("view_msg", "    view_uncertainty message")
         + row("publish", "    publish (serialise + DDS write)")
+        + row("own_without_publish", "node's own work without the DDS publish")
         + row("observe", "engine observe" + (" (stub)" if r["engine_stub"] else ""))
         + f"node process CPU per frame, all threads: {r['node_process_cpu_ms_per_frame']:.2f} ms "
           f"({100 * r['node_process_cpu_share']:.0f} % of one core)\n"
         + "between frames [ms per call]: " + (", ".join(
             f"{k} {v['calls']}x mean {v['wall_ms']['mean']:.1f} max {v['wall_ms']['max']:.1f}"
             for k, v in r["between_frames"].items()) or "none") + "\n"
-        + f"node's own work per frame p50 {own['p50']:.2f} ms (target <= {OWN_TARGET_MS:g} ms: {verdict})\n")
+        + f"node's own work per frame: CPU mean {own_cpu['mean']:.2f} ms, p50 {own_cpu['p50']:.2f}, p90 "
+          f"{own_cpu['p90']:.2f}; wall mean {own['mean']:.2f}, p50 {own['p50']:.2f}, p90 {own['p90']:.2f} "
+          f"(target <= {OWN_TARGET_MS:g} ms of CPU: {verdict})\n")
 
 
 def main(argv: list[str] | None = None) -> int:
