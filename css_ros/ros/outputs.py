@@ -73,6 +73,7 @@ class OutputPublisher:
             self.camera_pubs.append(pubs)
         #: publish the frame images as serialised bytes (one copy of the pixels) when the rmw reads them alike
         self.serialised_images = rc.serialised_images_supported()
+        classes.colorize(np.zeros((1, 1), np.int32))   # compile (or load) the colour map's kernel before frame 1
 
     def subscriber_counts(self) -> dict[str, int]:
         """Subscribers matched by each output publisher now (name relative to the node, e.g. ``semantic`` or
