@@ -128,6 +128,23 @@ def test_colorize_is_the_palette_with_black_for_invalid_ids():
     np.testing.assert_array_equal(classes.colorize(np.array([[2]]), ignore_label=2)[0, 0], [0, 0, 0])
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.int32, np.int64, np.uint64])
+def test_colorize_agrees_with_a_per_pixel_lookup_for_every_integer_dtype(dtype):
+    from css_ros.engine.classes import ClassSet
+
+    classes = ClassSet.default(7)
+    rng = np.random.default_rng(3)
+    info = np.iinfo(dtype)
+    values = np.array([0, 1, 6, 7, 9, 200, info.max, info.min], dtype=dtype)
+    labels = rng.choice(values, (9, 11)).astype(dtype)[:, ::2]   # a strided view, as a caller may hand over
+    got = classes.colorize(labels, ignore_label=6)
+    assert got.dtype == np.uint8 and got.shape == labels.shape + (3,)
+    for (v, u), lab in np.ndenumerate(labels):
+        lab = int(lab)
+        want = classes.palette[lab] if 0 <= lab < 7 and lab != 6 else (0, 0, 0)
+        np.testing.assert_array_equal(got[v, u], want)
+
+
 def test_node_image_messages_only_for_the_wanted_topics():
     from css_ros.engine.classes import ClassSet
     from css_ros.io.outputs import frame_output_images

@@ -74,9 +74,13 @@ class ClassSet:
 
     def colorize(self, labels: np.ndarray, ignore_label: int = 255) -> np.ndarray:
         """Map an (H, W) label image to (H, W, 3) uint8 RGB; ignore/out-of-range ids are black."""
+        from .palette_kernel import colorize_into  # numba: imported on first use
+
         labels = np.asarray(labels)
-        # one gather through the palette with a black row appended for every invalid id (a masked assignment costs
-        # several passes: 10+ ms at 1241 x 376)
-        lut = np.concatenate([self.palette.astype(np.uint8), np.zeros((1, 3), dtype=np.uint8)])
-        valid = (labels >= 0) & (labels < self.num_classes) & (labels != ignore_label)
-        return lut[np.where(valid, labels, self.num_classes)]
+        if labels.dtype not in (np.int32, np.int64):   # two compiled variants; every other integer fits int64
+            labels = labels.astype(np.int64)
+        out = np.empty(labels.shape + (3,), dtype=np.uint8)
+        # one compiled pass (numpy's masks and gather of 3-byte rows: 7-13 ms at 1241 x 376, this ~1 ms)
+        colorize_into(labels.reshape(-1), np.ascontiguousarray(self.palette, dtype=np.uint8), int(ignore_label),
+                      out.reshape(-1, 3))
+        return out

@@ -6,6 +6,7 @@ message class of its own library from them.
 """
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import numpy as np
@@ -96,6 +97,40 @@ def array_to_image_fields(array: np.ndarray, encoding: str) -> dict[str, Any]:
         "step": int(width * channels * dtype.itemsize),
         "data": array.view(np.uint8).reshape(-1),
     }
+
+
+#: CDR encapsulation header of a little-endian plain-CDR (XCDR1) message, as ROS 2's rmw implementations write it.
+CDR_LE_HEADER = b"\x00\x01\x00\x00"
+
+
+def _cdr_string(text: str, offset: int) -> tuple[bytes, int]:
+    """A CDR string at body offset ``offset``: uint32 length (with the NUL), UTF-8 bytes, NUL; returns (bytes, new
+    offset). ``offset`` must be 4-aligned."""
+    raw = text.encode("utf-8") + b"\x00"
+    return struct.pack("<I", len(raw)) + raw, offset + 4 + len(raw)
+
+
+def image_cdr(array: np.ndarray, encoding: str, stamp_ns: int, frame_id: str) -> bytes:
+    """A sensor_msgs/Image holding ``array`` serialised as a ROS 2 rmw serialises it (plain CDR, little endian),
+    ready for ``Publisher.publish(bytes)``: the pixels are copied once, straight from ``array`` into the message.
+
+    Layout after :data:`CDR_LE_HEADER`: header (int32 sec, uint32 nanosec, string frame_id), uint32 height, uint32
+    width, string encoding, uint8 is_bigendian, uint32 step, uint8[] data (uint32 length, bytes); each 4-byte field
+    aligned to 4 from the start of the body, padding zero.
+
+    Args:
+        array, encoding: as :func:`array_to_image_fields` (same checks and conversion).
+        stamp_ns: header stamp [ns]; frame_id: header frame id.
+    """
+    f = array_to_image_fields(array, encoding)
+    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
+    parts = [CDR_LE_HEADER, struct.pack("<iI", sec, nanosec)]
+    frame, offset = _cdr_string(str(frame_id), 8)
+    parts += [frame, b"\x00" * (-offset % 4), struct.pack("<II", f["height"], f["width"])]
+    enc, offset = _cdr_string(f["encoding"], offset + (-offset % 4) + 8)
+    offset += 1   # is_bigendian
+    parts += [enc, b"\x00", b"\x00" * (-offset % 4), struct.pack("<II", f["step"], f["data"].size), f["data"]]
+    return b"".join(parts)
 
 
 def stamp_to_ns(stamp: Any) -> int:

@@ -71,6 +71,9 @@ class OutputPublisher:
                 pubs[name] = node.create_publisher(typ, f"~/{ns}/{name}" if ns else f"~/{name}", depth,
                                                    event_callbacks=events)
             self.camera_pubs.append(pubs)
+        #: publish the frame images as serialised bytes (one copy of the pixels) when the rmw reads them alike
+        self.serialised_images = rc.serialised_images_supported()
+        classes.colorize(np.zeros((1, 1), np.int32))   # compile (or load) the colour map's kernel before frame 1
 
     def subscriber_counts(self) -> dict[str, int]:
         """Subscribers matched by each output publisher now (name relative to the node, e.g. ``semantic`` or
@@ -111,7 +114,10 @@ class OutputPublisher:
                 if name not in images:  # confidence: only views of a map with a calibrated confidence map
                     continue
                 array, encoding = images[name]
-                pubs[name].publish(rc.image_msg(array, encoding, header))
+                if self.serialised_images:
+                    pubs[name].publish(rc.image_bytes(array, encoding, frame.stamp_ns, frame.frame_id))
+                else:
+                    pubs[name].publish(rc.image_msg(array, encoding, header))
         if "view_uncertainty" in pubs:
             cloud = rc.view_points_msg(rc.header_msg(frame.stamp_ns, self.p.map_frame), frame.position_map[None],
                                        frame.quat_map[None], np.array([view.u_var]), np.array([view.u_exp]))

@@ -39,7 +39,10 @@ class ViewPublisher:
         self.pub_model: Any = None
         self.pub_sem = node.create_publisher(PointCloud2, "~/view/semantics", 10)
         node.create_service(Trigger, "~/view/resync", self._on_resync)
-        changed_gaussians(np.ones((1, 1)), 1e-3, 0.5, 255, np.zeros(1, np.int64))  # compile (or load) now
+        # compile (or load) now, for the kind of array the map hands out to readers (a device backend: read-only)
+        sample = np.ones((1, 1))
+        sample.flags.writeable = smap.concentrations_readonly.flags.writeable
+        changed_gaussians(sample, 1e-3, 0.5, 255, np.zeros(1, np.int64))
         self._resync = threading.Event()
         self._rebind_lock = threading.Lock()
         self._rebind: Any = None   # a map on another splat (model swap), taken over by the worker's next tick
@@ -98,11 +101,12 @@ class ViewPublisher:
             self.sent[:] = UNSENT
         with map_lock:
             # keys are updated for every changed Gaussian; those beyond max_changes are marked unsent again
-            changed = changed_gaussians(self.smap.concentrations, self.smap.prior, self.min_evidence,
+            alpha = self.smap.concentrations_readonly   # read only: a device backend neither re-uploads it
+            changed = changed_gaussians(alpha, self.smap.prior, self.min_evidence,
                                         self.smap.ignore_label, self.sent)
             later = changed[self.max_changes:]
             changed = changed[: self.max_changes]
-            sem = gaussian_semantics(self.smap.concentrations[changed], self.smap.prior, self.min_evidence,
+            sem = gaussian_semantics(alpha[changed], self.smap.prior, self.min_evidence,
                                      self.smap.ignore_label)
         self.sent[later] = UNSENT
         self.pending = len(later)
