@@ -46,6 +46,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from soak_node import node_env  # noqa: E402  (the environment of a css_node process, one definition)
+
 HARNESS = Path(__file__).resolve().parent / "node_harness.py"
 #: Stages of the node's own work per frame, as the harness names them (see node_harness.py).
 OWN_STAGES = ("take", "callback", "decode", "worker_other", "publish_frame", "images", "image_msgs", "view_msg",
@@ -153,16 +155,6 @@ def cdr_stamp(data: bytes) -> int:
     little = data[1] & 1
     sec, nanosec = struct.unpack_from("<iI" if little else ">iI", data, 4)
     return sec * 1_000_000_000 + nanosec
-
-
-def node_env(domain_id: int) -> dict[str, str]:
-    env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(domain_id)
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-    env["PYTHONUNBUFFERED"] = "1"
-    env["RCUTILS_COLORIZED_OUTPUT"] = "0"
-    return env
 
 
 def proc_cpu_s(pid: int) -> float:
