@@ -27,6 +27,7 @@ from .diagnostics import Stats, StatusReporter
 from .evidence import EvidenceLink
 from .model_swap import ModelWatcher
 from .gate import InputGate, NanAnswer
+from .intake import Intake
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
 from .startup import describe_sensor_model, load_engine, warm_up
@@ -42,8 +43,11 @@ WORKER_STOP_TIMEOUT_S = 10.0
 #: pose_type -> rclpy message class.
 POSE_MESSAGES = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                  "odometry": Odometry}
-#: Depth of the /tf and /tf_static subscriptions (tf2_ros's listener QoS).
+#: Depth of the /tf_static subscriptions (tf2_ros's listener QoS).
 TF_QOS_DEPTH = 100
+#: Depth of the pose and /tf subscriptions [messages]: 10 s of a 200 Hz odometry stream. With a depth of queue_size
+#: (30: 0.15 s at 200 Hz) a busy executor let the queue overwrite the samples around a frame's stamp.
+POSE_QUEUE_DEPTH = 2000
 #: Period [s] of the timer that releases frames whose wait for a pose has ended (at most pose_wait / 4).
 POSE_POLL_PERIOD_S = 0.05
 
@@ -135,38 +139,48 @@ class CssNode(Node):
         # Deep enough for a burst of request_queue_size requests: none is lost before its callback runs.
         qos_req = QoSProfile(depth=p.request_queue_size, reliability=ReliabilityPolicy.RELIABLE,
                              history=HistoryPolicy.KEEP_LAST)
-        # Every call of the gate comes from the inputs node's executor (one thread): the gate keeps no lock.
+        qos_pose = QoSProfile(depth=max(p.queue_size, POSE_QUEUE_DEPTH), reliability=qos_in.reliability,
+                              durability=qos_in.durability, history=HistoryPolicy.KEEP_LAST)
+        # Every call of the gate's frame path comes from the inputs node's executor (one thread): the gate keeps no
+        # lock. Requests come on this node's own executor: the gate reads only its configuration and the latest
+        # camera_info for them, and a huge request no longer holds up (or floods the sockets of) the camera streams.
         self.inputs: Node = self
         self.inputs_context: Any = None
         if inputs_transport is not None:
             self.inputs, self.inputs_context = open_inputs_node(NODE_NAME, self.get_namespace(), inputs_transport)
+        self.intake = Intake(self.inputs, self.stats.count, self.warn)
+        self.request_intake = Intake(self, self.stats.count, self.warn)
 
-        def sub(msg_type: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
-            """Subscribe the inputs node to ``topic`` as this node resolves it (namespace, remappings)."""
-            self.inputs.create_subscription(msg_type, self.resolve_topic_name(topic), callback, qos)
+        def sub(msg_type: Any, topic: str, handler: Any, qos: QoSProfile, drained: bool = False) -> None:
+            """Subscribe the inputs node to ``topic`` as this node resolves it (namespace, remappings);
+            ``handler(msg, seq)``; messages lost before the node count as ``<topic>_lost`` (topic as given, without
+            a leading /)."""
+            self.intake.subscribe(msg_type, self.resolve_topic_name(topic), handler, qos, topic.lstrip("/"), drained)
 
         # camera_info first: when several messages are ready the executor takes them in this order.
         t = INPUT_TOPICS
         pose_msg = POSE_MESSAGES[p.pose_type]
         for i in range(len(p.cameras)):
-            sub(CameraInfo, frames.topic(i, "camera_info"), lambda m, i=i: self.gate.on_camera_info(m, i), qos_in)
+            sub(CameraInfo, frames.topic(i, "camera_info"),
+                lambda m, _s, i=i: self.gate.on_camera_info(m, i), qos_in)
         if p.pose_source == "tf":
             self._subscribe_tf(sub)
-        elif p.pose_per_camera:
-            for i in range(len(p.cameras)):
-                sub(pose_msg, frames.topic(i, "pose"), self._enqueue(lambda m, i=i: self.gate.on_pose(m, i)), qos_in)
         else:
-            sub(pose_msg, t["pose"], self._enqueue(self.gate.on_pose), qos_in)
+            for i in range(len(p.cameras) if p.pose_per_camera else 1):
+                sub(pose_msg, frames.topic(i, "pose"),
+                    lambda m, seq, i=i: self._put_frames(self.gate.on_pose(m, i, seq)), qos_pose, drained=True)
         for i in range(len(p.cameras)):
-            sub(Image, frames.topic(i, "image"), self._enqueue(lambda m, i=i: self.gate.on_image(m, i)), qos_in)
-            sub(Image, frames.topic(i, "confidence"), self._enqueue(lambda m, i=i: self.gate.on_confidence(m, i)),
-                qos_in)
+            sub(Image, frames.topic(i, "image"),
+                lambda m, _s, i=i: self._put_frames(self.gate.on_image(m, i)), qos_in)
+            sub(Image, frames.topic(i, "confidence"),
+                lambda m, _s, i=i: self._put_frames(self.gate.on_confidence(m, i)), qos_in)
             sub(Image, frames.topic(i, "segmentation"),
-                self._enqueue(lambda m, i=i: self.gate.on_segmentation(m, i)), qos_in)
-        self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)),
-                                 lambda: self._enqueue(lambda _m: self.gate.poll())(None))
-        sub(PoseArray, t["candidates"], self._on_candidates, qos_req)
-        sub(PointCloud2, t["point_queries"], self._on_point_query, qos_req)
+                lambda m, _s, i=i: self._put_frames(self.gate.on_segmentation(m, i)), qos_in)
+        self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)), self._poll_frames)
+        for kind, typ, on_request in (("candidates", PoseArray, self._on_candidates),
+                                      ("point_queries", PointCloud2, self._on_point_query)):
+            self.request_intake.subscribe(typ, self.resolve_topic_name(t[kind]),
+                                          lambda m, _s, f=on_request: f(m), qos_req, kind)
 
         qos_srv = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.create_service(Trigger, "~/save_map", self._on_save_map, qos_profile=qos_srv)
@@ -185,20 +199,23 @@ class CssNode(Node):
 
     # ------------------------------------------------------------------ wiring
     def _subscribe_tf(self, sub: Any) -> None:
-        """/tf and /tf_static with tf2_ros's listener QoS (reliable, depth 100; /tf_static transient-local, so the
-        static transforms published before the node started arrive too, and once more volatile)."""
+        """/tf (reliable, depth POSE_QUEUE_DEPTH, drained) and /tf_static with tf2_ros's listener QoS (reliable,
+        depth 100, transient-local, so the static transforms published before the node started arrive too, and once
+        more volatile)."""
         tf_message = self._tf_message
-        qos_tf = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+        qos_tf = QoSProfile(depth=POSE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                             history=HistoryPolicy.KEEP_LAST)
         qos_static = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-        sub(tf_message, TF_TOPIC, self._enqueue(self.gate.on_tf), qos_tf)
-        on_static = self._enqueue(lambda m: self.gate.on_tf(m, static=True))
+        sub(tf_message, TF_TOPIC, lambda m, _s: self._put_frames(self.gate.on_tf(m)), qos_tf, drained=True)
+
+        def on_static(m: Any, _seq: Any) -> None:
+            self._put_frames(self.gate.on_tf(m, static=True))
         sub(tf_message, TF_STATIC_TOPIC, on_static, qos_static)
         # A transient-local subscription does not match a volatile publisher (a /tf_static publisher that is not
         # tf2_ros's): a volatile one does; a static transform received twice is simply set twice.
-        sub(tf_message, TF_STATIC_TOPIC, on_static, QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
-                                                               history=HistoryPolicy.KEEP_LAST))
+        sub(tf_message, TF_STATIC_TOPIC, on_static,
+            QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST))
 
     def _outputs_matched(self) -> None:
         """A subscriber matched (or left) an output or /diagnostics: publish the diagnostics now, so that a client can
@@ -221,16 +238,21 @@ class CssNode(Node):
     def _confidence_published(self, cam: int) -> bool:
         return self.count_publishers(self._confidence_topics[cam]) > 0
 
-    def _enqueue(self, handler: Any) -> Any:
-        def callback(msg: Any) -> None:
-            for job in handler(msg):
-                if self.queue.put_frame(job) is not None:
-                    self.stats.count("frames_dropped_busy")
-                    ns = self.p.cameras[job.camera_index].strip("/") or "/"
-                    self.stats.count(f"camera[{ns}].frames_dropped_busy")
-                    self.warn("worker", "busy", f"mapping slower than the input: oldest pending frame of camera "
-                                                f"{ns} dropped (newest frames win)")
-        return callback
+    def _put_frames(self, jobs: list[Any]) -> None:
+        """Frames released by the gate go to the worker's queue (newest wins: a dropped one is counted and said)."""
+        for job in jobs:
+            dropped = self.queue.put_frame(job)
+            if dropped is not None:
+                self.stats.count("frames_dropped_busy")
+                ns = self.p.cameras[job.camera_index].strip("/") or "/"
+                self.stats.count(f"camera[{ns}].frames_dropped_busy")
+                self.warn("worker", "busy", f"mapping slower than the input: oldest pending frame of camera {ns} "
+                                            f"(stamp {dropped.stamp_ns * 1e-9:.9f} s) dropped (newest frames win)")
+
+    def _poll_frames(self) -> None:
+        """Timer: take the poses waiting in their queues, then release the frames whose wait ended."""
+        self.intake.drain()
+        self._put_frames(self.gate.poll())
 
     def _on_candidates(self, msg: Any) -> None:
         job = self.gate.on_candidates(msg)

@@ -114,7 +114,8 @@ class OutputPublisher:
                 pubs[name].publish(rc.image_msg(array, encoding, header))
         if "view_uncertainty" in pubs:
             cloud = rc.view_points_msg(rc.header_msg(frame.stamp_ns, self.p.map_frame), frame.position_map[None],
-                                       frame.quat_map[None], np.array([view.u_var]), np.array([view.u_exp]))
+                                       frame.quat_map[None], np.array([view.u_var]), np.array([view.u_exp]),
+                                       pose_flags=np.array([frame.pose_flags]))
             pubs["view_uncertainty"].publish(cloud)
 
     def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
