@@ -115,7 +115,8 @@ class CssNode(Node):
         self.queue = WorkQueue(p.max_pending_frames)
         sensor_model = self.smap.sensor_model
         self.outputs = OutputPublisher(self, p, self.classes, confidence_available=sensor_model is not None
-                                       and sensor_model.confidence is not None, on_matched=self._outputs_matched)
+                                       and sensor_model.confidence is not None, on_matched=self._outputs_matched,
+                                       count=self.stats.count, warn=self.warn)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
@@ -227,7 +228,7 @@ class CssNode(Node):
     def _diagnostics_info(self) -> dict[str, str]:
         """Diagnostics entries beyond the counters: the update in use and ``subscribers[<output>]``."""
         counts = {f"subscribers[{name}]": str(n) for name, n in self.outputs.subscriber_counts().items()}
-        return {**self._sensor_info(), **counts}
+        return {**self._sensor_info(), **counts, "answers_waiting": str(self.outputs.held_answers())}
 
     def _sensor_info(self) -> dict[str, str]:
         """Diagnostics entries naming the update in use."""
@@ -258,7 +259,6 @@ class CssNode(Node):
         job = self.gate.on_candidates(msg)
         if isinstance(job, NanAnswer):
             self.stats.count(f"requests_nan[{job.reason}]")
-            self.stats.count("requests_served")
             nan = np.full(len(job.positions), np.nan)
             self.outputs.publish_scores(job.header, job.positions, job.quats, nan, nan, nan)
             return
@@ -274,7 +274,6 @@ class CssNode(Node):
             if job.status is not None:
                 self.stats.count(f"requests_nan[{job.status}]")
             self.outputs.publish_points(job)
-            self.stats.count("point_queries_served")
             return
         dropped = self.queue.put_request(job)
         if dropped is not None:
