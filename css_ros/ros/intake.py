@@ -52,15 +52,17 @@ class Intake:
         self._streams: list[_Stream] = []
 
     def subscribe(self, msg_type: Any, topic: str, handler: Handler, qos: QoSProfile, label: str,
-                  drained: bool = False) -> None:
-        """Subscribe ``node`` to the resolved ``topic``; ``handler(msg, seq)`` runs for every message."""
+                  drained: bool = False, raw: bool = False) -> None:
+        """Subscribe ``node`` to the resolved ``topic``; ``handler(msg, seq)`` runs for every message (``raw``: the
+        serialized bytes, not deserialized)."""
         s = _Stream(topic, label, handler, int(qos.depth), drained)
 
         def matched(info: Any) -> None:
             s.publishers = int(info.current_count)
 
         s.sub = self.node.create_subscription(msg_type, topic, lambda msg, info: self._on_message(s, msg, info),
-                                              qos, event_callbacks=SubscriptionEventCallbacks(matched=matched))
+                                              qos, event_callbacks=SubscriptionEventCallbacks(matched=matched),
+                                              raw=raw)
         self._streams.append(s)
 
     def _on_message(self, s: _Stream, msg: Any, info: Any) -> None:

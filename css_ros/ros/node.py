@@ -6,6 +6,7 @@ The node only wires the parts together: parameters (params.py), input gate (gate
 from __future__ import annotations
 
 from dataclasses import fields
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,12 +17,16 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
+from builtin_interfaces.msg import Time
+from std_msgs.msg import Header
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from diagnostic_msgs.msg import DiagnosticArray
 
 from ..engine.similarity import Similarity
-from ..errors import ConfigError, MapError
+from ..errors import ConfigError, InputError, MapError
+from ..io.point_queries import CloudHead, cloud_head
 from ..io.topics import INPUT_TOPICS, NODE_NAME, TF_STATIC_TOPIC, TF_TOPIC
 from .diagnostics import Stats, StatusReporter
 from .evidence import EvidenceLink
@@ -80,6 +85,11 @@ def declare_params(node: Node) -> NodeParams:
     p = NodeParams(**values)
     check_params(p)
     return p
+
+
+def _header(head: CloudHead) -> Header:
+    """The std_msgs/Header a serialized cloud declares."""
+    return Header(stamp=Time(sec=head.sec, nanosec=head.nanosec), frame_id=head.frame_id)
 
 
 def undeclared_params(node: Node) -> list[str]:
@@ -178,10 +188,10 @@ class CssNode(Node):
             sub(Image, frames.topic(i, "segmentation"),
                 lambda m, _s, i=i: self._put_frames(self.gate.on_segmentation(m, i)), qos_in)
         self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)), self._poll_frames)
-        for kind, typ, on_request in (("candidates", PoseArray, self._on_candidates),
-                                      ("point_queries", PointCloud2, self._on_point_query)):
-            self.request_intake.subscribe(typ, self.resolve_topic_name(t[kind]),
-                                          lambda m, _s, f=on_request: f(m), qos_req, kind)
+        self.request_intake.subscribe(PoseArray, self.resolve_topic_name(t["candidates"]),
+                                      lambda m, _s: self._on_candidates(m), qos_req, "candidates")
+        self.request_intake.subscribe(PointCloud2, self.resolve_topic_name(t["point_queries"]),
+                                      lambda m, _s: self._on_point_query_raw(m), qos_req, "point_queries", raw=True)
 
         qos_srv = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.create_service(Trigger, "~/save_map", self._on_save_map, qos_profile=qos_srv)
@@ -267,6 +277,29 @@ class CssNode(Node):
             self.stats.count("requests_dropped_busy")
             self.warn("candidates", "request queue full", "oldest pending request answered with NaN scores")
             self.worker.finish_request(dropped, "request queue full")
+
+    def _on_point_query_raw(self, raw: bytes) -> None:
+        """A serialized point query. One declaring more than max_query_points is answered from its header alone:
+        its data never becomes a Python object (deserializing 10^7 points held the interpreter for seconds, and
+        the camera streams with it). Others are deserialized and go through the gate."""
+        try:
+            head: CloudHead | None = cloud_head(raw)
+        except InputError:
+            head = None
+        if head is not None and head.points > self.p.max_query_points:
+            self._on_point_query(SimpleNamespace(header=_header(head), width=head.width, height=head.height,
+                                                 point_step=0))
+            return
+        try:
+            msg = deserialize_message(raw, PointCloud2)
+        except Exception:  # noqa: BLE001 - whatever the type support raises for malformed CDR
+            if head is None:   # no request id to answer with
+                self.stats.count("point_queries_received")
+                self.stats.count("point_queries_unanswered[unreadable message]")
+                self.warn("point_queries", "unreadable message", "not a PointCloud2: no answer (no header)")
+                return
+            msg = SimpleNamespace(header=_header(head), width=0, height=0, point_step=0, fields=[], data=b"")
+        self._on_point_query(msg)
 
     def _on_point_query(self, msg: Any) -> None:
         job = self.gate.on_point_query(msg, self.smap.num_classes)
