@@ -175,3 +175,62 @@ def test_answers_made_before_the_clients_reader_matched_reach_it(tmp_path):
     finally:
         client.close()
         assert node.stop() == 0
+
+
+def test_frames_while_a_huge_point_query_arrives_are_mapped_or_counted(tmp_path):
+    """Frames at 5 Hz while a point query of 3 x 10^6 points (34 MiB, above max_query_points) arrives: the query is
+    answered at once from its serialized header (an empty cloud, its request header echoed), and every frame sent is
+    mapped or counted as dropped with a reason (busy, lost before the node, or refused by the gate)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from css_ros.ros.conversions import header_msg
+
+    domain = rh.next_domain_id()
+    model_path = rh.write_wall_model(tmp_path / "wall.ply")
+    node = rh.NodeProcess(dict(model_path=str(model_path), class_file="", num_classes=rh.NUM_CLASSES,
+                               log_period=0.3, checkpoint_path=""), domain, tmp_path / "node.log")
+    client = rh.RosClient(domain)
+    sender = rh.RosClient(domain)     # another participant: the frames' writer is not held up by the big one
+    try:
+        assert client.wait_connected(60.0), node.log()
+        answers: list = []
+        sub = client.node.create_subscription(PointCloud2, "/css_node/point_query_results", answers.append,
+                                              QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        pub = sender.node.create_publisher(PointCloud2, "point_queries", 10)
+        assert client.wait_until(lambda: pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0, 30.0)
+        assert client.wait_outputs_heard(("point_query_results",))
+        n = 3_000_000
+        big = PointCloud2(header=header_msg(77, "map"), height=1, width=n, point_step=12, row_step=12 * n,
+                          is_dense=True, fields=[PointField(name=c, offset=4 * i, datatype=7, count=1)
+                                                 for i, c in enumerate("xyz")])
+        big.data = np.zeros(3 * n, np.float32).tobytes()
+        query = threading.Thread(target=lambda: (time.sleep(1.0), pub.publish(big)), daemon=True)
+        stamps = [10**9 * (k + 1) for k in range(30)]
+        query.start()
+        for s in stamps:
+            client.send_frame(s)
+            time.sleep(0.2)
+        query.join(30.0)
+        client.send_frame(10**9 * 40)     # a later frame: a gap before it is counted (segmentation_lost)
+        assert client.wait_until(lambda: answers, 30.0), (client.diagnostics(), node.log()[-3000:])
+        assert answers[0].width == 0 and answers[0].header.stamp.nanosec == 77
+
+        def accounted() -> tuple[int, int]:
+            d = client.diagnostics()
+            mapped = len({stamp_ns(m) for m in client.messages("view_uncertainty")} & set(stamps))
+            return mapped, int(d.get("frames_dropped_busy", 0)) + int(d.get("segmentation_lost", 0)) + \
+                int(d.get("dropped[segmentation]", 0))
+        assert client.wait_until(lambda: sum(accounted()) >= len(stamps), 30.0), (accounted(), client.diagnostics())
+        mapped, dropped = accounted()
+        assert mapped + dropped == len(stamps), (mapped, dropped, client.diagnostics())
+        assert client.diagnostics()["requests_nan[too many points]"] == "1"
+        print(f"\nframes during a {12 * n >> 20} MiB query: {mapped}/{len(stamps)} mapped, {dropped} counted as dropped")
+    finally:
+        sender.close()
+        client.close()
+        assert node.stop() == 0
+
+
+def stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
