@@ -35,9 +35,11 @@ CLOUD_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=Rel
 ANSWER_OUTPUTS = {"candidate_scores": "requests", "point_query_results": "point_queries"}
 #: Seconds an answer made while no subscriber of its topic is matched waits for one (a client's reader that the
 #: node's writer has not matched yet, on a loaded host): published as soon as one matches, else counted
-#: unanswered. At most request_queue_size answers per topic wait (the oldest gives way, counted likewise).
+#: unanswered. At most request_queue_size answers and ANSWER_HOLD_BYTES of them per topic wait (the oldest gives
+#: way, counted likewise).
 ANSWER_HOLD_S = 10.0
-NO_SUBSCRIBER = "no subscriber matched within 10 s"
+ANSWER_HOLD_BYTES = 64 * 2**20
+NO_SUBSCRIBER = "no subscriber matched within 10 s"   # (or held beyond the bounds above)
 PUBLISH_FAILED = "publish failed"
 
 
@@ -66,6 +68,7 @@ class OutputPublisher:
         events = PublisherEventCallbacks(matched=matched)
         self.count, self.warn = count, warn
         self._held: dict[str, deque[tuple[float, Any]]] = {name: deque() for name in ANSWER_OUTPUTS}
+        self._held_bytes: dict[str, int] = dict.fromkeys(ANSWER_OUTPUTS, 0)
         self._held_lock = threading.Lock()
         self.p = params
         self.classes = classes
@@ -160,10 +163,11 @@ class OutputPublisher:
             held = self._held[name]
             if held or self.pubs[name].get_subscription_count() == 0:
                 held.append((time.monotonic(), msg))
+                self._held_bytes[name] += len(msg.data)
                 self.count(f"answers_held[{name}]")
-                if len(held) > self.p.request_queue_size:
-                    held.popleft()
-                    self._unanswered(name, NO_SUBSCRIBER)
+                while len(held) > 1 and (len(held) > self.p.request_queue_size or
+                                         self._held_bytes[name] > ANSWER_HOLD_BYTES):
+                    self._give_up(name)
             else:
                 self._publish(name, msg)
         if held:
@@ -176,15 +180,22 @@ class OutputPublisher:
             for name, held in self._held.items():
                 if held and self.pubs[name].get_subscription_count() > 0:
                     while held:
-                        self._publish(name, held.popleft()[1])
+                        msg = held.popleft()[1]
+                        self._held_bytes[name] -= len(msg.data)
+                        self._publish(name, msg)
                 while held and now - held[0][0] > ANSWER_HOLD_S:
-                    held.popleft()
-                    self._unanswered(name, NO_SUBSCRIBER)
+                    self._give_up(name)
 
     def held_answers(self) -> int:
         """Answers waiting for a subscriber now (all answer topics)."""
         with self._held_lock:
             return sum(len(h) for h in self._held.values())
+
+    def _give_up(self, name: str) -> None:
+        """Drop the oldest held answer of ``name`` (under the lock), counted unanswered."""
+        msg = self._held[name].popleft()[1]
+        self._held_bytes[name] -= len(msg.data)
+        self._unanswered(name, NO_SUBSCRIBER)
 
     def _publish(self, name: str, msg: Any) -> None:
         try:
