@@ -46,6 +46,24 @@ def next_domain_id() -> int:
     return first + (os.getpid() * 7 + next(_domain_counter) * 37) % count
 
 
+class BusyLoops:
+    """``n`` processes spinning a CPU each (``while True: pass``) while in the ``with`` block: the load of a robot's
+    computer, where SLAM, planners and a segmentation network share the cores with css_node. Ended by their pids."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.procs: list[subprocess.Popen] = []
+
+    def __enter__(self) -> "BusyLoops":
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.n)]
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for proc in self.procs:
+            proc.kill()
+            proc.wait(10)
+
+
 def write_wall_model(path: Path, seed: int = 0, depth: float = 3.0) -> Path:
     """Write a PLY with a 20 x 16 grid of opaque Gaussians on the plane z = depth (map frame, metres)."""
     from css_ros.engine.gaussians import GaussianModel

@@ -62,10 +62,11 @@ class _Node:
 
 
 class _Link:
-    def __init__(self, tmp_path, monkeypatch, smap: SemanticMap | None = None, **params) -> None:
+    def __init__(self, tmp_path, monkeypatch, smap: SemanticMap | None = None, gaussians: int = 60,
+                 **params) -> None:
         self.clock = _Clock()
         monkeypatch.setattr(link_mod.time, "monotonic", self.clock)
-        self.model = small_wall(tmp_path, 60)
+        self.model = small_wall(tmp_path, gaussians)
         self.n, self.fp = self.model.num_gaussians, self.model.fingerprint
         self.smap = smap if smap is not None else SemanticMap(self.model, C, prior=PRIOR)
         self.worker = SimpleNamespace(smap=self.smap, map_lock=threading.RLock(),
@@ -221,3 +222,46 @@ def test_an_oversized_message_is_refused_before_it_is_deserialized(tmp_path, mon
     vals[0, 0] = 1.0
     lk.send(lk.snapshot("robot_a", 1, vals))
     assert lk.diag()["evidence_packets_applied"] == 1
+
+
+def test_returns_to_one_origin_stay_within_ten_times_what_it_sent_and_the_rest_is_counted(tmp_path, monkeypatch):
+    """The hostile probe through the node's link: origin 'crafted' holds 20,000 rows here, then sends 60 one-row
+    snapshots flagged "resumed", each of a new epoch, at 25/s (the probe measured 4 returns of 10.6 MB for 16 kB:
+    x657). What the node publishes on ~/evidence in response stays within 10 x the bytes that origin sent (none
+    here: a return is 20,000 rows), every withheld return is counted with its reason and size, and a warning names
+    the origin."""
+    lk = _Link(tmp_path, monkeypatch, gaussians=20_000, evidence_max_rows=5_000)
+    held = np.random.default_rng(3).uniform(0.5, 2.0, (lk.n, C))
+    for data in _snapshot_parts(lk, "crafted", 1, held, epoch=1, frames=9, max_rows=5_000):
+        lk.send(data)
+    assert lk.diag().get("evidence_packets_applied") == 4
+    before, received = len(lk.node.published), 0
+    one = np.zeros((lk.n, C))
+    one[11, 2] = 1e-3
+    for k in range(60):
+        data = lk.snapshot("crafted", 10 + k, one, epoch=2 + k, frames=1, flags=ev.FLAG_RESUMED)
+        lk.send(data)
+        received += len(data)
+        lk.clock.t += 0.04
+    published = sum(len(d) for d in lk.node.published[before:] if d[6] == ev.RETURN)
+    d = lk.diag()
+    print(f"\n60 resumed snapshots ({received} B): {published} B of returns published; withheld "
+          f"{d.get(f'evidence_returns_withheld[{ev.WITHHELD_BUDGET}]')} ({d.get('evidence_return_bytes_withheld')} B)")
+    assert d["evidence_packets_applied"] == 64
+    assert published <= 10 * received
+    whole = ev.return_bytes(lk.n, C, 5_000)
+    assert d[f"evidence_returns_withheld[{ev.WITHHELD_BUDGET}]"] == 60
+    assert d["evidence_return_bytes_withheld"] == 60 * whole
+    assert any("return withheld" in line and "'crafted'" in line for line in lk.node.logs)
+
+
+def _snapshot_parts(lk: _Link, origin: str, seq: int, total: np.ndarray, epoch: int, frames: int,
+                    max_rows: int) -> list[bytes]:
+    """Snapshot parts of at most ``max_rows`` rows stating ``total`` (N, C) for ``origin``."""
+    nz = np.flatnonzero(np.any(total != 0.0, axis=1))
+    chunks = [nz[a:a + max_rows] for a in range(0, nz.size, max_rows)] or [nz]
+    starts = [0] + [int(ch[0]) for ch in chunks[1:]]
+    ends = starts[1:] + [lk.n]
+    return [ev.encode_packet(ev.SNAPSHOT, origin, lk.fp, seq + k, r, total[r], PRIOR, lk.n, snapshot_id=seq,
+                             range_start=lo, range_end=hi, part=k, parts=len(chunks), epoch=epoch, frames=frames)
+            for k, (r, lo, hi) in enumerate(zip(chunks, starts, ends))]

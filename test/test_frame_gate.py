@@ -396,3 +396,68 @@ def test_candidate_poses_take_camera_0_extrinsics_and_go_into_the_splat_frame():
         np.testing.assert_allclose(back_p, p_opt, atol=1e-12)
         assert angle_deg(back_q, q_opt) < 1e-9
     assert np.all(np.isnan(q_s[2]))
+
+
+# ------------------------------------------------------------------ frames whose pose is not the interpolation
+def test_a_frame_whose_bracketing_pose_sample_never_arrived_is_flagged():
+    """A 200 Hz stream numbered 1, 2, ... (publication sequence numbers) with samples lost before the gate: a frame
+    whose two published samples around its stamp both arrived gets pose_flags 0 and their interpolation; one whose
+    published neighbour was lost is interpolated across the gap, counted, warned and flagged
+    (POSE_SAMPLES_MISSING), exactly the frames an independent pass over the published stream predicts."""
+    from css_ros.io.frame_gate import POSE_EXTRAPOLATED, POSE_SAMPLES_MISSING
+
+    rec = Recorder()
+    gate = gate_for(rec)
+    events, stamps = robot_stream(n_frames=30, seed=3)
+    rng = np.random.default_rng(4)
+    published = [(e[2].header.stamp.sec * 10**9 + e[2].header.stamp.nanosec) for e in events if e[1] == "pose"]
+    lost = set(rng.choice(len(published), 120, replace=False).tolist())
+    fed, k = [], 0
+    for t, kind, msg in events:
+        if kind == "pose":
+            if k not in lost:
+                fed.append((t, kind, msg, k + 1))
+            k += 1
+        else:
+            fed.append((t, kind, msg, None))
+    frames = []
+    for t, kind, msg, seq in fed:
+        frames += gate.poll(t)
+        if kind == "pose":
+            frames += gate.on_pose(msg, t, 0, seq)
+        elif kind == "camera_info":
+            gate.on_camera_info(0, msg)
+        else:
+            frames += gate.on_segmentation(0, msg, t)
+    frames += gate.flush()
+    assert [f.stamp_ns for f in frames] == stamps, rec.warnings
+    expect = {}
+    for s in stamps:
+        i = int(np.searchsorted(published, s))          # published[i - 1] < s < published[i]
+        expect[s] = POSE_SAMPLES_MISSING if (i - 1 in lost or i in lost) else 0
+    assert 0 < sum(1 for v in expect.values() if v) < len(stamps)
+    assert {f.stamp_ns: f.pose_flags for f in frames} == expect
+    assert rec.counts["frames_pose_samples_missing"] == rec.warnings["segmentation: pose samples missing"] == \
+        sum(1 for v in expect.values() if v)
+    for f in frames:
+        if not f.pose_flags:                            # the interpolation of the published neighbours
+            i = int(np.searchsorted(published, f.stamp_ns))
+            (p0, _), (p1, _) = [base_truth((published[j] - T0) * 1e-9) for j in (i - 1, i)]
+            u = (f.stamp_ns - published[i - 1]) / (published[i] - published[i - 1])
+            np.testing.assert_allclose(f.position_map, p0 + u * (p1 - p0), rtol=0, atol=1e-12)
+    assert POSE_EXTRAPOLATED not in {f.pose_flags for f in frames}
+
+
+def test_an_extrapolated_frame_is_counted_warned_and_flagged():
+    from css_ros.io.frame_gate import POSE_EXTRAPOLATED
+
+    rec = Recorder()
+    gate = gate_for(rec, pose_policy=PosePolicy(wait=0.5, max_extrapolation=0.02))
+    gate.on_camera_info(0, camera_info())
+    for k, dt in enumerate((-10_000_000, 0)):
+        gate.on_pose(pose_message("pose_stamped", T0 + dt, *base_truth(dt * 1e-9)), 0.0, 0, k + 1)
+    gate.on_segmentation(0, image(T0 + 10_000_000, np.ones((H, W), np.uint8), "mono8"), 0.0)
+    (f,) = gate.poll(0.5)
+    assert f.pose_how == "extrapolated" and f.pose_flags == POSE_EXTRAPOLATED
+    assert rec.counts["frames_pose_extrapolated"] == rec.warnings["segmentation: pose extrapolated"] == 1
+    assert "frames_pose_samples_missing" not in rec.counts

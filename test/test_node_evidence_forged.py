@@ -108,8 +108,9 @@ def test_forged_returns_with_huge_frame_claims_leave_a_resumed_node_and_its_map_
 def test_a_flood_of_resumed_snapshots_gets_a_bounded_number_of_returns(tmp_path):
     """Source 'crafted' states evidence on every Gaussian, then sends 100 tiny snapshots flagged "resumed", each of
     a new epoch, at 40 packets/s. The node answers with at most RETURN_BURST + (seconds of the flood) /
-    RETURN_INTERVAL_S + 1 returns (it answered every one before: 100 returns of the whole evidence). The bytes of
-    returns received on ~/evidence are measured and printed."""
+    RETURN_INTERVAL_S + 1 returns (it answered every one before: 100 returns of the whole evidence), of at most 10
+    times the bytes of the flood in all; every other one is counted as withheld. The bytes of returns received on
+    ~/evidence are measured and printed."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import UInt8MultiArray
 
@@ -137,10 +138,12 @@ def test_a_flood_of_resumed_snapshots_gets_a_bounded_number_of_returns(tmp_path)
         held = np.random.default_rng(0).uniform(0, 5, (n, rh.NUM_CLASSES))
         send(ev.encode_packet(ev.SNAPSHOT, "crafted", fp, 1, rows, held, PRIOR, n, snapshot_id=1, epoch=1, frames=1))
         assert client.wait_diag("evidence_packets_applied", 1, 30.0) >= 1, node.log()
-        count, start = 100, time.monotonic()
+        count, start, flood_bytes = 100, time.monotonic(), 0
         for k in range(count):
-            send(ev.encode_packet(ev.SNAPSHOT, "crafted", fp, 2 + k, rows[:0], held[:0], PRIOR, n, snapshot_id=2 + k,
-                                  epoch=2 + k, frames=1, flags=ev.FLAG_RESUMED))
+            data = ev.encode_packet(ev.SNAPSHOT, "crafted", fp, 2 + k, rows[:0], held[:0], PRIOR, n, snapshot_id=2 + k,
+                                    epoch=2 + k, frames=1, flags=ev.FLAG_RESUMED)
+            send(data)
+            flood_bytes += len(data)
             time.sleep(0.025)
         seconds = time.monotonic() - start
         assert client.wait_diag("evidence_packets_applied", 1 + count, 30.0) >= 1 + count, client.diagnostics()
@@ -152,6 +155,10 @@ def test_a_flood_of_resumed_snapshots_gets_a_bounded_number_of_returns(tmp_path)
         bound = ev.RETURN_BURST + int(seconds / ev.RETURN_INTERVAL_S) + 1
         assert 1 <= len(returns) <= bound, (len(returns), bound)
         assert sum(returns) <= bound * full
+        assert sum(returns) <= 10 * flood_bytes          # at most 10 bytes out per byte of the "resumed" run
+        diag = client.diagnostics()                      # the rest is withheld and counted
+        assert int(diag[f"evidence_returns_withheld[{ev.WITHHELD_BUDGET}]"]) + \
+            int(diag.get(f"evidence_returns_withheld[{ev.WITHHELD_RATE}]", 0)) + len(returns) == count
         assert node.proc.poll() is None
     finally:
         client.close()

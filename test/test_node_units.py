@@ -181,3 +181,74 @@ def test_start_up_errors_are_clean_fatal_exits(tmp_path, case):
     out = res.stdout + res.stderr
     assert res.returncode == 2, out
     assert "FATAL" in out and expect in out and "Traceback" not in out
+
+
+class _AnswerNode:
+    """What OutputPublisher uses of an rclpy Node: publishers whose subscriber count the test sets."""
+
+    def __init__(self) -> None:
+        self.subscribers = 0
+        self.published: dict[str, list] = {}
+        self.fail = False
+
+    def get_clock(self):
+        return None
+
+    def create_timer(self, _period, _callback):
+        return None
+
+    def create_publisher(self, _type, name, _qos, event_callbacks=None):
+        topic = name.removeprefix("~/")
+        self.published[topic] = []
+
+        def publish(msg) -> None:
+            if self.fail:
+                raise RuntimeError("writer gone")
+            self.published[topic].append(msg)
+        return SimpleNamespace(publish=publish, get_subscription_count=lambda: self.subscribers)
+
+
+def test_answers_wait_for_a_reader_and_every_one_ends_in_a_counter(monkeypatch):
+    """No reader matched: an answer is held (answers_held), written in order once one matches (<kind>_served), given
+    up after ANSWER_HOLD_S or beyond request_queue_size held (<kind>_unanswered[...]); a publish that raises is counted
+    unanswered, not raised. Served + unanswered = answers made, whatever happens."""
+    pytest.importorskip("rclpy")
+    from css_ros.engine.classes import ClassSet
+    from css_ros.ros import outputs as out
+    from css_ros.ros.diagnostics import Stats
+
+    clock = [100.0]
+    monkeypatch.setattr(out.time, "monotonic", lambda: clock[0])
+    stats = Stats()
+    node = _AnswerNode()
+    p = NodeParams(request_queue_size=3, cloud_period=0.0)
+    pub = out.OutputPublisher(node, p, ClassSet.default(4), count=stats.count)
+
+    def answer(i: int) -> None:
+        header = SimpleNamespace(stamp=SimpleNamespace(sec=0, nanosec=i), frame_id="map")
+        pub.publish_scores(header, np.zeros((1, 3)), np.array([[0.0, 0, 0, 1]]), *(np.zeros(1),) * 3)
+
+    def ids() -> list[int]:
+        return [m.header.stamp.nanosec for m in node.published["candidate_scores"]]
+
+    for i in range(1, 6):                   # 5 answers, 3 may wait: the 2 oldest are given up
+        answer(i)
+    counts = stats.snapshot()[0]
+    assert pub.held_answers() == 3 and counts["answers_held[candidate_scores]"] == 5
+    assert counts[f"requests_unanswered[{out.NO_SUBSCRIBER}]"] == 2 and ids() == []
+    node.subscribers = 1
+    pub.release_answers()                   # a reader matched (the matched event calls it)
+    assert ids() == [3, 4, 5] and stats.snapshot()[0]["requests_served"] == 3 and pub.held_answers() == 0
+    answer(6)                               # a reader is there: written at once
+    assert ids() == [3, 4, 5, 6]
+    node.subscribers = 0
+    answer(7)
+    clock[0] += out.ANSWER_HOLD_S + 0.5
+    pub.release_answers()                   # the timer: held too long
+    node.fail = True
+    node.subscribers = 1
+    answer(8)                               # the middleware refuses the write
+    counts = stats.snapshot()[0]
+    assert counts[f"requests_unanswered[{out.NO_SUBSCRIBER}]"] == 3
+    assert counts[f"requests_unanswered[{out.PUBLISH_FAILED}]"] == 1
+    assert counts["requests_served"] + 3 + 1 == 8 and pub.held_answers() == 0

@@ -31,6 +31,10 @@ VIEW_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw", "u_var", "u_exp")
 #: ``info_gain``, the expected reduction of the map's uncertainty if the view were observed (>= 0, bigger =
 #: better next view). Appended last, so readers that look fields up by name read both layouts.
 CANDIDATE_FIELDS = (*VIEW_FIELDS, "info_gain")
+#: ``~/view_uncertainty`` appends ``pose_flags`` (float32 holding a small integer, bits of
+#: css_ros.io.frame_gate: 1 the pose was extrapolated, 2 samples of the pose stream were missing around the stamp;
+#: 0 = the interpolation of the samples around the stamp). Readers that look fields up by name are unaffected.
+POSE_FLAGS_FIELD = "pose_flags"
 #: What :func:`unpack_scored_views` returns (every field float32).
 SCORED_VIEW_DTYPE = np.dtype([(name, "<f4") for name in CANDIDATE_FIELDS])
 
@@ -131,16 +135,16 @@ def unpack_cloud(msg: Any, names: tuple[str, ...] | None = None) -> np.ndarray:
 
 
 def pack_scored_views(positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.ndarray, u_exp: np.ndarray,
-                      info_gain: np.ndarray | None = None) -> dict[str, Any]:
+                      info_gain: np.ndarray | None = None, pose_flags: np.ndarray | None = None) -> dict[str, Any]:
     """PointCloud2 fields (:func:`pack_cloud`) with one float32 point per scored view.
 
     Args:
         positions: (M, 3) view positions [m, map frame]; quats_xyzw: (M, 4) orientations of the optical frame;
         u_var, u_exp: (M,) image-level uncertainties (SPEC §6); info_gain: (M,) expected information gain, or
-        None for the ``~/view_uncertainty`` layout.
+        None for the ``~/view_uncertainty`` layout; pose_flags: (M,) :data:`POSE_FLAGS_FIELD` values, or None.
     Returns:
-        fields :data:`VIEW_FIELDS` (``info_gain`` None) or :data:`CANDIDATE_FIELDS`, in that order.
-        NaN stays NaN (a view that could not be scored).
+        fields :data:`VIEW_FIELDS` (``info_gain`` None) or :data:`CANDIDATE_FIELDS`, in that order, then
+        ``pose_flags`` when given. NaN stays NaN (a view that could not be scored).
     """
     m = len(positions)
     pos = np.asarray(positions, dtype=np.float64).reshape(m, 3)
@@ -151,6 +155,8 @@ def pack_scored_views(positions: np.ndarray, quats_xyzw: np.ndarray, u_var: np.n
     columns["u_exp"] = np.asarray(u_exp, dtype=np.float64).reshape(m)
     if info_gain is not None:
         columns["info_gain"] = np.asarray(info_gain, dtype=np.float64).reshape(m)
+    if pose_flags is not None:
+        columns[POSE_FLAGS_FIELD] = np.asarray(pose_flags, dtype=np.float64).reshape(m)
     return pack_cloud({k: v.astype(np.float32) for k, v in columns.items()})
 
 

@@ -70,7 +70,8 @@ if TYPE_CHECKING:
 __all__ = ["EvidencePacket", "encode_packet", "decode_packet", "EvidenceLedger", "DELTA", "SNAPSHOT",
            "MAX_INCREMENT", "HEADER_SIZE", "ORIGIN_BYTES", "own_evidence", "new_epoch", "received_sources",
            "RETURN", "FLAG_RESUMED", "encode_return", "EvidenceRecovery", "RETURN_WINDOW_S",
-           "NOT_NEEDED_REASON", "OriginBuckets", "FLOOD_REASON"]
+           "NOT_NEEDED_REASON", "OriginBuckets", "FLOOD_REASON", "RETURN_AMPLIFICATION", "return_bytes",
+           "WITHHELD_BUDGET", "WITHHELD_RATE", "DEFAULT_MAX_ROWS"]
 
 MAGIC = b"CSSE"
 VERSION = 2
@@ -105,6 +106,15 @@ RETURN_FRAMES_REASON = "return claims more frames than this node could have fuse
 #: every snapshot "resumed" for a minute; a forged stream of such snapshots is answered at this pace, not per packet).
 RETURN_INTERVAL_S = 5.0
 RETURN_BURST = 3
+#: The returns sent to one source total at most this many times the bytes of the packets it sent since it began
+#: flagging its snapshots "resumed" (its "resumed" run; what it sent before, under its previous epoch, buys none): a
+#: source cannot make the node send more than 10 bytes per byte it sends, whatever flags and epochs it claims.
+RETURN_AMPLIFICATION = 10.0
+#: Why a due return was not sent (``evidence_returns_withheld[<reason>]``).
+WITHHELD_BUDGET = "byte budget: more than 10 x the bytes the source sent since it resumed"
+WITHHELD_RATE = "rate: more than 3 at once or 1 per 5 s"
+#: Default of ``evidence_max_rows``: most Gaussians per packet (sent and accepted).
+DEFAULT_MAX_ROWS = 20_000
 FLOOD_REASON = "flood: more than evidence_max_rate packets/s from one source"
 
 
@@ -142,6 +152,18 @@ class EvidencePacket:
     values: np.ndarray   # (R, C) float64 evidence
     flags: int = 0       # FLAG_RESUMED
     subject: str = ""    # return parts: whose evidence it is
+
+    @property
+    def nbytes(self) -> int:
+        """The size of the encoded packet [bytes] (what its sender sent)."""
+        return HEADER_SIZE + self.rows.size * (4 + 8 * self.num_classes) + (ORIGIN_BYTES if self.kind == RETURN else 0)
+
+
+def return_bytes(rows: int, num_classes: int, max_rows: int) -> int:
+    """The bytes of a return of ``rows`` Gaussians (:func:`encode_return`: parts of at most ``max_rows`` rows, one
+    part when empty)."""
+    parts = max(1, -(-rows // max(1, max_rows)))
+    return rows * (4 + 8 * num_classes) + parts * (HEADER_SIZE + ORIGIN_BYTES)
 
 
 def encode_packet(kind: int, origin: str, fingerprint: str, seq: int, rows: np.ndarray, values: np.ndarray,
@@ -251,6 +273,11 @@ class SourceState(SourceEvidence):
     #: returns the source may still be sent now, as of time.monotonic() ``returned_at`` (a token bucket)
     return_tokens: float = float(RETURN_BURST)
     returned_at: float = -math.inf
+    #: bytes of returns the source may still be sent: RETURN_AMPLIFICATION x the bytes of its packets applied since
+    #: its "resumed" run began, less the returns sent to it since (0 outside a run)
+    return_credit: float = 0.0
+    #: rows of ``returnable`` holding evidence (the return's size without a pass over it)
+    returnable_rows: int = 0
     #: (N,) bool: the rows where ``evidence`` is nonzero, kept in step (a snapshot part finds the rows the source
     #: held in its range without a pass over (N, C) arrays); None: taken from ``evidence`` once
     held: np.ndarray | None = None
@@ -296,16 +323,19 @@ class EvidenceLedger:
     ``max_frame_evidence``: the most evidence one frame adds (pixels of the largest image);
     ``max_frame_rate``: the most frames per second a source may claim within one epoch.
     Returns (``returns_due``) go only to a source that held evidence here from unflagged packets, per source at
-    most RETURN_BURST at once and one per ``return_interval`` seconds after: at most ``max_sources`` times that in
-    all.
+    most RETURN_BURST at once and one per ``return_interval`` seconds after (at most ``max_sources`` times that in
+    all), and only while the bytes of the returns sent to it stay within RETURN_AMPLIFICATION times the bytes of
+    the packets it sent since its "resumed" run began (``max_rows``: rows per return part, as sent). A return due
+    but not sent is listed in ``returns_withheld`` as (origin, reason, bytes) for the caller to count.
     """
 
     def __init__(self, own_origin: str, fingerprint: str, num_gaussians: int, num_classes: int, prior: float,
                  max_sources: int, max_concentration: float = 1e15, max_frame_evidence: float = 4096.0 ** 2,
                  max_frame_rate: float = 100.0, received: Mapping[str, SourceEvidence] | None = None,
-                 return_interval: float = RETURN_INTERVAL_S) -> None:
+                 return_interval: float = RETURN_INTERVAL_S, max_rows: int = DEFAULT_MAX_ROWS) -> None:
         self.own_origin = own_origin
         self.return_interval = float(return_interval)
+        self.max_rows = max(1, int(max_rows))
         self.digest = bytes.fromhex(fingerprint)
         self.n, self.c, self.prior = num_gaussians, num_classes, prior
         self.max_sources = min(int(max_sources), MAX_RECEIVED_SOURCES)
@@ -314,6 +344,8 @@ class EvidenceLedger:
         self.sources: dict[str, SourceState] = {}
         #: origins whose returnable evidence is due to be sent back (the caller drains it after apply)
         self.returns_due: list[str] = []
+        #: (origin, reason, bytes) of each return due but not sent (WITHHELD_BUDGET / WITHHELD_RATE; drained likewise)
+        self.returns_withheld: list[tuple[str, str, int]] = []
         self._total = np.zeros((num_gaussians, num_classes))   # Σ over sources of their evidence, kept in step
         for name, src in (received or {}).items():
             ev = np.array(src.evidence, dtype=np.float64).reshape(num_gaussians, num_classes)
@@ -355,8 +387,13 @@ class EvidenceLedger:
         if pkt.kind == RETURN:
             return "return packet (for its subject only)"
         if pkt.kind == DELTA:
-            return self._delta(self.sources.get(pkt.origin), pkt, concentrations, now)
-        return self._snapshot_part(pkt, concentrations, now)
+            reason = self._delta(self.sources.get(pkt.origin), pkt, concentrations, now)
+        else:
+            reason = self._snapshot_part(pkt, concentrations, now)
+        state = self.sources.get(pkt.origin)
+        if reason is None and state is not None and state.flagged and not (pkt.kind == SNAPSHOT and pkt.part == 0):
+            state.return_credit += RETURN_AMPLIFICATION * pkt.nbytes   # part 0 is counted by _note_resumed
+        return reason
 
     def _allowed_frames(self, state: SourceState, now: float) -> float:
         """The most frames ``state``'s source may claim now (its epoch's start plus the rate, plus a burst)."""
@@ -471,35 +508,46 @@ class EvidenceLedger:
     def _note_resumed(self, state: SourceState, pkt: EvidencePacket, now: float) -> None:
         """Part 0 of a snapshot, before it is applied: keep the source's previous epoch's evidence when it comes back
         "resumed" (a new epoch; the source, which knows its checkpoint, decides whether it holds more), and mark a
-        return due on its resumed snapshots (a token bucket: RETURN_BURST, then one per ``return_interval``); an
-        unflagged snapshot ends that.
+        return due on its resumed snapshots (a token bucket: RETURN_BURST, then one per ``return_interval``; and a
+        byte budget: RETURN_AMPLIFICATION x the bytes the source sent since its "resumed" run began, this packet
+        included, less the returns it was sent); an unflagged snapshot ends that.
         Evidence the source stated only in flagged snapshots is never kept for a return (a stream of "resumed"
         snapshots of new epochs from an origin that never held evidence here is answered by nothing)."""
         was_flagged, state.flagged = state.flagged, bool(pkt.flags & FLAG_RESUMED)
         if not pkt.flags & FLAG_RESUMED:
-            state.returnable = None
+            state.returnable, state.return_credit = None, 0.0
             return
+        if not was_flagged:
+            state.return_credit = 0.0      # a new "resumed" run: what the source sent before buys no return
+        state.return_credit += RETURN_AMPLIFICATION * pkt.nbytes
         # kept while the source stays resumed (killed again before it took the copy back: the same copy)
         if state.returnable is None and pkt.epoch != state.epoch and state.in_step and state.pending is None \
                 and state.total > 0.0 and not was_flagged:
             rows = state.rows_in(0, self.n)          # a sparse copy: no pass over (N, C) per resumed snapshot
             kept = np.zeros((self.n, self.c))
             kept[rows] = state.evidence[rows]
-            state.returnable = (state.epoch, state.frames, kept)
+            state.returnable, state.returnable_rows = (state.epoch, state.frames, kept), int(rows.size)
         if state.returnable is not None and state.returnable[0] != pkt.epoch:
+            size = return_bytes(state.returnable_rows, self.c, self.max_rows)
             tokens = min(float(RETURN_BURST), state.return_tokens + (now - state.returned_at) / self.return_interval)
-            if tokens >= 1.0:
+            if size > state.return_credit:
+                self.returns_withheld.append((pkt.origin, WITHHELD_BUDGET, size))
+            elif tokens < 1.0:
+                self.returns_withheld.append((pkt.origin, WITHHELD_RATE, size))
+            else:
                 state.return_tokens, state.returned_at = tokens - 1.0, now
+                state.return_credit -= size
                 self.returns_due.append(pkt.origin)
 
-    def return_packets(self, subject: str, max_rows: int) -> list[bytes]:
-        """The return parts of ``subject``'s kept previous-epoch evidence (empty when none is kept)."""
+    def return_packets(self, subject: str, max_rows: int | None = None) -> list[bytes]:
+        """The return parts of ``subject``'s kept previous-epoch evidence (empty when none is kept); ``max_rows``:
+        rows per part (None: the ledger's, which the byte budget counts with)."""
         state = self.sources.get(subject)
         if state is None or state.returnable is None:
             return []
         epoch, frames, evidence = state.returnable
         return encode_return(self.own_origin, subject, self.digest.hex(), epoch, frames, evidence, self.prior,
-                             max_rows)
+                             self.max_rows if max_rows is None else max_rows)
 
     def _free_slot(self, newcomer: str) -> bool:
         """Drop one source that holds no evidence, so that ``newcomer`` may take its slot; False when every source

@@ -44,6 +44,10 @@ STAMP_RESET_COUNT = 5
 RECENT_POSES = 2000
 #: Largest accepted mismatch [px] between a segmentation's size and camera_info scaled by one common factor.
 RESOLUTION_TOLERANCE_PX = 1.0
+#: ``GateFrame.pose_flags`` bits (``pose_flags`` of ``~/view_uncertainty``): 0 = the pose is the sample at the stamp
+#: or the interpolation of the two consecutive samples around it.
+POSE_EXTRAPOLATED = 1        # no sample after (or before) the stamp within pose_wait: extrapolated
+POSE_SAMPLES_MISSING = 2     # samples of the stream missing between the two the pose was computed from
 
 Warn = Callable[..., None]
 
@@ -123,7 +127,9 @@ class GateFrame:
     ``camera``: intrinsics at the segmentation's resolution and the optical pose in the **splat** frame (what the
     engine renders); ``position_map`` (3,) [m] and ``quat_map`` (4,) xyzw: the optical frame in the **map** frame
     (what is published); ``pose_how``: "exact", "interpolated" or "extrapolated"; ``t_arrival``: the gate time
-    [s] at which the segmentation arrived; ``extras[kind]``: matched extra label images (or absent).
+    [s] at which the segmentation arrived; ``extras[kind]``: matched extra label images (or absent);
+    ``pose_missing``: samples of the pose stream missing between the two the pose was computed from (their
+    publication sequence numbers tell; 0 when consecutive or unknown).
     """
 
     camera_index: int
@@ -139,6 +145,14 @@ class GateFrame:
     pose_how: str
     t_arrival: float
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    pose_missing: int = 0
+
+    @property
+    def pose_flags(self) -> int:
+        """POSE_EXTRAPOLATED | POSE_SAMPLES_MISSING as they apply; 0: the interpolation of the samples around the
+        stamp (or the sample at it)."""
+        return (POSE_EXTRAPOLATED if self.pose_how == "extrapolated" else 0) | \
+            (POSE_SAMPLES_MISSING if self.pose_missing else 0)
 
 
 @dataclass
@@ -195,8 +209,8 @@ class FrameGate:
                      for i, ns in enumerate(config.cameras)]
         n_hist = len(config.cameras) if config.pose_per_camera else 1
         self.histories = [PoseHistory(config.pose_policy) for _ in range(n_hist)]
-        self._recent: list[deque[tuple[int, np.ndarray, np.ndarray]]] = [deque(maxlen=RECENT_POSES)
-                                                                         for _ in range(n_hist)]
+        self._recent: list[deque[tuple[int, np.ndarray, np.ndarray, int | None]]] = [
+            deque(maxlen=RECENT_POSES) for _ in range(n_hist)]
         self._map_to_splat = config.splat_to_map.inverse()
         self._slop_ns = int(round(config.sync_slop * 1e9))
         self._wait_ns = int(round(config.pose_policy.wait * 1e9))
@@ -253,8 +267,9 @@ class FrameGate:
             return False
         return True
 
-    def on_pose(self, msg: Any, now: float, cam: int = 0) -> list[GateFrame]:
-        """A pose message (of ``pose_type``); ``cam`` only matters with pose_per_camera."""
+    def on_pose(self, msg: Any, now: float, cam: int = 0, seq: int | None = None) -> list[GateFrame]:
+        """A pose message (of ``pose_type``); ``cam`` only matters with pose_per_camera; ``seq``: its publication
+        sequence number when it identifies it in one publisher's stream (:mod:`css_ros.io.sequence`), else None."""
         h = self._history_index(cam)
         topic = self.topic(cam, "pose")
         try:
@@ -269,8 +284,8 @@ class FrameGate:
         self.frame_id_check(topic, str(msg.header.frame_id))
         if not self.stamp_ok(topic, stamp):
             return []
-        self._recent[h].append((stamp, position, quat))
-        problem = self.histories[h].add(stamp, position, quat)
+        self._recent[h].append((stamp, position, quat, seq))
+        problem = self.histories[h].add(stamp, position, quat, seq)
         self.count("pose_samples")
         if problem == "out of order":
             self.warn(topic, "stamp out of order", "older than the newest pose: inserted in time order",
@@ -409,8 +424,8 @@ class FrameGate:
         if start > 0 or (recent and recent[0][0] > stamp + gap):
             history = self.histories[h]
             history.clear()
-            for t, p, q in recent[start:]:
-                history.add(t, p, q)
+            for t, p, q, n in recent[start:]:
+                history.add(t, p, q, n)
 
     def _nearest(self, buf: deque[tuple[int, Any]], stamp: int) -> Any | None:
         best = None
@@ -449,7 +464,7 @@ class FrameGate:
                 self.warn(self.topic(cam, "segmentation"), look.reason, f"{look.detail}; frame dropped")
                 continue
             assert look.position is not None and look.quat is not None  # OK lookups carry a pose
-            frame = self._build(st, fr, confidence, look.position, look.quat, look.how)
+            frame = self._build(st, fr, confidence, look.position, look.quat, look.how, look.missing)
             if frame is not None:
                 out.append(frame)
         return out
@@ -465,7 +480,7 @@ class FrameGate:
         return self.tf.lookup(self.cfg.map_frame, fr.frame_id, fr.stamp_ns, waited)
 
     def _build(self, st: _CameraState, fr: _Pending, confidence: np.ndarray | None, position: np.ndarray,
-               quat: np.ndarray, how: str) -> GateFrame | None:
+               quat: np.ndarray, how: str, missing: int = 0) -> GateFrame | None:
         topic = self.topic(st.index, "segmentation")
         info = st.info
         if info is None:
@@ -505,9 +520,25 @@ class FrameGate:
         self.frames_by_how[how] += 1
         self.count("frames_synchronised")
         self.count(f"camera[{st.namespace or '/'}].frames")
+        self._flag_pose(topic, fr.stamp_ns, how, missing)
         return GateFrame(st.index, fr.stamp_ns, fr.frame_id, self.cfg.map_frame, fr.labels, confidence, image,
                          camera, np.asarray(position, dtype=np.float64), np.asarray(quat, dtype=np.float64), how,
-                         fr.t_arrival, extras)
+                         fr.t_arrival, extras, missing)
+
+    def _flag_pose(self, topic: str, stamp_ns: int, how: str, missing: int) -> None:
+        """Count and warn (frame kept) when a frame's pose is not the interpolation of the samples around its stamp."""
+        if how == "extrapolated":
+            self.count("frames_pose_extrapolated")
+            self.warn(topic, "pose extrapolated",
+                      f"frame {stamp_ns * 1e-9:.9f} s: no pose on the other side of its stamp within pose_wait="
+                      f"{self.cfg.pose_policy.wait:g} s; the nearest pose extrapolated (max_pose_extrapolation="
+                      f"{self.cfg.pose_policy.max_extrapolation:g} s); pose_flags {POSE_EXTRAPOLATED}", dropped=False)
+        if missing:
+            self.count("frames_pose_samples_missing")
+            self.warn(topic, "pose samples missing",
+                      f"frame {stamp_ns * 1e-9:.9f} s: {missing} sample(s) of the pose stream missing between the "
+                      "two its pose was computed from (lost before the node, or dropped as bad); pose_flags "
+                      f"{POSE_SAMPLES_MISSING}", dropped=False)
 
     # ------------------------------------------------------------------ map <-> splat for requests
     def map_poses_to_splat(self, positions: np.ndarray, quats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

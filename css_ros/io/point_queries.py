@@ -8,6 +8,8 @@ request id and is echoed by the answer. The answer holds, per requested point an
 from __future__ import annotations
 
 import re
+import struct
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -49,6 +51,48 @@ def declared_points(msg: Any) -> int:
     if min(width, height, step) < 0:
         raise InputError(f"negative cloud size {width}x{height}, point_step {step}")
     return width * height
+
+
+@dataclass(frozen=True)
+class CloudHead:
+    """What a serialized PointCloud2 declares before its fields and data: the header and the point count."""
+
+    sec: int
+    nanosec: int
+    frame_id: str
+    height: int
+    width: int
+
+    @property
+    def points(self) -> int:
+        return self.height * self.width
+
+
+def cloud_head(raw: bytes) -> CloudHead:
+    """The header, height and width of a CDR-serialized sensor_msgs/PointCloud2 (what rclpy hands a raw
+    subscription), read without deserializing the message: a request declaring more than max_query_points is
+    answered without its (possibly huge) data ever becoming a Python object.
+
+    Layout: 4-byte encapsulation (byte 1: 1 little endian, 0 big endian), then, aligned to 4 from the end of the
+    encapsulation: int32 sec, uint32 nanosec, uint32 length + frame_id bytes (NUL included), uint32 height, width.
+
+    Raises:
+        InputError: truncated, or not CDR.
+    """
+    if len(raw) < 4 or raw[0] != 0 or raw[1] not in (0, 1):
+        raise InputError("not a CDR-serialized message")
+    endian = "<" if raw[1] == 1 else ">"
+    body = memoryview(raw)[4:]
+    try:
+        sec, nanosec, n = struct.unpack_from(endian + "iII", body, 0)
+        if n > len(body) - 12:
+            raise InputError("truncated cloud header")
+        frame_id = bytes(body[12:12 + n]).rstrip(b"\0").decode("utf-8", "replace")
+        off = (12 + n + 3) & ~3
+        height, width = struct.unpack_from(endian + "II", body, off)
+    except struct.error:
+        raise InputError("truncated cloud header") from None
+    return CloudHead(sec, nanosec, frame_id, height, width)
 
 
 def request_points(msg: Any) -> np.ndarray:

@@ -17,7 +17,9 @@ bracketing samples (linear position, slerp orientation). The rules (docs/reliabi
 Samples: a repeated stamp is dropped; an out-of-order one is inserted in order (reported); one older than the
 buffer is dropped, except that :data:`HISTORY_RESET_COUNT` such samples in a row are taken as a clock reset
 (bag restarted) and start a new history. The history holds at most ``max_samples`` samples (oldest dropped), so
-a 1 kHz stream keeps memory bounded.
+a 1 kHz stream keeps memory bounded. A sample may carry its sequence number in the publisher's stream
+(:mod:`css_ros.io.sequence`): a lookup then says how many samples are missing between the two it used
+(``PoseLookup.missing``), so a frame whose pose is not the interpolation of the samples around its stamp is known.
 """
 from __future__ import annotations
 
@@ -50,7 +52,9 @@ class PoseLookup:
     """The pose at a stamp: ``position`` (3,) [m] and ``quat`` (4,) xyzw unit, or why not.
 
     ``reason`` is a short stable drop reason (counter key) when refused; ``detail`` says more.
-    ``how`` is "exact", "interpolated" or "extrapolated" for an OK lookup.
+    ``how`` is "exact", "interpolated" or "extrapolated" for an OK lookup. ``missing``: samples of the stream that
+    are missing between the two samples the pose was interpolated (or extrapolated) from, as their sequence numbers
+    tell (0: consecutive, or no numbers known).
     """
 
     status: LookupStatus
@@ -59,6 +63,7 @@ class PoseLookup:
     reason: str = ""
     detail: str = ""
     how: str = ""
+    missing: int = 0
 
 
 @dataclass(frozen=True)
@@ -112,7 +117,8 @@ class PoseHistory:
         self._extrap_ns = int(round(self.policy.max_extrapolation * 1e9))
         self._times: list[int] = []
         self._poses: list[tuple[np.ndarray, np.ndarray]] = []
-        self._restart: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self._seqs: list[int | None] = []
+        self._restart: list[tuple[int, np.ndarray, np.ndarray, int | None]] = []
         #: samples dropped for being too old and the stamp before which the history was trimmed
         self.trimmed_before_ns: int | None = None
 
@@ -130,12 +136,14 @@ class PoseHistory:
     def clear(self) -> None:
         self._times.clear()
         self._poses.clear()
+        self._seqs.clear()
         self._restart.clear()
         self.trimmed_before_ns = None
 
     # ------------------------------------------------------------------ samples
-    def add(self, stamp_ns: int, position: np.ndarray, quat: np.ndarray) -> str | None:
-        """Add one sample. Returns None when appended in order, else a short reason:
+    def add(self, stamp_ns: int, position: np.ndarray, quat: np.ndarray, seq: int | None = None) -> str | None:
+        """Add one sample (``seq``: its sequence number in the publisher's stream, or None). Returns None when
+        appended in order, else a short reason:
 
         ``"out of order"`` (inserted in order, kept), ``"repeated stamp"`` (dropped),
         ``"older than pose_buffer"`` (dropped), ``"clock reset"`` (the history restarted with this stamp).
@@ -147,18 +155,20 @@ class PoseHistory:
             self._restart.clear()
             times.append(t)
             self._poses.append(pose)
+            self._seqs.append(seq)
             self._trim()
             return None
         if t < times[-1] - self._buffer_ns:
-            self._restart.append((t, *pose))
+            self._restart.append((t, *pose, seq))
             if len(self._restart) < HISTORY_RESET_COUNT:
                 return "older than pose_buffer"
             restart = sorted(self._restart, key=lambda e: e[0])
             self.clear()
-            for ts, p, q in restart:
+            for ts, p, q, n in restart:
                 if not self._times or ts > self._times[-1]:
                     self._times.append(ts)
                     self._poses.append((p, q))
+                    self._seqs.append(n)
             return "clock reset"
         i = bisect.bisect_left(times, t)
         if i < len(times) and times[i] == t:
@@ -166,6 +176,7 @@ class PoseHistory:
         self._restart.clear()
         times.insert(i, t)
         self._poses.insert(i, pose)
+        self._seqs.insert(i, seq)
         self._trim()
         return "out of order"
 
@@ -179,6 +190,7 @@ class PoseHistory:
             self.trimmed_before_ns = times[cut]
             del times[:cut]
             del self._poses[:cut]
+            del self._seqs[:cut]
 
     # ------------------------------------------------------------------ lookups
     def lookup(self, stamp_ns: int, waited: bool) -> PoseLookup:
@@ -221,7 +233,16 @@ class PoseHistory:
                                      f"{self.policy.max_gap:g} s: not interpolated across")
         u = (t - t0) / (t1 - t0)
         (p0, q0), (p1, q1) = self._poses[i - 1], self._poses[i]
-        return PoseLookup(LookupStatus.OK, p0 + u * (p1 - p0), slerp_xyzw(q0, q1, u), how="interpolated")
+        return PoseLookup(LookupStatus.OK, p0 + u * (p1 - p0), slerp_xyzw(q0, q1, u), how="interpolated",
+                          missing=self._missing(i - 1, i))
+
+    def _missing(self, i: int, j: int) -> int:
+        """Samples of the stream missing between samples i and j (|i - j| = 1) by their sequence numbers (0 when a
+        number is unknown; a pair whose numbers are not increasing with time counts as one missing)."""
+        a, b = self._seqs[min(i, j)], self._seqs[max(i, j)]
+        if a is None or b is None:
+            return 0
+        return b - a - 1 if b > a else 1
 
     def _extrapolate(self, i: int, j: int, t: int) -> PoseLookup:
         """Constant-velocity extrapolation from sample i using the segment (j, i); a hold without a usable j."""
@@ -232,7 +253,7 @@ class PoseHistory:
             u = (t - times[j]) / (times[i] - times[j])  # > 1 past the newest, < 0 before the oldest
             pos = p_j + u * (p_i - p_j)
             quat = _extrapolate_rotation(q_j, q_i, u)
-            return PoseLookup(LookupStatus.OK, pos, quat, how="extrapolated")
+            return PoseLookup(LookupStatus.OK, pos, quat, how="extrapolated", missing=self._missing(i, j))
         return PoseLookup(LookupStatus.OK, p_i.copy(), q_i.copy(), how="extrapolated")
 
 

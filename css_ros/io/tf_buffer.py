@@ -285,4 +285,4 @@ class TfBuffer:
             else:
                 t_common_source = compose((look.position, look.quat), t_common_source)
         p, q = compose(invert(t_common_target), t_common_source)
-        return PoseLookup(LookupStatus.OK, p, q, how=how)
+        return PoseLookup(LookupStatus.OK, p, q, how=how, missing=sum(look.missing for look in looks))

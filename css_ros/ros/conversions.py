@@ -73,15 +73,17 @@ def serialised_images_supported() -> bool:
 
 
 def view_points_msg(header: Header, positions: np.ndarray, quats_xyzw: np.ndarray,
-                    u_var: np.ndarray, u_exp: np.ndarray, info_gain: np.ndarray | None = None) -> PointCloud2:
-    """PointCloud2 with one float32 point per scored view: fields x y z qx qy qz qw u_var u_exp
-    (``~/view_uncertainty``), then info_gain when ``info_gain`` is given (``~/candidate_scores``).
+                    u_var: np.ndarray, u_exp: np.ndarray, info_gain: np.ndarray | None = None,
+                    pose_flags: np.ndarray | None = None) -> PointCloud2:
+    """PointCloud2 with one float32 point per scored view: fields x y z qx qy qz qw u_var u_exp, then info_gain
+    when given (``~/candidate_scores``), then pose_flags when given (``~/view_uncertainty``).
 
     Args:
         header: header of the cloud (stamp of the view / the request header).
-        positions: (M, 3) view positions [m]; quats_xyzw: (M, 4) orientations; u_var, u_exp, info_gain: (M,).
+        positions: (M, 3) view positions [m]; quats_xyzw: (M, 4) orientations; u_var, u_exp, info_gain,
+        pose_flags: (M,).
     """
-    return cloud_msg(header, pack_scored_views(positions, quats_xyzw, u_var, u_exp, info_gain))
+    return cloud_msg(header, pack_scored_views(positions, quats_xyzw, u_var, u_exp, info_gain, pose_flags))
 
 
 def cloud_msg(header: Header, f: dict[str, Any]) -> PointCloud2:

@@ -144,7 +144,7 @@ class EvidenceLink:
                                      smap.prior, self.p.evidence_max_sources,
                                      max_frame_evidence=float(self.p.max_image_pixels),
                                      max_frame_rate=self.p.evidence_max_frame_rate,
-                                     received=received_sources(smap, self.origin))
+                                     received=received_sources(smap, self.origin), max_rows=self.p.evidence_max_rows)
         smap.evidence_origin, smap.received = self.origin, self.ledger.sources
         # the map's sources that no received source stands for: evidence it holds as its own (e.g. a merged map's)
         self._base_sources = set(smap.sources) - set(self.ledger.sources)
@@ -264,8 +264,10 @@ class EvidenceLink:
             self._update_sources()
             for subject in self.ledger.returns_due:
                 if self.pub is not None:
-                    returns += self.ledger.return_packets(subject, self.p.evidence_max_rows)
+                    returns += self.ledger.return_packets(subject)
             self.ledger.returns_due.clear()
+            withheld = list(self.ledger.returns_withheld)
+            self.ledger.returns_withheld.clear()
         if returns and self.pub is not None:
             for data in returns:
                 msg = UInt8MultiArray()
@@ -274,6 +276,11 @@ class EvidenceLink:
             self.count("evidence_returns_sent")
             self.count("evidence_return_bytes_sent", sum(len(d) for d in returns))
             self.logger.info(f"sent {len(returns)} return packet(s) of a restarted peer's previous evidence")
+        for origin, why, size in withheld:   # the sender is named in the (rate-limited) warning
+            self.count(f"evidence_returns_withheld[{why}]")
+            self.count("evidence_return_bytes_withheld", size)
+            self.warn(TOPIC, f"return withheld: {why}", f"a return of {size} bytes to {origin!r} not sent",
+                      dropped=False)
         if reason is not None:
             self._refuse(reason, pkt.origin)
             return

@@ -118,8 +118,9 @@ class InputGate:
     def on_segmentation(self, msg: Any, cam: int = 0) -> list[FrameJob]:
         return self._jobs(self.frames.on_segmentation(cam, msg, self.monotonic()))
 
-    def on_pose(self, msg: Any, cam: int = 0) -> list[FrameJob]:
-        return self._jobs(self.frames.on_pose(msg, self.monotonic(), cam))
+    def on_pose(self, msg: Any, cam: int = 0, seq: int | None = None) -> list[FrameJob]:
+        """``seq``: the message's publication sequence number in its one publisher's stream (None: unknown)."""
+        return self._jobs(self.frames.on_pose(msg, self.monotonic(), cam, seq))
 
     def on_tf(self, msg: Any, static: bool = False) -> list[FrameJob]:
         """A tf2_msgs/TFMessage of /tf (or /tf_static): frames waiting for their transforms are released."""

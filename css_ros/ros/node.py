@@ -6,6 +6,7 @@ The node only wires the parts together: parameters (params.py), input gate (gate
 from __future__ import annotations
 
 from dataclasses import fields
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,17 +17,22 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
+from builtin_interfaces.msg import Time
+from std_msgs.msg import Header
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from diagnostic_msgs.msg import DiagnosticArray
 
 from ..engine.similarity import Similarity
-from ..errors import ConfigError, MapError
+from ..errors import ConfigError, InputError, MapError
+from ..io.point_queries import CloudHead, cloud_head
 from ..io.topics import INPUT_TOPICS, NODE_NAME, TF_STATIC_TOPIC, TF_TOPIC
 from .diagnostics import Stats, StatusReporter
 from .evidence import EvidenceLink
 from .model_swap import ModelWatcher
 from .gate import InputGate, NanAnswer
+from .intake import Intake
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
 from .startup import describe_sensor_model, load_engine, warm_up
@@ -42,8 +48,11 @@ WORKER_STOP_TIMEOUT_S = 10.0
 #: pose_type -> rclpy message class.
 POSE_MESSAGES = {"pose_stamped": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                  "odometry": Odometry}
-#: Depth of the /tf and /tf_static subscriptions (tf2_ros's listener QoS).
+#: Depth of the /tf_static subscriptions (tf2_ros's listener QoS).
 TF_QOS_DEPTH = 100
+#: Depth of the pose and /tf subscriptions [messages]: 10 s of a 200 Hz odometry stream. With a depth of queue_size
+#: (30: 0.15 s at 200 Hz) a busy executor let the queue overwrite the samples around a frame's stamp.
+POSE_QUEUE_DEPTH = 2000
 #: Period [s] of the timer that releases frames whose wait for a pose has ended (at most pose_wait / 4).
 POSE_POLL_PERIOD_S = 0.05
 
@@ -76,6 +85,11 @@ def declare_params(node: Node) -> NodeParams:
     p = NodeParams(**values)
     check_params(p)
     return p
+
+
+def _header(head: CloudHead) -> Header:
+    """The std_msgs/Header a serialized cloud declares."""
+    return Header(stamp=Time(sec=head.sec, nanosec=head.nanosec), frame_id=head.frame_id)
 
 
 def undeclared_params(node: Node) -> list[str]:
@@ -111,7 +125,8 @@ class CssNode(Node):
         self.queue = WorkQueue(p.max_pending_frames)
         sensor_model = self.smap.sensor_model
         self.outputs = OutputPublisher(self, p, self.classes, confidence_available=sensor_model is not None
-                                       and sensor_model.confidence is not None, on_matched=self._outputs_matched)
+                                       and sensor_model.confidence is not None, on_matched=self._outputs_matched,
+                                       count=self.stats.count, warn=self.warn)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
         self.evidence = EvidenceLink(self, p, self.worker, self.warn, self.stats.count)
@@ -135,38 +150,48 @@ class CssNode(Node):
         # Deep enough for a burst of request_queue_size requests: none is lost before its callback runs.
         qos_req = QoSProfile(depth=p.request_queue_size, reliability=ReliabilityPolicy.RELIABLE,
                              history=HistoryPolicy.KEEP_LAST)
-        # Every call of the gate comes from the inputs node's executor (one thread): the gate keeps no lock.
+        qos_pose = QoSProfile(depth=max(p.queue_size, POSE_QUEUE_DEPTH), reliability=qos_in.reliability,
+                              durability=qos_in.durability, history=HistoryPolicy.KEEP_LAST)
+        # Every call of the gate's frame path comes from the inputs node's executor (one thread): the gate keeps no
+        # lock. Requests come on this node's own executor: the gate reads only its configuration and the latest
+        # camera_info for them, and a huge request no longer holds up (or floods the sockets of) the camera streams.
         self.inputs: Node = self
         self.inputs_context: Any = None
         if inputs_transport is not None:
             self.inputs, self.inputs_context = open_inputs_node(NODE_NAME, self.get_namespace(), inputs_transport)
+        self.intake = Intake(self.inputs, self.stats.count, self.warn)
+        self.request_intake = Intake(self, self.stats.count, self.warn)
 
-        def sub(msg_type: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
-            """Subscribe the inputs node to ``topic`` as this node resolves it (namespace, remappings)."""
-            self.inputs.create_subscription(msg_type, self.resolve_topic_name(topic), callback, qos)
+        def sub(msg_type: Any, topic: str, handler: Any, qos: QoSProfile, drained: bool = False) -> None:
+            """Subscribe the inputs node to ``topic`` as this node resolves it (namespace, remappings);
+            ``handler(msg, seq)``; messages lost before the node count as ``<topic>_lost`` (topic as given, without
+            a leading /)."""
+            self.intake.subscribe(msg_type, self.resolve_topic_name(topic), handler, qos, topic.lstrip("/"), drained)
 
         # camera_info first: when several messages are ready the executor takes them in this order.
         t = INPUT_TOPICS
         pose_msg = POSE_MESSAGES[p.pose_type]
         for i in range(len(p.cameras)):
-            sub(CameraInfo, frames.topic(i, "camera_info"), lambda m, i=i: self.gate.on_camera_info(m, i), qos_in)
+            sub(CameraInfo, frames.topic(i, "camera_info"),
+                lambda m, _s, i=i: self.gate.on_camera_info(m, i), qos_in)
         if p.pose_source == "tf":
             self._subscribe_tf(sub)
-        elif p.pose_per_camera:
-            for i in range(len(p.cameras)):
-                sub(pose_msg, frames.topic(i, "pose"), self._enqueue(lambda m, i=i: self.gate.on_pose(m, i)), qos_in)
         else:
-            sub(pose_msg, t["pose"], self._enqueue(self.gate.on_pose), qos_in)
+            for i in range(len(p.cameras) if p.pose_per_camera else 1):
+                sub(pose_msg, frames.topic(i, "pose"),
+                    lambda m, seq, i=i: self._put_frames(self.gate.on_pose(m, i, seq)), qos_pose, drained=True)
         for i in range(len(p.cameras)):
-            sub(Image, frames.topic(i, "image"), self._enqueue(lambda m, i=i: self.gate.on_image(m, i)), qos_in)
-            sub(Image, frames.topic(i, "confidence"), self._enqueue(lambda m, i=i: self.gate.on_confidence(m, i)),
-                qos_in)
+            sub(Image, frames.topic(i, "image"),
+                lambda m, _s, i=i: self._put_frames(self.gate.on_image(m, i)), qos_in)
+            sub(Image, frames.topic(i, "confidence"),
+                lambda m, _s, i=i: self._put_frames(self.gate.on_confidence(m, i)), qos_in)
             sub(Image, frames.topic(i, "segmentation"),
-                self._enqueue(lambda m, i=i: self.gate.on_segmentation(m, i)), qos_in)
-        self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)),
-                                 lambda: self._enqueue(lambda _m: self.gate.poll())(None))
-        sub(PoseArray, t["candidates"], self._on_candidates, qos_req)
-        sub(PointCloud2, t["point_queries"], self._on_point_query, qos_req)
+                lambda m, _s, i=i: self._put_frames(self.gate.on_segmentation(m, i)), qos_in)
+        self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)), self._poll_frames)
+        self.request_intake.subscribe(PoseArray, self.resolve_topic_name(t["candidates"]),
+                                      lambda m, _s: self._on_candidates(m), qos_req, "candidates")
+        self.request_intake.subscribe(PointCloud2, self.resolve_topic_name(t["point_queries"]),
+                                      lambda m, _s: self._on_point_query_raw(m), qos_req, "point_queries", raw=True)
 
         qos_srv = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self.create_service(Trigger, "~/save_map", self._on_save_map, qos_profile=qos_srv)
@@ -185,20 +210,23 @@ class CssNode(Node):
 
     # ------------------------------------------------------------------ wiring
     def _subscribe_tf(self, sub: Any) -> None:
-        """/tf and /tf_static with tf2_ros's listener QoS (reliable, depth 100; /tf_static transient-local, so the
-        static transforms published before the node started arrive too, and once more volatile)."""
+        """/tf (reliable, depth POSE_QUEUE_DEPTH, drained) and /tf_static with tf2_ros's listener QoS (reliable,
+        depth 100, transient-local, so the static transforms published before the node started arrive too, and once
+        more volatile)."""
         tf_message = self._tf_message
-        qos_tf = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+        qos_tf = QoSProfile(depth=POSE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                             history=HistoryPolicy.KEEP_LAST)
         qos_static = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-        sub(tf_message, TF_TOPIC, self._enqueue(self.gate.on_tf), qos_tf)
-        on_static = self._enqueue(lambda m: self.gate.on_tf(m, static=True))
+        sub(tf_message, TF_TOPIC, lambda m, _s: self._put_frames(self.gate.on_tf(m)), qos_tf, drained=True)
+
+        def on_static(m: Any, _seq: Any) -> None:
+            self._put_frames(self.gate.on_tf(m, static=True))
         sub(tf_message, TF_STATIC_TOPIC, on_static, qos_static)
         # A transient-local subscription does not match a volatile publisher (a /tf_static publisher that is not
         # tf2_ros's): a volatile one does; a static transform received twice is simply set twice.
-        sub(tf_message, TF_STATIC_TOPIC, on_static, QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
-                                                               history=HistoryPolicy.KEEP_LAST))
+        sub(tf_message, TF_STATIC_TOPIC, on_static,
+            QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST))
 
     def _outputs_matched(self) -> None:
         """A subscriber matched (or left) an output or /diagnostics: publish the diagnostics now, so that a client can
@@ -210,7 +238,7 @@ class CssNode(Node):
     def _diagnostics_info(self) -> dict[str, str]:
         """Diagnostics entries beyond the counters: the update in use and ``subscribers[<output>]``."""
         counts = {f"subscribers[{name}]": str(n) for name, n in self.outputs.subscriber_counts().items()}
-        return {**self._sensor_info(), **counts}
+        return {**self._sensor_info(), **counts, "answers_waiting": str(self.outputs.held_answers())}
 
     def _sensor_info(self) -> dict[str, str]:
         """Diagnostics entries naming the update in use."""
@@ -221,22 +249,26 @@ class CssNode(Node):
     def _confidence_published(self, cam: int) -> bool:
         return self.count_publishers(self._confidence_topics[cam]) > 0
 
-    def _enqueue(self, handler: Any) -> Any:
-        def callback(msg: Any) -> None:
-            for job in handler(msg):
-                if self.queue.put_frame(job) is not None:
-                    self.stats.count("frames_dropped_busy")
-                    ns = self.p.cameras[job.camera_index].strip("/") or "/"
-                    self.stats.count(f"camera[{ns}].frames_dropped_busy")
-                    self.warn("worker", "busy", f"mapping slower than the input: oldest pending frame of camera "
-                                                f"{ns} dropped (newest frames win)")
-        return callback
+    def _put_frames(self, jobs: list[Any]) -> None:
+        """Frames released by the gate go to the worker's queue (newest wins: a dropped one is counted and said)."""
+        for job in jobs:
+            dropped = self.queue.put_frame(job)
+            if dropped is not None:
+                self.stats.count("frames_dropped_busy")
+                ns = self.p.cameras[job.camera_index].strip("/") or "/"
+                self.stats.count(f"camera[{ns}].frames_dropped_busy")
+                self.warn("worker", "busy", f"mapping slower than the input: oldest pending frame of camera {ns} "
+                                            f"(stamp {dropped.stamp_ns * 1e-9:.9f} s) dropped (newest frames win)")
+
+    def _poll_frames(self) -> None:
+        """Timer: take the poses waiting in their queues, then release the frames whose wait ended."""
+        self.intake.drain()
+        self._put_frames(self.gate.poll())
 
     def _on_candidates(self, msg: Any) -> None:
         job = self.gate.on_candidates(msg)
         if isinstance(job, NanAnswer):
             self.stats.count(f"requests_nan[{job.reason}]")
-            self.stats.count("requests_served")
             nan = np.full(len(job.positions), np.nan)
             self.outputs.publish_scores(job.header, job.positions, job.quats, nan, nan, nan)
             return
@@ -246,13 +278,35 @@ class CssNode(Node):
             self.warn("candidates", "request queue full", "oldest pending request answered with NaN scores")
             self.worker.finish_request(dropped, "request queue full")
 
+    def _on_point_query_raw(self, raw: bytes) -> None:
+        """A serialized point query. One declaring more than max_query_points is answered from its header alone:
+        its data never becomes a Python object (deserializing 10^7 points held the interpreter for seconds, and
+        the camera streams with it). Others are deserialized and go through the gate."""
+        try:
+            head: CloudHead | None = cloud_head(raw)
+        except InputError:
+            head = None
+        if head is not None and head.points > self.p.max_query_points:
+            self._on_point_query(SimpleNamespace(header=_header(head), width=head.width, height=head.height,
+                                                 point_step=0))
+            return
+        try:
+            msg = deserialize_message(raw, PointCloud2)
+        except Exception:  # noqa: BLE001 - whatever the type support raises for malformed CDR
+            if head is None:   # no request id to answer with
+                self.stats.count("point_queries_received")
+                self.stats.count("point_queries_unanswered[unreadable message]")
+                self.warn("point_queries", "unreadable message", "not a PointCloud2: no answer (no header)")
+                return
+            msg = SimpleNamespace(header=_header(head), width=0, height=0, point_step=0, fields=[], data=b"")
+        self._on_point_query(msg)
+
     def _on_point_query(self, msg: Any) -> None:
         job = self.gate.on_point_query(msg, self.smap.num_classes)
         if job.done:  # empty, unreadable or too large: answered at once
             if job.status is not None:
                 self.stats.count(f"requests_nan[{job.status}]")
             self.outputs.publish_points(job)
-            self.stats.count("point_queries_served")
             return
         dropped = self.queue.put_request(job)
         if dropped is not None:

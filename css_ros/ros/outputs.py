@@ -1,6 +1,9 @@
 """css_node's publishers: per-frame images and view point, candidate scores (SPEC §8)."""
 from __future__ import annotations
 
+import threading
+import time
+from collections import deque
 from typing import Any, Callable
 
 import numpy as np
@@ -27,8 +30,17 @@ CLOUD_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=Rel
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-#: Outputs that answer requests (one message per request).
-ANSWER_OUTPUTS = ("candidate_scores", "point_query_results")
+#: Outputs that answer requests (one message per request) -> the prefix of their counters (``<prefix>_served``,
+#: ``<prefix>_unanswered[<reason>]``; ``requests_*`` are the candidate requests').
+ANSWER_OUTPUTS = {"candidate_scores": "requests", "point_query_results": "point_queries"}
+#: Seconds an answer made while no subscriber of its topic is matched waits for one (a client's reader that the
+#: node's writer has not matched yet, on a loaded host): published as soon as one matches, else counted
+#: unanswered. At most request_queue_size answers and ANSWER_HOLD_BYTES of them per topic wait (the oldest gives
+#: way, counted likewise).
+ANSWER_HOLD_S = 10.0
+ANSWER_HOLD_BYTES = 64 * 2**20
+NO_SUBSCRIBER = "no subscriber matched within 10 s"   # (or held beyond the bounds above)
+PUBLISH_FAILED = "publish failed"
 
 
 class OutputPublisher:
@@ -43,9 +55,21 @@ class OutputPublisher:
     """
 
     def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10,
-                 confidence_available: bool = False, on_matched: Callable[[], None] | None = None) -> None:
-        """``on_matched``: called (on the node's executor) whenever a subscriber matches or leaves an output."""
-        events = PublisherEventCallbacks(matched=lambda _status: on_matched()) if on_matched is not None else None
+                 confidence_available: bool = False, on_matched: Callable[[], None] | None = None,
+                 count: Callable[..., None] = lambda key, n=1: None,
+                 warn: Callable[..., None] = lambda *a, **k: None) -> None:
+        """``on_matched``: called (on the node's executor) whenever a subscriber matches or leaves an output;
+        ``count(key, n)``: the node's counters (answers served / unanswered); ``warn``: its rate-limited warnings."""
+
+        def matched(_status: Any) -> None:
+            self.release_answers()
+            if on_matched is not None:
+                on_matched()
+        events = PublisherEventCallbacks(matched=matched)
+        self.count, self.warn = count, warn
+        self._held: dict[str, deque[tuple[float, Any]]] = {name: deque() for name in ANSWER_OUTPUTS}
+        self._held_bytes: dict[str, int] = dict.fromkeys(ANSWER_OUTPUTS, 0)
+        self._held_lock = threading.Lock()
         self.p = params
         self.classes = classes
         self.clock = node.get_clock()
@@ -61,6 +85,7 @@ class OutputPublisher:
             qos = CLOUD_QOS if name == "semantic_cloud" else \
                 params.request_queue_size if name in ANSWER_OUTPUTS else depth  # bursts of answers
             self.pubs[name] = node.create_publisher(PointCloud2, f"~/{name}", qos, event_callbacks=events)
+        node.create_timer(1.0, self.release_answers)   # answers held longer than ANSWER_HOLD_S are given up
         for ns in params.cameras:
             ns = ns.strip("/")
             pubs = {}
@@ -120,20 +145,75 @@ class OutputPublisher:
                     pubs[name].publish(rc.image_msg(array, encoding, header))
         if "view_uncertainty" in pubs:
             cloud = rc.view_points_msg(rc.header_msg(frame.stamp_ns, self.p.map_frame), frame.position_map[None],
-                                       frame.quat_map[None], np.array([view.u_var]), np.array([view.u_exp]))
+                                       frame.quat_map[None], np.array([view.u_var]), np.array([view.u_exp]),
+                                       pose_flags=np.array([frame.pose_flags]))
             pubs["view_uncertainty"].publish(cloud)
 
     def publish_scores(self, header: Any, positions: np.ndarray, quats: np.ndarray, u_var: np.ndarray,
                        u_exp: np.ndarray, info_gain: np.ndarray) -> None:
         """One point per candidate in request order (fields x y z qx qy qz qw u_var u_exp info_gain,
         css_ros.io.clouds.CANDIDATE_FIELDS); the header echoes the request header."""
-        self.pubs["candidate_scores"].publish(
-            rc.view_points_msg(rc.copy_header(header), positions, quats, u_var, u_exp, info_gain))
+        self.answer("candidate_scores",
+                    rc.view_points_msg(rc.copy_header(header), positions, quats, u_var, u_exp, info_gain))
 
     def publish_points(self, job: PointQueryJob) -> None:
         """Answer a point query: one point per query point in request order, the request header echoed."""
         cols = answer_columns(job.xyz, job.labels, job.expectation, job.variance, self.classes.names)
-        self.pubs["point_query_results"].publish(rc.cloud_msg(rc.copy_header(job.header), pack_cloud(cols)))
+        self.answer("point_query_results", rc.cloud_msg(rc.copy_header(job.header), pack_cloud(cols)))
+
+    # ------------------------------------------------------------------ answers
+    def answer(self, name: str, msg: Any) -> None:
+        """Publish the answer ``msg`` on ``~/<name>`` (counted ``<prefix>_served``), or, while no subscriber of it
+        is matched, hold it up to ANSWER_HOLD_S for one (any thread: the worker, the executors)."""
+        with self._held_lock:
+            held = self._held[name]
+            if held or self.pubs[name].get_subscription_count() == 0:
+                held.append((time.monotonic(), msg))
+                self._held_bytes[name] += len(msg.data)
+                self.count(f"answers_held[{name}]")
+                while len(held) > 1 and (len(held) > self.p.request_queue_size or
+                                         self._held_bytes[name] > ANSWER_HOLD_BYTES):
+                    self._give_up(name)
+            else:
+                self._publish(name, msg)
+        if held:
+            self.release_answers()
+
+    def release_answers(self) -> None:
+        """Publish the held answers of every topic that has a subscriber now; give up those held too long."""
+        now = time.monotonic()
+        with self._held_lock:
+            for name, held in self._held.items():
+                if held and self.pubs[name].get_subscription_count() > 0:
+                    while held:
+                        msg = held.popleft()[1]
+                        self._held_bytes[name] -= len(msg.data)
+                        self._publish(name, msg)
+                while held and now - held[0][0] > ANSWER_HOLD_S:
+                    self._give_up(name)
+
+    def held_answers(self) -> int:
+        """Answers waiting for a subscriber now (all answer topics)."""
+        with self._held_lock:
+            return sum(len(h) for h in self._held.values())
+
+    def _give_up(self, name: str) -> None:
+        """Drop the oldest held answer of ``name`` (under the lock), counted unanswered."""
+        msg = self._held[name].popleft()[1]
+        self._held_bytes[name] -= len(msg.data)
+        self._unanswered(name, NO_SUBSCRIBER)
+
+    def _publish(self, name: str, msg: Any) -> None:
+        try:
+            self.pubs[name].publish(msg)
+        except Exception as exc:  # noqa: BLE001 - whatever the middleware raises: counted, the caller goes on
+            self._unanswered(name, PUBLISH_FAILED, f"{type(exc).__name__}: {exc}")
+            return
+        self.count(f"{ANSWER_OUTPUTS[name]}_served")
+
+    def _unanswered(self, name: str, reason: str, detail: str = "") -> None:
+        self.count(f"{ANSWER_OUTPUTS[name]}_unanswered[{reason}]")
+        self.warn(name, reason, detail or "answer not delivered")
 
     def publish_cloud(self, smap: Any, min_evidence: float) -> int:
         """Publish ``~/semantic_cloud`` (map frame, stamped now) from the map; returns its number of points."""

@@ -19,6 +19,7 @@ from ..engine.map_args import MAX_CONCENTRATION, MIN_CONCENTRATION
 from ..engine.map_file import MAX_RECEIVED_SOURCES
 from ..errors import ConfigError
 from ..engine.similarity import IDENTITY_SIMILARITY, Similarity, parse_extrinsics
+from ..io.evidence import DEFAULT_MAX_ROWS
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
 from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POSE_GAP_S, DEFAULT_POSE_BUFFER_S,
                                DEFAULT_POSE_WAIT_S, PosePolicy)
@@ -168,7 +169,7 @@ class NodeParams:
     evidence_period: float = _p(0.5, "s", "time between ~/evidence delta packets (only when evidence was added)")
     evidence_snapshot_period: float = _p(5.0, "s", "time between snapshots of this node's total evidence on "
                                          "~/evidence (late joiners and receivers that missed a packet catch up)")
-    evidence_max_rows: int = _p(20_000, "Gaussians", "most Gaussians per evidence packet (sent and accepted)")
+    evidence_max_rows: int = _p(DEFAULT_MAX_ROWS, "Gaussians", "most Gaussians per evidence packet (sent and accepted)")
     evidence_max_sources: int = _p(8, "sources", "most other nodes whose evidence is added (8 N C bytes each)")
     model_watch_dir: str = _p("", "path", "folder watched for a newer splat (*.ply): the map moves to it by "
                               "the transfer of SPEC §10 while the node runs (empty: off)")

@@ -8,12 +8,13 @@ host): those samples are lost before any callback runs, at random, and no node p
 A UDP socket instead holds a burst in the **receiver's** kernel buffer until the node reads it.
 
 So css_node has two DDS participants (one rclpy context each): the **inputs participant** (camera streams,
-poses, candidate and point requests) receives over UDPv4 only, with large socket buffers (:data:`NODE_TRANSPORT`,
-at most ``net.core.rmem_max``); the **node's own participant** (outputs, services, evidence exchange, /rosout,
+poses) receives over UDPv4 only, with large socket buffers (:data:`NODE_TRANSPORT`, at most ``net.core.rmem_max``);
+the **node's own participant** (candidate and point requests, outputs, services, evidence exchange, /rosout,
 parameters) keeps Fast DDS's defaults, so large outputs still reach local subscribers through shared memory at
-once. Publishers keep their own transports: they reach the inputs participant over UDP. With a user's Fast DDS
-configuration (``FASTDDS_BUILTIN_TRANSPORTS``, an XML profile), another rmw, localhost-only discovery
-(rmw_fastrtps's own transports) or ``CSS_NODE_TRANSPORT=shm`` there is one participant, left as configured.
+once, and a huge request does not hold up the camera streams. Publishers keep their own transports: they reach
+the inputs participant over UDP. With a user's Fast DDS configuration (``FASTDDS_BUILTIN_TRANSPORTS``, an XML
+profile), another rmw, localhost-only discovery (rmw_fastrtps's own transports) or ``CSS_NODE_TRANSPORT=shm``
+there is one participant, left as configured.
 See docs/reliability.md, "Synchronised cameras".
 """
 from __future__ import annotations

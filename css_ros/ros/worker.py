@@ -276,13 +276,11 @@ class MapWorker:
             self.warn("point_queries" if points else "candidates", reason,
                       f"{left} {'points answered as unknown' if points else 'views answered with NaN scores'}",
                       dropped=False)
-        if points:
+        if points:   # the sink counts <kind>_served when it publishes the answer
             self.sink.publish_points(job)
-            self.stats.count("point_queries_served")
             self.stats.count("query_points", len(job.xyz))
         else:
             self.sink.publish_scores(job.header, job.positions, job.quats_in, job.u_var, job.u_exp, job.info_gain)
-            self.stats.count("requests_served")
             self.stats.count("candidate_views", len(job.positions))
         self.stats.request_latency((time.monotonic() - job.t_received) * 1e3)
 
