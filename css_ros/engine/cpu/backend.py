@@ -7,12 +7,10 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from ..label_input import NO_DEPTH
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .votes import votes
-from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
+from .raster import UpdateWorkspace, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -24,16 +22,13 @@ if TYPE_CHECKING:
 
 
 class NumbaBackend(RasterBackend):
-    """Compiled CPU path: numba projection, tile binning and per-pixel kernels.
-
-    ``update`` records each pixel's contributions; a ``render`` of the same frame (as in
-    ``SemanticMap.observe``) replays them instead of compositing a second time.
-    """
+    """Compiled CPU path: numba projection, tile binning and per-pixel kernels. A frame is projected and binned once
+    (:meth:`prepare`); its update and render each walk the pixels (:mod:`.composite`)."""
 
     def __init__(self, model: "GaussianModel") -> None:
         self.geometry = GaussianGeometry.from_model(model)
         self._scratch = ProjectionScratch()
-        self._store = ContributionStore()
+        self._workspace = UpdateWorkspace()
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
@@ -43,22 +38,16 @@ class NumbaBackend(RasterBackend):
     def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> UpdateCounts:
         proj, bins, _ = frame
-        labels, weights, counts = votes(inputs)
-        self._store.owner = None
-        acc, acc_base, no_depth = accumulate_update(proj, bins, labels, weights, concentrations.shape[1],
-                                                    self._store, soft)
-        self._store.owner = frame
+        acc, acc_base, counts = accumulate_update(proj, bins, inputs, soft, self._workspace)
         add_increments(concentrations, proj.ids, acc, acc_base)
-        counts[NO_DEPTH] = no_depth
+        self._workspace.done()
         return UpdateCounts(counts)
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
         attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
-        store = self._store if self._store.owner is frame else None
-        return render_semantic(proj, bins, camera.width, camera.height, attrs,
-                               e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
+        return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs)
 
     def render_view(self, frame: Any, concentrations: np.ndarray, settings: "RenderSettings") -> "FrameImages":
         """The final outputs in one compiled pass after the render (:mod:`.finalize`)."""
