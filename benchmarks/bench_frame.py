@@ -205,7 +205,8 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         t.append(time.perf_counter())
         attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         t.append(time.perf_counter())
-        buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0, np.zeros(3), False)
+        buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0, np.zeros(3), False,
+                              store=backend._store)
         t.append(time.perf_counter())
         image_uncertainty(buf.expectation, buf.variance)
         t.append(time.perf_counter())
@@ -257,7 +258,7 @@ def print_table(results: list[dict]) -> None:
               f"{r.get('candidate_views_per_s', float('nan')):>8.1f} {r.get('torch_ratio', float('nan')):>7.1f}")
     print()
     print("per-stage median ms of the observe cycle (update includes adding into the map; moments = E, Var per"
-          " visible Gaussian; render composites and shades every pixel):")
+          " visible Gaussian; render replays the update's contributions):")
     for r in results:
         s = r["stages_ms"]
         print(f"{r['name']:>6}: " + "  ".join(f"{k}={v:.1f}" for k, v in s.items())

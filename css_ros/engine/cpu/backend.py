@@ -10,7 +10,8 @@ import numpy as np
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .raster import UpdateWorkspace, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
+from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, bin_tiles,
+                     dirichlet_attributes, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -23,12 +24,14 @@ if TYPE_CHECKING:
 
 class NumbaBackend(RasterBackend):
     """Compiled CPU path: numba projection, tile binning and per-pixel kernels. A frame is projected and binned once
-    (:meth:`prepare`); its update and render each walk the pixels (:mod:`.composite`)."""
+    (:meth:`prepare`); ``update`` walks the voting pixels (:mod:`.composite`) and records their contributions, which a
+    ``render`` of the same frame (as in ``SemanticMap.observe``) replays instead of walking a second time."""
 
     def __init__(self, model: "GaussianModel") -> None:
         self.geometry = GaussianGeometry.from_model(model)
         self._scratch = ProjectionScratch()
         self._workspace = UpdateWorkspace()
+        self._store = ContributionStore()
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
@@ -38,7 +41,9 @@ class NumbaBackend(RasterBackend):
     def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> UpdateCounts:
         proj, bins, _ = frame
-        acc, acc_base, counts = accumulate_update(proj, bins, inputs, soft, self._workspace)
+        self._store.owner = None
+        acc, acc_base, counts = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store)
+        self._store.owner = frame
         add_increments(concentrations, proj.ids, acc, acc_base)
         self._workspace.done()
         return UpdateCounts(counts)
@@ -47,7 +52,9 @@ class NumbaBackend(RasterBackend):
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
         attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
-        return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs)
+        store = self._store if self._store.owner is frame else None
+        return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+                               store=store)
 
     def render_view(self, frame: Any, concentrations: np.ndarray, settings: "RenderSettings") -> "FrameImages":
         """The final outputs in one compiled pass after the render (:mod:`.finalize`)."""

@@ -6,8 +6,9 @@ ever stored. A Gaussian contributes to exactly the pixels where its alpha reache
 that ellipse), so the result does not depend on the tile size and equals a per-pixel brute force.
 
 The update applies the label rule (:func:`css_ros.engine.label_input.pixel_vote`) to the labels and confidence as
-they came in, inside its own pass, and counts the pixels there. The render composites again rather than replaying
-stored contributions (benchmarks/README.md: the walk costs less than writing and reading back each contribution).
+they came in, inside its own pass, and counts the pixels there; in ``observe`` it also records each voting pixel's
+contributions (6 bytes each, :class:`ContributionStore`), which the render of the same frame replays instead of
+walking again (benchmarks/README.md).
 """
 from __future__ import annotations
 
@@ -93,13 +94,33 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
     return TileBins(offsets, lists, tiles_x, tiles_y, tile_size)
 
 
+def linear_width(num_classes: int) -> int:
+    """Columns of the part of an attribute row the shading accumulates for every contribution (E_0..E_{C-1}, r, g,
+    b, S, z: C + 5), padded with zeros so that the loop over them runs in whole 16-wide vector steps, or in 8-wide
+    ones when that pads less: a scalar remainder per contribution cost more than the padding (benchmarks/README.md).
+    The C variances follow the padding."""
+    lin = num_classes + 5
+    wide = -(-lin // 16) * 16
+    return wide if wide - lin <= 8 else -(-lin // 8) * 8
+
+
+def attribute_classes(width: int) -> int:
+    """C of attribute rows ``width`` wide (:func:`dirichlet_attributes`)."""
+    for c in range(1, width):
+        if linear_width(c) + c == width:
+            return c
+    raise ValueError(f"no class count gives attribute rows {width} wide")
+
+
+_linear_width = njit(inline="always")(linear_width)
 _depth_bin = njit(inline="always")(depth_bin)
 _pixel_vote = njit(inline="always")(pixel_vote)
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
-                   tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts):  # pragma: no cover
+                   tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
+                   store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
     """acc[chunk, c, j] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, class-major: a tile's
     flush of one class writes neighbouring entries); counts[chunk] = (used, ignored, out of range, no depth) of the
     chunk's pixels.
@@ -115,13 +136,19 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
     symmetric vote (p on the label, the same small share on every other class) costs what a one-hot vote
     costs. Voting pixels without any contribution are counted as "no depth" (they add nothing).
     Without it the arithmetic is exactly the paper's update.
+
+    With ``store``, each voting pixel's contributions (tile-list position as uint16, kappa as float32) are appended
+    to its chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T) for the render of the same
+    frame; pixels not composited, or that did not fit, get pix_cnt = -1.
     """
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
     num_classes = acc.shape[1]
     num_bins = edges.shape[0] - 1 if use_model else 1
     num_rows = num_classes * num_bins
+    cap = st_k.shape[1]
     for ch in prange(nchunks):
+        pos = 0
         scratch = new_scratch(tile)
         vote = np.empty(tile, dtype=np.int64)
         weight = np.empty(tile)
@@ -161,6 +188,9 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                     weight[p] = w
                     active[p] = status == USED
                     voting |= status == USED
+                if store:
+                    row_cnt = pix_cnt[v * width + u0:v * width + u1 + 1]
+                    row_cnt[:] = -1
                 if not voting:
                     continue
                 if not loaded:
@@ -203,6 +233,15 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                             lacc[row, k] = 0.0
                     for i in range(c):
                         lacc[row, kidx[p, i]] += kval[p, i] * w
+                    if store and pos + c <= cap and n <= _STORE_MAX_LIST:
+                        q = v * width + u0 + p
+                        for i in range(c):
+                            st_k[ch, pos + i] = np.uint16(kidx[p, i])
+                            st_v[ch, pos + i] = np.float32(kval[p, i])
+                        pix_off[q] = pos
+                        pix_cnt[q] = c
+                        pix_t[q] = trans[p]
+                        pos += c
             if not loaded:
                 continue
             tile_list = lists[start:end]
@@ -241,19 +280,17 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
 
 
 @njit(inline="always", fastmath=FAST)
-def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, num_classes, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
                  out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth):  # pragma: no cover
     """Accumulate one pixel's contributions (tile-list positions ks, kappas vs) into the outputs.
 
-    attrs rows (``attrs[tile_list[k]]``) are (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}) float32, read in place
-    (a tile-local copy of the rows cost more than it saved): one loop over the first C + 5 columns accumulates
-    expectation, colour, evidence and kappa-weighted depth (the expected depth sum kappa z / sum kappa, with
-    sum kappa = 1 - T; NaN without any contribution). Contributions are taken four at a time, so the accumulator
-    round trip through memory (the loop over C + 5 columns is too short for LLVM's wide vector body) is paid once
-    per four.
+    attrs rows (``attrs[tile_list[k]]``, :func:`dirichlet_attributes`) are read in place (a tile-local copy of the
+    rows cost more than it saved): one loop over the first :func:`linear_width` columns accumulates expectation,
+    colour, evidence and kappa-weighted depth (the expected depth sum kappa z / sum kappa, with sum kappa = 1 - T;
+    NaN without any contribution). Contributions are taken four at a time, so the accumulator round trip through
+    memory (the loop over the columns is too short for LLVM's wide vector body) is paid once per four.
     """
-    num_classes = (attrs.shape[1] - 5) // 2
-    lin = num_classes + 5
+    lin = _linear_width(num_classes)
     for c in range(lin):
         acc[c] = 0.0
     i = 0
@@ -313,39 +350,59 @@ def _add_mass(ks, vs, cnt, tile_list, label, depth, edges, weights, mass):  # pr
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _render_kernel(offsets, lists, walk, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
-                   tile, tiles_x, want_probs, nchunks, out_label, out_exp, out_var, out_bg, out_evidence, out_rgb,
+def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
+                   tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
+                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb,
                    out_probs, out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
-    """attrs rows: (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}); every pixel composited and shaded in one walk.
+    """attrs rows: :func:`dirichlet_attributes`. With ``use_store``, the pixels the update of the
+    same frame recorded (pix_cnt >= 0) replay their contributions; the others are composited.
 
     With ``want_mass``, mass[chunk, j] += kappa_ij * mass_w[label_i * B + b_i] over the pixels i of the view: the
     evidence observing it would add to Gaussian j (label_i = the rendered argmax, b_i the bin of the rendered depth
     in ``mass_edges``; without a sensor model B = 1 and mass_w = 1: the kappa mass)."""
     num_tiles = offsets.shape[0] - 1
-    num_classes = (attrs.shape[1] - 5) // 2
     for ch in prange(nchunks):
         scratch = new_scratch(tile)
-        eacc = np.empty(num_classes + 5, dtype=np.float32)
+        eacc = np.empty(_linear_width(num_classes), dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
-            scratch = load_tile(walk, lists, start, end, scratch)
             tile_list = lists[start:end]
-            cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+            loaded = False
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
             for v in range(ty * tile, min(height, ty * tile + tile)):
-                r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
-                composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+                active = scratch[8]
+                walked = False
+                for p in range(u1 + 1 - u0):
+                    a = not use_store or pix_cnt[v * width + u0 + p] < 0
+                    active[p] = a
+                    walked |= a
+                if walked:
+                    if not loaded:
+                        scratch = load_tile(walk, lists, start, end, scratch)
+                        loaded = True
+                    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+                    r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
+                    composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+                kidx, kval, cnt, trans = scratch[4], scratch[5], scratch[6], scratch[7]
                 for u in range(u0, u1 + 1):
                     p = u - u0
-                    _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], attrs, tile_list, eacc,
-                                 e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
-                                 out_evidence, out_rgb, out_probs, out_depth)
-                    if want_mass:
-                        _add_mass(kidx[p], kval[p], cnt[p], tile_list, out_label[v, u], out_depth[v, u],
-                                  mass_edges, mass_w, mass[ch])
+                    if active[p]:
+                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], attrs, num_classes, tile_list, eacc,
+                                     e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
+                                     out_evidence, out_rgb, out_probs, out_depth)
+                        if want_mass:
+                            _add_mass(kidx[p], kval[p], cnt[p], tile_list, out_label[v, u], out_depth[v, u],
+                                      mass_edges, mass_w, mass[ch])
+                    else:
+                        q = v * width + u
+                        off = pix_off[q]
+                        c = pix_cnt[q]
+                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], attrs,
+                                     num_classes, tile_list, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp,
+                                     out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
 
 
 @njit(cache=True, fastmath=FAST)
@@ -405,6 +462,47 @@ def _num_chunks(bins: TileBins) -> int:
     return max(1, min(numba.get_num_threads(), bins.tiles_x * bins.tiles_y))
 
 
+class ContributionStore:
+    """Each voting pixel's contributions (tile-list position uint16, kappa float32: 6 bytes), recorded by an update
+    so that the render of the same frame (``SemanticMap.observe``) replays them instead of walking again.
+
+    Bounded: per work chunk ``STORE_SLOTS_PER_PIXEL`` x (pixels / chunks) entries; pixels that do not fit, that the
+    update did not composite (no vote) or whose tile list is longer than 65535 are walked by the render. The
+    ``np.empty`` buffers are kept for frames of the same size (untouched pages cost no memory).
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[int, int] | None = None
+        self.owner: object | None = None
+        self.k = np.empty((1, 0), np.uint16)
+        self.v = np.empty((1, 0), np.float32)
+        self.off = np.empty(0, np.int64)
+        self.cnt = np.empty(0, np.int32)
+        self.t = np.empty(0)
+
+    def reserve(self, pixels: int, nchunks: int) -> "ContributionStore":
+        if self._key != (pixels, nchunks):
+            cap = STORE_SLOTS_PER_PIXEL * ((pixels + nchunks - 1) // nchunks)
+            self.k = np.empty((nchunks, cap), np.uint16)
+            self.v = np.empty((nchunks, cap), np.float32)
+            self.off = np.empty(pixels, np.int64)
+            self.cnt = np.empty(pixels, np.int32)
+            self.t = np.empty(pixels)
+            self._key = (pixels, nchunks)
+        return self
+
+    @property
+    def nchunks(self) -> int:
+        return int(self.k.shape[0])
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        return self.k, self.v, self.off, self.cnt, self.t
+
+
+STORE_SLOTS_PER_PIXEL = 40
+_STORE_MAX_LIST = 65535       # tile-list positions are stored as uint16
+_NO_STORE = (np.empty((1, 0), np.uint16), np.empty((1, 0), np.float32), np.empty(0, np.int64),
+             np.empty(0, np.int32), np.empty(0))
 _NO_MODEL = (np.zeros(2), np.zeros(1), np.zeros((1, 1)))
 _NO_BASE = np.zeros((0, 0))
 _NO_CONFIDENCE = np.zeros((1, 1), dtype=np.float32)
@@ -441,8 +539,8 @@ class UpdateWorkspace:
 
 
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLabels,
-                      soft: SoftLabels | None = None, workspace: UpdateWorkspace | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      soft: SoftLabels | None = None, workspace: UpdateWorkspace | None = None,
+                      store: ContributionStore | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums, with the frame's pixel counts.
 
     Args:
@@ -451,6 +549,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
         soft: the sensor model's tables (depth bins in splat units), or None for the paper's one-hot votes.
         workspace: accumulators kept between frames (call its ``done`` after :func:`add_increments`), or None for
             fresh ones.
+        store: if given, records the contributions for a following :func:`render_semantic`.
     Returns:
         ((chunks, C, M) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
         increments of every class of those rows ((0, 0) without ``soft``) (apply both with :func:`add_increments`),
@@ -464,7 +563,8 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     conf = _NO_CONFIDENCE if inputs.confidence is None else inputs.confidence
     _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
                    inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
-                   acc, soft is not None, edges, base, resid, acc_base, counts)
+                   acc, soft is not None, edges, base, resid, acc_base, counts, store is not None,
+                   *(_NO_STORE if store is None else store.reserve(width * height, nchunks).arrays()))
     return acc, acc_base, counts.sum(axis=0)
 
 
@@ -493,20 +593,24 @@ def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True)
 def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cover
-    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}) (SPEC §4 moments).
+    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
+    the variances from column :func:`linear_width` on.
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
             camera depth z, splat units).
     Returns:
-        attrs (M, 2C + 5) float32 (halves the render's memory traffic; these rows are all the shading reads), with
-        E = alpha / S, Var = E (1 - E) / (1 + S).
+        attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
+        reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
-    attrs = np.empty((m, 5 + 2 * num_classes), dtype=np.float32)
+    lin = _linear_width(num_classes)
+    attrs = np.empty((m, lin + num_classes), dtype=np.float32)
     for j in prange(m):
+        for c in range(num_classes + 5, lin):
+            attrs[j, c] = np.float32(0.0)
         row = ids[j]
         total = 0.0
         for c in range(num_classes):
@@ -520,24 +624,26 @@ def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cov
         for c in range(num_classes):
             e = concentrations[row, c] * inv
             attrs[j, c] = np.float32(e)
-            attrs[j, 5 + num_classes + c] = np.float32(e * (1.0 - e) * denom)
+            attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
     return attrs
 
 
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
                     attrs: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-                    want_probs: bool, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None) -> RenderBuffers:
+                    want_probs: bool, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None,
+                    store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
-        attrs: (M, 2C + 5) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, Var[theta_n^0..C-1]) of the
-            projected Gaussians (see :func:`dirichlet_attributes`).
+        store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
+        attrs: (M, linear_width(C) + C) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, 0.., Var[theta_n^0..C-1])
+            of the projected Gaussians (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
         mass_weights: (edges (B + 1,) splat units, net vote weight per (label, depth bin) (C * B,)): also return
             each projected Gaussian's evidence mass in the view (``RenderBuffers.mass``, (M,) float64).
     """
-    num_classes = (attrs.shape[1] - 5) // 2
+    num_classes = attribute_classes(attrs.shape[1])
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))
@@ -546,13 +652,14 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
     out_depth = np.empty((height, width))
-    nchunks = _num_chunks(bins)
+    nchunks = _num_chunks(bins) if store is None else store.nchunks
     want_mass = mass_weights is not None
     mass = np.zeros((nchunks, proj.count) if want_mass else (nchunks, 0))
     edges, wts = mass_weights if mass_weights is not None else (np.zeros(2), np.ones(1))
-    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs, e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs, num_classes, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
-                   want_probs, nchunks, out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth,
+                   want_probs, nchunks, store is not None, *(_NO_STORE if store is None else store.arrays()),
+                   out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth,
                    want_mass, edges, wts, mass)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
                          out_probs if want_probs else None, out_depth,
