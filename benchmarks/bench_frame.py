@@ -40,12 +40,16 @@ SCENES = {
     "1M": dict(gaussians=1_000_000, width=1241, height=376, classes=19, kitti=True),
     "3M": dict(gaussians=3_000_000, width=1280, height=720, classes=40, kitti=False),
     "biker": dict(gaussians=152_746, width=640, height=480, classes=20, kitti=False, ply="biker", copies=1),
+    # the same splat seen whole from close by: the orbit's radius sweeps 1.3-2.2 x the median distance of the
+    # means from their median (0.73 m), so the object fills the view
+    "biker-close": dict(gaussians=152_746, width=640, height=480, classes=20, kitti=False, ply="biker", copies=1,
+                        close=True),
     "biker8": dict(gaussians=8 * 152_746, width=1280, height=720, classes=28, kitti=False, ply="biker", copies=8),
     # the code path of --simulate (numba-cuda simulator: each GPU thread is a Python thread, and every warp
     # intrinsic a barrier of the block's threads): the smallest demo room, of which 200 Gaussians are kept
     "tiny": dict(gaussians=1400, width=16, height=12, classes=4, kitti=False, keep=200),
 }
-DEFAULT_SCENES = {"numba": ["100k", "500k", "1M", "biker", "biker8"],
+DEFAULT_SCENES = {"numba": ["100k", "500k", "1M", "biker", "biker-close", "biker8"],
                   "cuda": ["100k", "500k", "1M", "3M", "biker", "biker8"]}
 BIKER_PLY = Path(os.environ.get("CSS_BIKER_PLY", "/work/shared/data/real-ply/biker.ply"))
 
@@ -67,14 +71,18 @@ def biker_model(copies: int):
     return model, centre, 6.5
 
 
-def orbit_cameras(centre: np.ndarray, radius: float, count: int, K: np.ndarray, width: int, height: int) -> list:
-    """Cameras on a circle around ``centre`` in the x-z plane, 0.4 m above it (y down), looking at it."""
+def orbit_cameras(centre: np.ndarray, radius: "float | tuple[float, float]", count: int, K: np.ndarray, width: int,
+                  height: int) -> list:
+    """Cameras on a circle around ``centre`` in the x-z plane, 0.4 m above it (y down), looking at it. A (near, far)
+    ``radius`` sweeps the distance between the two along the orbit (twice round)."""
     from css_ros import Camera
 
+    near, far = (radius, radius) if isinstance(radius, float) else radius
     cams = []
     for i in range(count):
         a = 2.0 * math.pi * i / max(count, 1)
-        pos = centre + np.array([radius * math.cos(a), -0.4, radius * math.sin(a)])
+        r = near + (far - near) * 0.5 * (1.0 - math.cos(2.0 * a))
+        pos = centre + np.array([r * math.cos(a), -0.4, r * math.sin(a)])
         cams.append(Camera.look_at(pos, centre, K, width, height, up=(0.0, -1.0, 0.0)))
     return cams
 
@@ -89,6 +97,9 @@ def build_scene(cfg: dict, num_cams: int) -> tuple:
     if cfg.get("ply"):
         model, centre, radius = biker_model(cfg["copies"])
         means = np.asarray(model.means, dtype=np.float64)
+        if cfg.get("close"):
+            median = float(np.median(np.linalg.norm(means - centre, axis=1)))
+            radius = (1.3 * median, 2.2 * median)
         gt = (np.floor(means[:, 0] / 0.25) + 3 * np.floor(means[:, 1] / 0.25) + 7 * np.floor(means[:, 2] / 0.25))
         return model, gt.astype(np.int64) % cfg["classes"], orbit_cameras(centre, radius, num_cams, K,
                                                                            cfg["width"], cfg["height"])
@@ -154,8 +165,7 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
               torch_frames: int) -> dict:
     from css_ros import SemanticMap
     from css_ros.engine.cpu.projection import project
-    from css_ros.engine.cpu.raster import (ContributionStore, accumulate_update, add_increments, bin_tiles,
-                                dirichlet_attributes, render_semantic)
+    from css_ros.engine.cpu.raster import bin_tiles, dirichlet_attributes, render_semantic
     from css_ros.engine.final_form import image_uncertainty
 
     t0 = time.perf_counter()
@@ -177,7 +187,6 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
     smap.observe(cams[0], labels[0])  # compiles (or loads cached) numba kernels
     first_s = time.perf_counter() - t0
 
-    store = ContributionStore()
     cycle, stages = [], {k: [] for k in ("project", "bin", "update", "moments", "render", "uncertainty")}
     backend = smap._backend
     for i in range(1, frames + warmup + 1):
@@ -192,14 +201,12 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         t.append(time.perf_counter())
         bins = bin_tiles(proj, cam.width, cam.height)
         t.append(time.perf_counter())
-        lab32, w32, _ = smap._prepare_labels(cam, lab, None)
-        acc, acc_base, _ = accumulate_update(proj, bins, lab32, w32, C, store, soft)
-        add_increments(conc, proj.ids, acc, acc_base)
+        backend.update((proj, bins, cam), smap._frame_labels(cam, lab, None), conc, soft)
         t.append(time.perf_counter())
         attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         t.append(time.perf_counter())
-        buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0,
-                              np.zeros(3), False, store)
+        buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0, np.zeros(3), False,
+                              store=backend._store)
         t.append(time.perf_counter())
         image_uncertainty(buf.expectation, buf.variance)
         t.append(time.perf_counter())

@@ -7,12 +7,11 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from ..label_input import NO_DEPTH
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .votes import votes
-from .raster import ContributionStore, accumulate_update, add_increments, bin_tiles, dirichlet_attributes, render_semantic
+from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, bin_tiles,
+                     dirichlet_attributes, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -24,15 +23,14 @@ if TYPE_CHECKING:
 
 
 class NumbaBackend(RasterBackend):
-    """Compiled CPU path: numba projection, tile binning and per-pixel kernels.
-
-    ``update`` records each pixel's contributions; a ``render`` of the same frame (as in
-    ``SemanticMap.observe``) replays them instead of compositing a second time.
-    """
+    """Compiled CPU path: numba projection, tile binning and per-pixel kernels. A frame is projected and binned once
+    (:meth:`prepare`); ``update`` walks the voting pixels (:mod:`.composite`) and records their contributions, which a
+    ``render`` of the same frame (as in ``SemanticMap.observe``) replays instead of walking a second time."""
 
     def __init__(self, model: "GaussianModel") -> None:
         self.geometry = GaussianGeometry.from_model(model)
         self._scratch = ProjectionScratch()
+        self._workspace = UpdateWorkspace()
         self._store = ContributionStore()
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
@@ -43,13 +41,11 @@ class NumbaBackend(RasterBackend):
     def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> UpdateCounts:
         proj, bins, _ = frame
-        labels, weights, counts = votes(inputs)
         self._store.owner = None
-        acc, acc_base, no_depth = accumulate_update(proj, bins, labels, weights, concentrations.shape[1],
-                                                    self._store, soft)
+        acc, acc_base, counts = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store)
         self._store.owner = frame
         add_increments(concentrations, proj.ids, acc, acc_base)
-        counts[NO_DEPTH] = no_depth
+        self._workspace.done()
         return UpdateCounts(counts)
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
@@ -57,8 +53,8 @@ class NumbaBackend(RasterBackend):
         proj, bins, camera = frame
         attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
         store = self._store if self._store.owner is frame else None
-        return render_semantic(proj, bins, camera.width, camera.height, attrs,
-                               e_bg, v_bg, s_bg, bg_rgb, want_probs, store)
+        return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+                               store=store)
 
     def render_view(self, frame: Any, concentrations: np.ndarray, settings: "RenderSettings") -> "FrameImages":
         """The final outputs in one compiled pass after the render (:mod:`.finalize`)."""

@@ -117,6 +117,8 @@ class ProjectedGaussians:
             largest Mahalanobis q = d^T conic d at which alpha >= 1/255; depth camera z [m].
         bbox: (M, 4) int32 inclusive pixel box (u_min, u_max, v_min, v_max) of that ellipse.
         colors: (M, 3) float64 view-dependent RGB in [0, inf) (SH + 0.5, clamped at 0).
+        walk: (M, 8) float64 rows (u, v, a, b, c, opacity, qmax, -b / a): what the compositing walk reads of a
+            Gaussian, one cache line (:mod:`.composite`).
     """
 
     ids: np.ndarray
@@ -124,6 +126,7 @@ class ProjectedGaussians:
     packed: np.ndarray
     bbox: np.ndarray
     colors: np.ndarray
+    walk: np.ndarray
 
     @property
     def count(self) -> int:
@@ -242,17 +245,21 @@ def _block_order(ids, bbox, block_x, num_blocks):  # pragma: no cover
 def _gather(ids, out, bbox):  # pragma: no cover
     m = ids.shape[0]
     packed = np.empty((m, 8))
+    walk = np.empty((m, 8))
     colors = np.empty((m, 3))
     boxes = np.empty((m, 4), dtype=np.int32)
     for r in prange(m):
         i = ids[r]
         for c in range(8):
             packed[r, c] = out[i, c]
+        for c in range(7):
+            walk[r, c] = out[i, c]
+        walk[r, 7] = -out[i, 3] / out[i, 2]
         for c in range(3):
             colors[r, c] = out[i, 8 + c]
         for c in range(4):
             boxes[r, c] = bbox[i, c]
-    return packed, colors, boxes
+    return packed, walk, colors, boxes
 
 
 @njit(cache=True, nogil=True)
@@ -309,11 +316,12 @@ def project(geometry: GaussianGeometry, camera: "Camera", scratch: ProjectionScr
     block_x = (int(camera.width) + BLOCK - 1) // BLOCK
     block_y = (int(camera.height) + BLOCK - 1) // BLOCK
     rows = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
-    packed, colors, bbox = _gather(rows, out, out_bbox)
+    packed, walk, colors, bbox = _gather(rows, out, out_bbox)
     depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(rows) else np.empty(0, np.int32)
     if view_colors and geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
         colors = _view_colors_kernel(geometry.sh, geometry.means, rows, cam)
-    return ProjectedGaussians(ids=geometry.perm[rows], depth_order=depth_order, packed=packed, bbox=bbox, colors=colors)
+    return ProjectedGaussians(ids=geometry.perm[rows], depth_order=depth_order, packed=packed, bbox=bbox, colors=colors,
+                              walk=walk)
 
 
 @njit(parallel=True, cache=True, nogil=True)

@@ -1,15 +1,14 @@
-"""Stages 2-3 of the pipeline on the CPU: tile binning and the compiled per-pixel compositing kernels.
+"""Stages 2-3 of the pipeline on the CPU: tile binning and the compiled per-pixel kernels (update, render, kappa).
 
-Every kernel walks a pixel's depth-sorted Gaussian list with the INRIA rules of SPEC §3 and derives
-the weights kappa_in = a_n T_n on the fly; nothing of size (pixels x Gaussians) is ever stored.
-A Gaussian contributes to exactly the pixels where its alpha reaches 1/255 (its binning box covers
+Every kernel walks each pixel's depth-sorted candidates with the INRIA rules of SPEC §3 through one compositing walk
+(:mod:`.composite`) and derives the weights kappa_in = a_n T_n on the fly; nothing of size (pixels x Gaussians) is
+ever stored. A Gaussian contributes to exactly the pixels where its alpha reaches 1/255 (its binning box covers
 that ellipse), so the result does not depend on the tile size and equals a per-pixel brute force.
 
-Performance notes (see benchmarks/README.md): each tile first copies its Gaussians' packed rows
-(u, v, conic, opacity, qmax) into a contiguous local block, so the per-pixel walk reads memory
-sequentially; tiles are 8 x 8 px (shorter candidate lists per pixel than 16 x 16); the update pass
-of ``observe`` records each pixel's (Gaussian, kappa) list in a bounded per-pixel slot buffer that
-the render pass replays instead of walking and exponentiating again.
+The update applies the label rule (:func:`css_ros.engine.label_input.pixel_vote`) to the labels and confidence as
+they came in, inside its own pass, and counts the pixels there; in ``observe`` it also records each voting pixel's
+contributions (6 bytes each, :class:`ContributionStore`), which the render of the same frame replays instead of
+walking again (benchmarks/README.md).
 """
 from __future__ import annotations
 
@@ -21,19 +20,14 @@ import numpy as np
 from numba import njit, prange
 
 from ..buffers import RenderBuffers
+from ..label_input import IGNORED, NO_DEPTH, NUM_COUNTS, OUT_OF_RANGE, USED, FrameLabels, pixel_vote
 from ..pixel_math import depth_bin
-from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+from ..spec import TILE_SIZE
+from .composite import FAST, composite_row, load_tile, new_scratch, row_candidates
 from .projection import ProjectedGaussians
 
 if TYPE_CHECKING:
     from ..sensor_model import SoftLabels
-
-# Floating-point reassociation and contraction (FMA) for the hot loops; no-NaN/no-Inf assumptions are
-# not made (inputs are sanitised, but comparisons against NaN must keep their meaning).
-_FAST = {"contract", "reassoc", "arcp"}
-_ROW = 7             # columns of the packed rows used by the kernels: u v a b c opacity qmax
-_COLS = _ROW + 2     # tile-local columns: the _ROW ones, then the first and last pixel row of the alpha box
-
 
 @dataclass(frozen=True)
 class TileBins:
@@ -100,167 +94,64 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
     return TileBins(offsets, lists, tiles_x, tiles_y, tile_size)
 
 
-@njit(inline="always")
-def _load_rows(src, lists, start, end, local):  # pragma: no cover
-    """Copy rows ``src[lists[start:end]]`` into ``local`` (grown if needed); return it."""
-    n = end - start
-    cols = src.shape[1]
-    if n > local.shape[0]:
-        local = np.empty((n, cols), dtype=src.dtype)
-    for k in range(n):
-        j = lists[start + k]
-        for c in range(cols):
-            local[k, c] = src[j, c]
-    return local
+def linear_width(num_classes: int) -> int:
+    """Columns of the part of an attribute row the shading accumulates for every contribution (E_0..E_{C-1}, r, g,
+    b, S, z: C + 5), padded with zeros so that the loop over them runs in whole 16-wide vector steps, or in 8-wide
+    ones when that pads less: a scalar remainder per contribution cost more than the padding (benchmarks/README.md).
+    The C variances follow the padding."""
+    lin = num_classes + 5
+    wide = -(-lin // 16) * 16
+    return wide if wide - lin <= 8 else -(-lin // 8) * 8
 
 
-@njit(inline="always")
-def _load_columns(packed, bbox, lists, start, end, local):  # pragma: no cover
-    """Copy the tile's packed rows transposed into ``local`` (_COLS, >= n): one contiguous array
-    per quantity (u, v, a, b, c, opacity, qmax, first row, last row), so the per-pixel candidate
-    test vectorises. Returns ``local`` (grown if needed)."""
-    n = end - start
-    if n > local.shape[1]:
-        local = np.empty((_COLS, n))
-    for k in range(n):
-        j = lists[start + k]
-        for c in range(_ROW):
-            local[c, k] = packed[j, c]
-        local[_ROW, k] = bbox[j, 2]
-        local[_ROW + 1, k] = bbox[j, 3]
-    return local
+def attribute_classes(width: int) -> int:
+    """C of attribute rows ``width`` wide (:func:`dirichlet_attributes`)."""
+    for c in range(1, width):
+        if linear_width(c) + c == width:
+            return c
+    raise ValueError(f"no class count gives attribute rows {width} wide")
 
 
-@njit(inline="always")
-def _new_scratch(tile):  # pragma: no cover
-    """Per-thread compositing scratch (grown per tile by _load_columns / _grow_scratch):
-    tile columns, q/alpha buffers, hit indices, per-pixel contribution lists, counts, T, active."""
-    return (np.empty((_COLS, 256)), np.empty((_ROW + 3, 256)), np.empty((2, 256), dtype=np.int32),
-            np.empty((tile, 256), dtype=np.int32), np.empty((tile, 256)), np.empty(tile, dtype=np.int32),
-            np.empty(tile), np.empty(tile, dtype=np.bool_))
-
-
-@njit(inline="always")
-def _grow_scratch(n, kidx, kval, qbuf, hits):  # pragma: no cover
-    """Per-row compositing scratch sized for a tile list of length n (reallocated only to grow)."""
-    if n > kidx.shape[1]:
-        tile = kidx.shape[0]
-        return (np.empty((tile, n), dtype=np.int32), np.empty((tile, n)), np.empty((_ROW + 3, n)),
-                np.empty((2, n), dtype=np.int32))
-    return kidx, kval, qbuf, hits
-
-
-@njit(inline="always", fastmath=_FAST)
-def _exp_nonpositive(x):  # pragma: no cover
-    """exp(x) for -6 <= x <= 0 (relative error < 2e-14): degree-10 Taylor polynomial of x/32, squared
-    five times. Plain arithmetic, so a loop of it vectorises (libm's exp is a scalar call); every
-    composited x = -q/2 with q <= qmax = 2 ln(255 o) <= 11.1 lies in range."""
-    y = x * 0.03125
-    p = 1.0 + y * (1.0 + y * (1.0 / 2.0 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (
-        1.0 / 120.0 + y * (1.0 / 720.0 + y * (1.0 / 5040.0 + y * (1.0 / 40320.0 + y * (
-            1.0 / 362880.0 + y * (1.0 / 3628800.0))))))))))
-    p = p * p
-    p = p * p
-    p = p * p
-    p = p * p
-    return p * p
-
-
-@njit(cache=True, fastmath=_FAST)
-def _composite_row(g, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits):  # pragma: no cover
-    """Front-to-back compositing of pixels (u0..u1, v) over a tile's depth-sorted list (SPEC §3).
-
-    The candidates whose alpha box spans row v are compacted (in order) into row-local columns
-    first. Per pixel, the Mahalanobis distances q of those are computed in a branch-free loop
-    (SIMD), the ones with q <= qmax (alpha >= 1/255) are compacted without branches, their alphas
-    computed in a second SIMD loop, and only then composited in order with early termination.
-
-    Args:
-        g: (_COLS, >= n) columns (u, v, a, b, c, opacity, qmax, first row, last row) of the tile's list.
-        active: (W_row,) bool; inactive pixels are skipped (cnt 0, T 1).
-        qbuf: (_ROW + 3, >= n) float scratch; hits: (2, >= n) int32 scratch.
-    Outputs:
-        cnt[p]: number of contributions of pixel u0 + p; kidx[p, i] / kval[p, i]: their list
-        index and kappa, front to back; trans[p]: final transmittance (kappa_b).
-    """
-    fv = float(v)
-    g_first, g_last = g[_ROW], g[_ROW + 1]
-    ridx, hit = hits[0], hits[1]
-    r = 0
-    for k in range(n):
-        ridx[r] = k
-        r += (g_first[k] <= fv) & (fv <= g_last[k])
-    for j in range(r):
-        k = ridx[j]
-        for c in range(_ROW):
-            qbuf[c, j] = g[c, k]
-    gx, gy, ga, gb, gc, go, gq = qbuf[0], qbuf[1], qbuf[2], qbuf[3], qbuf[4], qbuf[5], qbuf[6]
-    qall, hq, ho = qbuf[_ROW], qbuf[_ROW + 1], qbuf[_ROW + 2]
-    for p in range(u1 - u0 + 1):
-        cnt[p] = 0
-        trans[p] = 1.0
-        if not active[p]:
-            continue
-        fu = float(u0 + p)
-        for k in range(r):
-            dx = fu - gx[k]
-            dy = fv - gy[k]
-            qall[k] = ga[k] * dx * dx + 2.0 * gb[k] * dx * dy + gc[k] * dy * dy
-        m = 0
-        for k in range(r):
-            hit[m] = k
-            hq[m] = qall[k]
-            ho[m] = go[k]
-            m += qall[k] <= gq[k]
-        for h in range(m):
-            hq[h] = min(ALPHA_MAX, ho[h] * _exp_nonpositive(-0.5 * hq[h]))
-        t = 1.0
-        i = 0
-        for h in range(m):
-            # branch-free skip of alpha < 1/255 (only possible by rounding at the box edge)
-            alpha = hq[h]
-            ok = alpha >= ALPHA_MIN
-            alpha = alpha if ok else 0.0
-            test_t = t * (1.0 - alpha)
-            if test_t < T_MIN:
-                break
-            kidx[p, i] = ridx[hit[h]]
-            kval[p, i] = alpha * t
-            i += ok
-            t = test_t
-        cnt[p] = i
-        trans[p] = t
-
-
+_linear_width = njit(inline="always")(linear_width)
 _depth_bin = njit(inline="always")(depth_bin)
+_pixel_vote = njit(inline="always")(pixel_vote)
 
 
-@njit(parallel=True, cache=True, fastmath=_FAST)
-def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height, tile, tiles_x, acc,
-                   store, st_k, st_v, pix_off, pix_cnt, pix_t, use_model, edges, base, resid, acc_base,
-                   no_depth):  # pragma: no cover
-    """acc[chunk, j, c] += sum over pixels labelled c of kappa_ij * weight_i (chunk-private rows).
+@njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
+def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
+                   tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
+                   store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
+    """acc[chunk, c, j] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, class-major: a tile's
+    flush of one class writes neighbouring entries); counts[chunk] = (used, ignored, out of range, no depth) of the
+    chunk's pixels.
+
+    Each pixel's vote is :func:`~css_ros.engine.label_input.pixel_vote` of ``labels[v, u]`` (any integer dtype) and
+    ``confidence[v, u]`` (float32 / float64; 1 without ``has_confidence``), taken as it comes: no class or weight
+    planes. Only rows of a tile with a voting pixel are composited, only those pixels walked.
 
     With ``use_model`` (a sensor model), a pixel labelled y at expected depth d = sum kappa z / sum kappa
     (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead,
     r = y * B + b, with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class
     goes to acc_base[chunk, j] (added to every class by :func:`add_increments`), the sparse rest to acc. So a
     symmetric vote (p on the label, the same small share on every other class) costs what a one-hot vote
-    costs. Labelled pixels without any contribution are counted in ``no_depth[chunk]`` (they add nothing).
+    costs. Voting pixels without any contribution are counted as "no depth" (they add nothing).
     Without it the arithmetic is exactly the paper's update.
 
-    With ``store``, each labelled pixel's contributions (tile-list index, kappa) are appended to its
-    chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T); pixels that were
-    not composited or did not fit get pix_cnt = -1.
+    With ``store``, each voting pixel's contributions (tile-list position as uint16, kappa as float32) are appended
+    to its chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T) for the render of the same
+    frame; pixels not composited, or that did not fit, get pix_cnt = -1.
     """
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
-    cap = st_k.shape[1]
+    num_classes = acc.shape[1]
     num_bins = edges.shape[0] - 1 if use_model else 1
+    num_rows = num_classes * num_bins
+    cap = st_k.shape[1]
     for ch in prange(nchunks):
-        local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
-        num_classes = acc.shape[2]
-        num_rows = num_classes * num_bins
+        pos = 0
+        scratch = new_scratch(tile)
+        vote = np.empty(tile, dtype=np.int64)
+        weight = np.empty(tile)
         # Tile-local accumulator (label row, list position): the per-contribution scatter stays in
         # cache; only the rows present in the tile are zeroed and flushed to the chunk's rows. A row is a
         # class (paper's update) or a (label, depth bin) pair whose soft label the flush applies.
@@ -268,44 +159,57 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
         lbase = np.empty(256)
         ldepth = np.empty(256)
         present = np.empty(num_rows, dtype=np.bool_)
-        pos = 0
+        used = 0
+        ignored = 0
+        out_of_range = 0
+        no_depth = 0
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
-            if n > 0:
-                local = _load_columns(packed, bbox, lists, start, end, local)
-            if n > lacc.shape[1]:
-                lacc = np.empty((num_rows, n))
-                lbase = np.empty(n)
-                ldepth = np.empty(n)
+            loaded = False
             depth_loaded = False
-            kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
-            present[:] = False
             for v in range(ty * tile, min(height, ty * tile + tile)):
-                any_active = False
-                for u in range(u0, u1 + 1):
-                    ok = labels[v, u] >= 0 and weights[v, u] > 0.0
-                    active[u - u0] = ok
-                    any_active = any_active or ok
-                if not any_active:
-                    if store:
-                        for u in range(u0, u1 + 1):
-                            pix_cnt[v * width + u] = -1
+                active = scratch[8]
+                voting = False
+                row_labels = labels[v, u0:u1 + 1]
+                row_conf = confidence[v, u0:u1 + 1] if has_confidence else confidence[0, 0:1]
+                for p in range(u1 + 1 - u0):
+                    conf = 1.0
+                    if has_confidence:
+                        conf = row_conf[p]
+                    c, w, status = _pixel_vote(row_labels[p], conf, num_classes, ignore_label)
+                    used += status == USED
+                    ignored += status == IGNORED
+                    out_of_range += status == OUT_OF_RANGE
+                    vote[p] = c
+                    weight[p] = w
+                    active[p] = status == USED
+                    voting |= status == USED
+                if store:
+                    row_cnt = pix_cnt[v * width + u0:v * width + u1 + 1]
+                    row_cnt[:] = -1
+                if not voting:
                     continue
-                _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
-                for u in range(u0, u1 + 1):
-                    p = u - u0
-                    lab = labels[v, u]
-                    w = weights[v, u]
-                    if lab < 0 or not (w > 0.0):
-                        if store:
-                            pix_cnt[v * width + u] = -1
+                if not loaded:
+                    scratch = load_tile(walk, lists, start, end, scratch)
+                    if n > lacc.shape[1]:
+                        lacc = np.empty((num_rows, scratch[0].shape[1]))
+                        lbase = np.empty(scratch[0].shape[1])
+                        ldepth = np.empty(scratch[0].shape[1])
+                    present[:] = False
+                    loaded = True
+                cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+                r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
+                composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+                for p in range(u1 - u0 + 1):
+                    if not active[p]:
                         continue
                     c = cnt[p]
-                    row = lab
+                    w = weight[p]
+                    row = vote[p]
                     if use_model:
                         if not depth_loaded:  # the tile list's camera depths, contiguous
                             for k in range(n):
@@ -321,26 +225,26 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                         if ksum > 0.0:
                             b = _depth_bin(zsum / ksum, edges)
                         else:
-                            no_depth[ch] += 1
-                        row = lab * num_bins + b
+                            no_depth += 1
+                        row = row * num_bins + b
                     if not present[row]:
                         present[row] = True
                         for k in range(n):
                             lacc[row, k] = 0.0
                     for i in range(c):
                         lacc[row, kidx[p, i]] += kval[p, i] * w
-                    if store:
-                        q = v * width + u
-                        if pos + c <= cap:
-                            for i in range(c):
-                                st_k[ch, pos + i] = kidx[p, i]
-                                st_v[ch, pos + i] = kval[p, i]
-                            pix_off[q] = pos
-                            pix_cnt[q] = c
-                            pix_t[q] = trans[p]
-                            pos += c
-                        else:
-                            pix_cnt[q] = -1
+                    if store and pos + c <= cap and n <= _STORE_MAX_LIST:
+                        q = v * width + u0 + p
+                        for i in range(c):
+                            st_k[ch, pos + i] = np.uint16(kidx[p, i])
+                            st_v[ch, pos + i] = np.float32(kval[p, i])
+                        pix_off[q] = pos
+                        pix_cnt[q] = c
+                        pix_t[q] = trans[p]
+                        pos += c
+            if not loaded:
+                continue
+            tile_list = lists[start:end]
             if use_model:
                 any_base = False
                 for r in range(num_rows):
@@ -356,60 +260,69 @@ def _update_kernel(offsets, lists, packed, bbox, labels, weights, width, height,
                         for c in range(num_classes):
                             pc = resid[r, c]
                             if pc != 0.0:
+                                out = acc[ch, c]
                                 for k in range(n):
-                                    acc[ch, lists[start + k], c] += lacc[r, k] * pc
+                                    out[tile_list[k]] += lacc[r, k] * pc
                 if any_base:
+                    out = acc_base[ch]
                     for k in range(n):
-                        acc_base[ch, lists[start + k]] += lbase[k]
+                        out[tile_list[k]] += lbase[k]
             else:
                 for c in range(num_classes):
                     if present[c]:
+                        out = acc[ch, c]
                         for k in range(n):
-                            acc[ch, lists[start + k], c] += lacc[c, k]
+                            out[tile_list[k]] += lacc[c, k]
+        counts[ch, USED] = used
+        counts[ch, IGNORED] = ignored
+        counts[ch, OUT_OF_RANGE] = out_of_range
+        counts[ch, NO_DEPTH] = no_depth
 
 
-@njit(inline="always", fastmath=_FAST)
-def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+@njit(inline="always", fastmath=FAST)
+def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, num_classes, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
                  out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth):  # pragma: no cover
-    """Accumulate one pixel's contributions (tile-list indices ks, kappas vs) into the outputs.
+    """Accumulate one pixel's contributions (tile-list positions ks, kappas vs) into the outputs.
 
-    lattr rows are (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}) float32: one loop over the first
-    C + 5 columns accumulates expectation, colour, evidence and kappa-weighted depth (the expected depth
-    sum kappa z / sum kappa, with sum kappa = 1 - T; NaN without any contribution). Contributions are taken four at a
-    time, so the accumulator round trip through memory (the loop over C + 4 columns is too short
-    for LLVM's wide vector body) is paid once per four.
+    attrs rows (``attrs[tile_list[k]]``, :func:`dirichlet_attributes`) are read in place (a tile-local copy of the
+    rows cost more than it saved): one loop over the first :func:`linear_width` columns accumulates expectation,
+    colour, evidence and kappa-weighted depth (the expected depth sum kappa z / sum kappa, with sum kappa = 1 - T;
+    NaN without any contribution). Contributions are taken four at a time, so the accumulator round trip through
+    memory (the loop over the columns is too short for LLVM's wide vector body) is paid once per four.
     """
-    num_classes = (lattr.shape[1] - 5) // 2
-    lin = num_classes + 5
+    lin = _linear_width(num_classes)
     for c in range(lin):
         acc[c] = 0.0
     i = 0
     while i + 4 <= cnt:
-        k0 = ks[i]
-        k1 = ks[i + 1]
-        k2 = ks[i + 2]
-        k3 = ks[i + 3]
+        r0 = attrs[tile_list[ks[i]]]
+        r1 = attrs[tile_list[ks[i + 1]]]
+        r2 = attrs[tile_list[ks[i + 2]]]
+        r3 = attrs[tile_list[ks[i + 3]]]
         w0 = np.float32(vs[i])
         w1 = np.float32(vs[i + 1])
         w2 = np.float32(vs[i + 2])
         w3 = np.float32(vs[i + 3])
         for c in range(lin):
-            acc[c] += (w0 * lattr[k0, c] + w1 * lattr[k1, c]) + (w2 * lattr[k2, c] + w3 * lattr[k3, c])
+            acc[c] += (w0 * r0[c] + w1 * r1[c]) + (w2 * r2[c] + w3 * r3[c])
         i += 4
     while i < cnt:
-        k0 = ks[i]
+        r0 = attrs[tile_list[ks[i]]]
         w0 = np.float32(vs[i])
         for c in range(lin):
-            acc[c] += w0 * lattr[k0, c]
+            acc[c] += w0 * r0[c]
         i += 1
     best = 0
-    for c in range(1, num_classes):
-        if acc[c] > acc[best]:
-            best = c
+    top = acc[0]
+    for c in range(1, num_classes):  # branch-free argmax (the first of equal maxima)
+        x = acc[c]
+        better = x > top
+        best = c if better else best
+        top = x if better else top
     vhat = tr * tr * v_bg
     for i in range(cnt):
         kappa = vs[i]
-        vhat += kappa * kappa * lattr[ks[i], lin + best]
+        vhat += kappa * kappa * attrs[tile_list[ks[i]], lin + best]
     out_label[v, u] = best
     out_exp[v, u] = acc[best] + tr * e_bg
     out_var[v, u] = vhat
@@ -425,92 +338,90 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, lattr, acc, e_bg, v_bg, s_bg, bg_rgb, wa
 
 
 @njit(inline="always")
-def _add_mass(ks, vs, cnt, lists, start, label, depth, edges, weights, mass):  # pragma: no cover
-    """mass[lists[start + ks[i]]] += vs[i] * weights[label * B + b] (b: the depth bin of ``depth`` in ``edges``)."""
+def _add_mass(ks, vs, cnt, tile_list, label, depth, edges, weights, mass):  # pragma: no cover
+    """mass[tile_list[ks[i]]] += vs[i] * weights[label * B + b] (b: the depth bin of ``depth`` in ``edges``)."""
     if cnt == 0:
         return
     w = weights[label * (edges.shape[0] - 1) + _depth_bin(depth, edges)]
     if w == 0.0:
         return
     for i in range(cnt):
-        mass[lists[start + ks[i]]] += vs[i] * w
+        mass[tile_list[ks[i]]] += vs[i] * w
 
 
-@njit(parallel=True, cache=True, nogil=True, fastmath=_FAST)
-def _render_kernel(offsets, lists, packed, bbox, attrs, e_bg, v_bg, s_bg, bg_rgb, width, height,
+@njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
+def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
-                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs,
-                   out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
-    """attrs rows: (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}). With ``use_store``,
-    pixels recorded by the update pass (pix_cnt >= 0) replay their contributions.
+                   out_label, out_exp, out_var, out_bg, out_evidence, out_rgb,
+                   out_probs, out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
+    """attrs rows: :func:`dirichlet_attributes`. With ``use_store``, the pixels the update of the
+    same frame recorded (pix_cnt >= 0) replay their contributions; the others are composited.
 
     With ``want_mass``, mass[chunk, j] += kappa_ij * mass_w[label_i * B + b_i] over the pixels i of the view: the
     evidence observing it would add to Gaussian j (label_i = the rendered argmax, b_i the bin of the rendered depth
     in ``mass_edges``; without a sensor model B = 1 and mass_w = 1: the kappa mass)."""
     num_tiles = offsets.shape[0] - 1
-    num_classes = (attrs.shape[1] - 5) // 2
     for ch in prange(nchunks):
-        local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
-        lattr = np.empty((256, attrs.shape[1]), dtype=attrs.dtype)
-        eacc = np.empty(num_classes + 5, dtype=np.float32)
+        scratch = new_scratch(tile)
+        eacc = np.empty(_linear_width(num_classes), dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
-            lattr = _load_rows(attrs, lists, start, end, lattr)
+            tile_list = lists[start:end]
             loaded = False
-            kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
             for v in range(ty * tile, min(height, ty * tile + tile)):
-                need = False
-                for u in range(u0, u1 + 1):
-                    a = not use_store or pix_cnt[v * width + u] < 0
-                    active[u - u0] = a
-                    need = need or a
-                if need:
+                active = scratch[8]
+                walked = False
+                for p in range(u1 + 1 - u0):
+                    a = not use_store or pix_cnt[v * width + u0 + p] < 0
+                    active[p] = a
+                    walked |= a
+                if walked:
                     if not loaded:
-                        local = _load_columns(packed, bbox, lists, start, end, local)
+                        scratch = load_tile(walk, lists, start, end, scratch)
                         loaded = True
-                    _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
+                    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+                    r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
+                    composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+                kidx, kval, cnt, trans = scratch[4], scratch[5], scratch[6], scratch[7]
                 for u in range(u0, u1 + 1):
                     p = u - u0
-                    q = v * width + u
-                    if use_store and pix_cnt[q] >= 0:
-                        off = pix_off[q]
-                        c = pix_cnt[q]
-                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], lattr, eacc,
-                                     e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label,
-                                     out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
-                        if want_mass:
-                            _add_mass(st_k[ch, off:off + c], st_v[ch, off:off + c], c, lists, start,
-                                      out_label[v, u], out_depth[v, u], mass_edges, mass_w, mass[ch])
-                    else:
-                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], lattr, eacc,
+                    if active[p]:
+                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], attrs, num_classes, tile_list, eacc,
                                      e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
                                      out_evidence, out_rgb, out_probs, out_depth)
                         if want_mass:
-                            _add_mass(kidx[p], kval[p], cnt[p], lists, start, out_label[v, u], out_depth[v, u],
+                            _add_mass(kidx[p], kval[p], cnt[p], tile_list, out_label[v, u], out_depth[v, u],
                                       mass_edges, mass_w, mass[ch])
+                    else:
+                        q = v * width + u
+                        off = pix_off[q]
+                        c = pix_cnt[q]
+                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], attrs,
+                                     num_classes, tile_list, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp,
+                                     out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
 
 
-@njit(cache=True)
-def _kappa_kernel(offsets, lists, packed, bbox, width, height, tile, tiles_x,
+@njit(cache=True, fastmath=FAST)
+def _kappa_kernel(offsets, lists, walk, width, height, tile, tiles_x,
                   count_only, pix, gid, kap, bg):  # pragma: no cover
     num_tiles = offsets.shape[0] - 1
     total = 0
-    local, qbuf, hits, kidx, kval, cnt, trans, active = _new_scratch(tile)
+    scratch = new_scratch(tile)
     for t in range(num_tiles):
         start, end = offsets[t], offsets[t + 1]
         n = end - start
-        local = _load_columns(packed, bbox, lists, start, end, local)
-        kidx, kval, qbuf, hits = _grow_scratch(n, kidx, kval, qbuf, hits)
+        scratch = load_tile(walk, lists, start, end, scratch)
+        cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
         ty, tx = t // tiles_x, t % tiles_x
         u0 = tx * tile
         u1 = min(width, u0 + tile) - 1
         for v in range(ty * tile, min(height, ty * tile + tile)):
-            active[:] = True
-            _composite_row(local, n, v, u0, u1, active, cnt, kidx, kval, trans, qbuf, hits)
+            r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
+            composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
             for u in range(u0, u1 + 1):
                 p = u - u0
                 if not count_only:
@@ -536,7 +447,7 @@ class KappaLists:
 
 def kappa_lists(proj: ProjectedGaussians, bins: TileBins, width: int, height: int) -> KappaLists:
     """All non-zero kappa_in of a view as sparse lists (for analysis and tests; O(contributions))."""
-    args = (bins.offsets, bins.lists, proj.packed, proj.bbox, width, height, bins.tile_size, bins.tiles_x)
+    args = (bins.offsets, bins.lists, proj.walk, width, height, bins.tile_size, bins.tiles_x)
     n = _kappa_kernel(*args, True, np.empty(0, np.int64), np.empty(0, np.int32), np.empty(0), np.empty(0))
     pix = np.empty(n, dtype=np.int64)
     gid = np.empty(n, dtype=np.int32)
@@ -552,20 +463,19 @@ def _num_chunks(bins: TileBins) -> int:
 
 
 class ContributionStore:
-    """Each pixel's (tile-list index, kappa) contributions, recorded by an update pass so that the
-    render of the same frame (``SemanticMap.observe``) replays them instead of compositing again.
+    """Each voting pixel's contributions (tile-list position uint16, kappa float32: 6 bytes), recorded by an update
+    so that the render of the same frame (``SemanticMap.observe``) replays them instead of walking again.
 
-    Bounded: per work chunk ``STORE_SLOTS_PER_PIXEL`` x (pixels / chunks) entries (12 bytes each);
-    pixels that do not fit, or that the update skipped (no label), are composited again by the
-    render. ``np.empty`` buffers are reused across frames of the same size; untouched pages cost no
-    memory.
+    Bounded: per work chunk ``STORE_SLOTS_PER_PIXEL`` x (pixels / chunks) entries; pixels that do not fit, that the
+    update did not composite (no vote) or whose tile list is longer than 65535 are walked by the render. The
+    ``np.empty`` buffers are kept for frames of the same size (untouched pages cost no memory).
     """
 
     def __init__(self) -> None:
         self._key: tuple[int, int] | None = None
         self.owner: object | None = None
-        self.k = np.empty((1, 0), np.int32)
-        self.v = np.empty((1, 0))
+        self.k = np.empty((1, 0), np.uint16)
+        self.v = np.empty((1, 0), np.float32)
         self.off = np.empty(0, np.int64)
         self.cnt = np.empty(0, np.int32)
         self.t = np.empty(0)
@@ -573,57 +483,96 @@ class ContributionStore:
     def reserve(self, pixels: int, nchunks: int) -> "ContributionStore":
         if self._key != (pixels, nchunks):
             cap = STORE_SLOTS_PER_PIXEL * ((pixels + nchunks - 1) // nchunks)
-            self.k = np.empty((nchunks, cap), np.int32)
-            self.v = np.empty((nchunks, cap))
+            self.k = np.empty((nchunks, cap), np.uint16)
+            self.v = np.empty((nchunks, cap), np.float32)
             self.off = np.empty(pixels, np.int64)
             self.cnt = np.empty(pixels, np.int32)
             self.t = np.empty(pixels)
             self._key = (pixels, nchunks)
         return self
 
+    @property
+    def nchunks(self) -> int:
+        return int(self.k.shape[0])
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        return self.k, self.v, self.off, self.cnt, self.t
+
 
 STORE_SLOTS_PER_PIXEL = 40
-_NO_STORE = (np.empty((1, 0), np.int32), np.empty((1, 0)), np.empty(0, np.int64), np.empty(0, np.int32),
-             np.empty(0))
-
-
+_STORE_MAX_LIST = 65535       # tile-list positions are stored as uint16
+_NO_STORE = (np.empty((1, 0), np.uint16), np.empty((1, 0), np.float32), np.empty(0, np.int64),
+             np.empty(0, np.int32), np.empty(0))
 _NO_MODEL = (np.zeros(2), np.zeros(1), np.zeros((1, 1)))
 _NO_BASE = np.zeros((0, 0))
+_NO_CONFIDENCE = np.zeros((1, 1), dtype=np.float32)
 
 
-def accumulate_update(proj: ProjectedGaussians, bins: TileBins, labels: np.ndarray, weights: np.ndarray,
-                      num_classes: int, store: ContributionStore | None = None,
-                      soft: SoftLabels | None = None) -> tuple[np.ndarray, np.ndarray, int]:
-    """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums.
+class UpdateWorkspace:
+    """The update's per-thread accumulators, kept from frame to frame: fresh arrays of tens of MB page-fault on
+    every frame (~6 ms for the 45 MB of two threads at 141k visible Gaussians and 20 classes). They are zero between
+    updates: :func:`add_increments` zeroes what it reads; one handed out and not given back by :meth:`done` (an
+    exception between the two) is zeroed before its next use. One per thread of use."""
+
+    def __init__(self) -> None:
+        self._acc = np.zeros(0)
+        self._base = np.zeros(0)
+        self._pending = False
+
+    def take(self, nchunks: int, num_classes: int, m: int, with_base: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Zero (nchunks, num_classes, m) and (nchunks, m) (or (0, 0)) float64 accumulators."""
+        if self._pending:
+            self._acc[:] = 0.0
+            self._base[:] = 0.0
+        size = nchunks * num_classes * m
+        if self._acc.size < size:
+            self._acc = np.zeros(size + size // 4)
+        if with_base and self._base.size < nchunks * m:
+            self._base = np.zeros(nchunks * m + nchunks * m // 4)
+        self._pending = True
+        base = self._base[:nchunks * m].reshape(nchunks, m) if with_base else _NO_BASE
+        return self._acc[:size].reshape(nchunks, num_classes, m), base
+
+    def done(self) -> None:
+        """The accumulators handed out are zero again (:func:`add_increments` ran)."""
+        self._pending = False
+
+
+def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLabels,
+                      soft: SoftLabels | None = None, workspace: UpdateWorkspace | None = None,
+                      store: ContributionStore | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums, with the frame's pixel counts.
 
     Args:
-        labels: (H, W) int32 class id per pixel, -1 where the pixel contributes nothing.
-        weights: (H, W) float32 confidence per pixel (1 without a confidence image).
-        store: if given, records the contributions for a following :func:`render_semantic`.
+        inputs: the frame's labels and optional confidence as they came in (:class:`FrameLabels`); each pixel's
+            vote is :func:`~css_ros.engine.label_input.pixel_vote`, applied inside the compiled pass.
         soft: the sensor model's tables (depth bins in splat units), or None for the paper's one-hot votes.
+        workspace: accumulators kept between frames (call its ``done`` after :func:`add_increments`), or None for
+            fresh ones.
+        store: if given, records the contributions for a following :func:`render_semantic`.
     Returns:
-        ((chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
+        ((chunks, C, M) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
         increments of every class of those rows ((0, 0) without ``soft``) (apply both with :func:`add_increments`),
-        labelled pixels without any contribution when ``soft`` is given (0 otherwise)).
+        (NUM_COUNTS,) int64 pixel counts: used, ignored, out of range, no depth (0 without ``soft``)).
     """
-    height, width = labels.shape
+    height, width = inputs.labels.shape
     nchunks = _num_chunks(bins)
-    acc = np.zeros((nchunks, proj.count, num_classes))
-    arrays = _NO_STORE if store is None else (*_store_arrays(store.reserve(width * height, nchunks)),)
-    no_depth = np.zeros(nchunks, dtype=np.int64)
+    acc, acc_base = (workspace or UpdateWorkspace()).take(nchunks, inputs.num_classes, proj.count, soft is not None)
+    counts = np.zeros((nchunks, NUM_COUNTS), dtype=np.int64)
     edges, base, resid = _NO_MODEL if soft is None else (soft.edges, soft.base, soft.resid)
-    acc_base = _NO_BASE if soft is None else np.zeros((nchunks, proj.count))
-    _update_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, labels, weights, width, height,
-                   bins.tile_size, bins.tiles_x, acc, store is not None, *arrays, soft is not None, edges, base,
-                   resid, acc_base, no_depth)
-    return acc, acc_base, int(no_depth.sum())
+    conf = _NO_CONFIDENCE if inputs.confidence is None else inputs.confidence
+    _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
+                   inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
+                   acc, soft is not None, edges, base, resid, acc_base, counts, store is not None,
+                   *(_NO_STORE if store is None else store.reserve(width * height, nchunks).arrays()))
+    return acc, acc_base, counts.sum(axis=0)
 
 
 @njit(parallel=True, cache=True)
 def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
-    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (+ acc_base[chunk, j] for every class
-    when acc_base is not empty) (ids are unique)."""
-    m, num_classes = acc.shape[1], acc.shape[2]
+    """concentrations[ids[j], c] += sum over chunks of acc[chunk, c, j] (+ acc_base[chunk, j] for every class
+    when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`)."""
+    num_classes, m = acc.shape[1], acc.shape[2]
     with_base = acc_base.shape[0] > 0
     for j in prange(m):
         row = ids[j]
@@ -631,10 +580,12 @@ def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
         if with_base:
             for ch in range(acc_base.shape[0]):
                 common += acc_base[ch, j]
+                acc_base[ch, j] = 0.0
         for c in range(num_classes):
             total = 0.0
             for ch in range(acc.shape[0]):
-                total += acc[ch, j, c]
+                total += acc[ch, c, j]
+                acc[ch, c, j] = 0.0
             if with_base:
                 total += common
             concentrations[row, c] += total
@@ -642,20 +593,24 @@ def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True)
 def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cover
-    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, Var_0..Var_{C-1}) (SPEC §4 moments).
+    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
+    the variances from column :func:`linear_width` on.
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
             camera depth z, splat units).
     Returns:
-        attrs (M, 2C + 5) float32 (halves the render's memory traffic; the tile-local copies of
-        these rows are all the shading reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
+        attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
+        reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
-    attrs = np.empty((m, 5 + 2 * num_classes), dtype=np.float32)
+    lin = _linear_width(num_classes)
+    attrs = np.empty((m, lin + num_classes), dtype=np.float32)
     for j in prange(m):
+        for c in range(num_classes + 5, lin):
+            attrs[j, c] = np.float32(0.0)
         row = ids[j]
         total = 0.0
         for c in range(num_classes):
@@ -669,30 +624,26 @@ def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cov
         for c in range(num_classes):
             e = concentrations[row, c] * inv
             attrs[j, c] = np.float32(e)
-            attrs[j, 5 + num_classes + c] = np.float32(e * (1.0 - e) * denom)
+            attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
     return attrs
-
-
-def _store_arrays(store: ContributionStore) -> tuple[np.ndarray, ...]:
-    return store.k, store.v, store.off, store.cnt, store.t
 
 
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
                     attrs: np.ndarray,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
-                    want_probs: bool, store: ContributionStore | None = None,
-                    mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None) -> RenderBuffers:
+                    want_probs: bool, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None,
+                    store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
-        attrs: (M, 2C + 5) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, Var[theta_n^0..C-1]) of the
-            projected Gaussians (see :func:`dirichlet_attributes`).
+        attrs: (M, linear_width(C) + C) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, 0.., Var[theta_n^0..C-1])
+            of the projected Gaussians (see :func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
         mass_weights: (edges (B + 1,) splat units, net vote weight per (label, depth bin) (C * B,)): also return
             each projected Gaussian's evidence mass in the view (``RenderBuffers.mass``, (M,) float64).
     """
-    num_classes = (attrs.shape[1] - 5) // 2
+    num_classes = attribute_classes(attrs.shape[1])
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))
@@ -701,14 +652,13 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
     out_depth = np.empty((height, width))
-    nchunks = _num_chunks(bins)
+    nchunks = _num_chunks(bins) if store is None else store.nchunks
     want_mass = mass_weights is not None
     mass = np.zeros((nchunks, proj.count) if want_mass else (nchunks, 0))
     edges, wts = mass_weights if mass_weights is not None else (np.zeros(2), np.ones(1))
-    _render_kernel(bins.offsets, bins.lists, proj.packed, proj.bbox, attrs, e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs, num_classes, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
-                   want_probs, nchunks, store is not None,
-                   *(_NO_STORE if store is None else _store_arrays(store)),
+                   want_probs, nchunks, store is not None, *(_NO_STORE if store is None else store.arrays()),
                    out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth,
                    want_mass, edges, wts, mass)
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,

@@ -1,0 +1,196 @@
+"""The per-pixel compositing walk of the CPU kernels (SPEC §3), one definition for the update, the render and
+:func:`~css_ros.engine.cpu.raster.kappa_lists`.
+
+A tile first copies the rows of its depth-sorted list into columns (:func:`load_tile`, one cache line per Gaussian:
+:attr:`~css_ros.engine.cpu.projection.ProjectedGaussians.walk`). For each pixel row of the
+tile, :func:`row_candidates` keeps the entries whose alpha ellipse meets the row's segment of the tile (the minimum
+of the Mahalanobis q over the segment, a clamped quadratic, is <= qmax: in trained splats about 2/3 of the entries
+whose box spans the row) with their row terms (2 b dy, c dy^2), so a pixel's q is two FMAs. :func:`composite_row`
+then walks each pixel front to back in chunks of 64 candidates: q of the chunk (a vectorised loop) and a bit mask
+of the hits (q <= qmax), the hits taken from the mask by count-trailing-zeros (no per-candidate stores), their alphas
+in a second vectorised loop (polynomial exp), then the compositing in order. A pixel stops where its transmittance
+would drop below T_MIN, and the chunks behind that point are never tested.
+
+A pixel's result (its contributions' list positions and kappa, front to back, and its final transmittance) is
+exactly the per-pixel brute force: the candidate tests are conservative and the hit test is q <= qmax as before.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numba.core import cgutils, types
+from numba.extending import intrinsic
+
+from ..spec import ALPHA_MAX, ALPHA_MIN, T_MIN
+
+# Floating-point reassociation and contraction (FMA) for the hot loops; no-NaN/no-Inf assumptions are
+# not made (inputs are sanitised, but comparisons against NaN must keep their meaning).
+FAST = {"contract", "reassoc", "arcp"}
+COLS = 8             # tile columns: u v a b c opacity qmax, the slope -b / a (ProjectedGaussians.walk)
+CAND = 6             # row terms of a candidate: u, a, 2 b dy, c dy^2, opacity, qmax
+CHUNK = 64           # candidates tested per step of a pixel's walk (one bit mask)
+_START = 256         # initial capacity of the per-tile scratch (grown to the longest list met)
+
+
+@intrinsic
+def _cttz(typingctx, x):  # pragma: no cover - compiled
+    """Count of trailing zero bits of a non-zero uint64 (one instruction)."""
+    sig = types.uint64(types.uint64)
+
+    def codegen(context, builder, signature, args):
+        return builder.cttz(args[0], cgutils.true_bit)
+    return sig, codegen
+
+
+@njit(inline="always", fastmath=FAST)
+def exp_nonpositive(x):  # pragma: no cover
+    """exp(x) for -6 <= x <= 0 (relative error < 2e-14): degree-10 Taylor polynomial of x/32, squared
+    five times. Plain arithmetic, so a loop of it vectorises (libm's exp is a scalar call); every
+    composited x = -q/2 with q <= qmax = 2 ln(255 o) <= 11.1 lies in range."""
+    y = x * 0.03125
+    p = 1.0 + y * (1.0 + y * (1.0 / 2.0 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (
+        1.0 / 120.0 + y * (1.0 / 720.0 + y * (1.0 / 5040.0 + y * (1.0 / 40320.0 + y * (
+            1.0 / 362880.0 + y * (1.0 / 3628800.0))))))))))
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@njit(inline="always")
+def new_scratch(tile):  # pragma: no cover
+    """Per-thread walk scratch, sized for lists of _START entries and grown by :func:`load_tile`: (tile columns
+    (COLS, cap), candidate row terms (CAND, cap), candidate list positions (cap,), bit masks, per-pixel contribution
+    positions (tile, cap) int32 and kappas (tile, cap), counts (tile,), final transmittances (tile,), active pixels
+    (tile,), chunk buffers (3, CHUNK) (q, alpha, opacity) and (CHUNK,) hit positions)."""
+    return (np.empty((COLS, _START)), np.empty((CAND, _START)), np.empty(_START, dtype=np.int32),
+            np.empty(_START // CHUNK, dtype=np.uint64), np.empty((tile, _START), dtype=np.int32),
+            np.empty((tile, _START)), np.empty(tile, dtype=np.int32), np.empty(tile), np.ones(tile, dtype=np.bool_),
+            np.empty((3, CHUNK)), np.empty(CHUNK, dtype=np.int32))
+
+
+@njit(inline="always")
+def load_tile(walk, lists, start, end, scratch):  # pragma: no cover
+    """Copy the rows ``walk[lists[start:end]]`` (:attr:`ProjectedGaussians.walk`) into the tile columns (one
+    contiguous array per quantity, so the candidate tests vectorise), growing every list-sized scratch array first
+    if needed. Returns the scratch."""
+    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+    n = end - start
+    if n > cols.shape[1]:
+        cap = max(n, 2 * cols.shape[1])
+        cols = np.empty((COLS, cap))
+        cand = np.empty((CAND, cap))
+        ridx = np.empty(cap, dtype=np.int32)
+        words = np.empty((cap + CHUNK - 1) // CHUNK, dtype=np.uint64)
+        kidx = np.empty((kidx.shape[0], cap), dtype=np.int32)
+        kval = np.empty((kval.shape[0], cap))
+    tile_list = lists[start:end]
+    for k in range(n):
+        j = tile_list[k]
+        for c in range(COLS):
+            cols[c, k] = walk[j, c]
+    return cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit
+
+
+@njit(inline="always", fastmath=FAST)
+def row_candidates(cols, n, v, u0, u1, cand, ridx, words):  # pragma: no cover
+    """The tile entries whose alpha ellipse meets pixel row v between columns u0 and u1, front to back:
+    their list positions in ``ridx[:r]`` and row terms in ``cand[:, :r]``. Returns r.
+
+    The test is the minimum of q(u, v) over u in [u0, u1] (at the clamped vertex u* = u_c - b dy / a) against
+    qmax, with a relative margin of 1e-9 so that rounding never drops a pixel the exact test keeps."""
+    fv = float(v)
+    fu0 = float(u0)
+    fu1 = float(u1)
+    gx, gy, ga, gb, gc, gq, gs = cols[0], cols[1], cols[2], cols[3], cols[4], cols[6], cols[7]
+    nw = (n + CHUNK - 1) // CHUNK
+    for w in range(nw):
+        base = w * CHUNK
+        top = min(base + CHUNK, n)
+        # slices, so that the loop index is known to be >= 0 (no wraparound test: contiguous vector loads)
+        x, y, a, b, c, qm, s = gx[base:top], gy[base:top], ga[base:top], gb[base:top], gc[base:top], \
+            gq[base:top], gs[base:top]
+        mask = np.uint64(0)
+        for k in range(top - base):
+            dy = fv - y[k]
+            dx = min(max(x[k] + s[k] * dy, fu0), fu1) - x[k]
+            qmin = (a[k] * dx + 2.0 * b[k] * dy) * dx + c[k] * dy * dy
+            mask |= np.uint64(qmin <= qm[k] * (1.0 + 1e-9) + 1e-12) << np.uint64(k)
+        words[w] = mask
+    cx, ca, cby, ccy, co, cq = cand[0], cand[1], cand[2], cand[3], cand[4], cand[5]
+    r = 0
+    for w in range(nw):
+        mask = words[w]
+        base = w * CHUNK
+        while mask != 0:
+            k = base + np.int64(_cttz(mask))
+            mask &= mask - np.uint64(1)
+            dy = fv - gy[k]
+            ridx[r] = k
+            cx[r] = gx[k]
+            ca[r] = ga[k]
+            cby[r] = 2.0 * gb[k] * dy
+            ccy[r] = gc[k] * dy * dy
+            co[r] = cols[5, k]
+            cq[r] = gq[k]
+            r += 1
+    return r
+
+
+@njit(inline="always", fastmath=FAST)
+def composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit):  # pragma: no cover
+    """Front-to-back compositing of the pixels u0..u1 of one row over its r candidates (:func:`row_candidates`).
+
+    Outputs per pixel p = u - u0: cnt[p] contributions, their tile-list positions kidx[p, :cnt[p]] and kappas
+    kval[p, :cnt[p]] = alpha T, front to back; trans[p] the final transmittance (kappa_b). Inactive pixels get
+    cnt 0 and T 1."""
+    cx, ca, cby, ccy, co, cq = cand[0], cand[1], cand[2], cand[3], cand[4], cand[5]
+    qall, hq, ho = chunk[0], chunk[1], chunk[2]
+    for p in range(u1 - u0 + 1):
+        cnt[p] = 0
+        trans[p] = 1.0
+        if not active[p]:
+            continue
+        fu = float(u0 + p)
+        t = 1.0
+        i = 0
+        base = 0
+        while base < r:
+            top = min(base + CHUNK, r)
+            x, a, by, cy, qm = cx[base:top], ca[base:top], cby[base:top], ccy[base:top], cq[base:top]
+            mask = np.uint64(0)
+            for k in range(top - base):
+                dx = fu - x[k]
+                q = (a[k] * dx + by[k]) * dx + cy[k]
+                qall[k] = q
+                mask |= np.uint64(q <= qm[k]) << np.uint64(k)
+            m = 0
+            while mask != 0:
+                k = np.int64(_cttz(mask))
+                mask &= mask - np.uint64(1)
+                hit[m] = k
+                hq[m] = qall[k]
+                ho[m] = co[base + k]
+                m += 1
+            for h in range(m):
+                hq[h] = min(ALPHA_MAX, ho[h] * exp_nonpositive(-0.5 * hq[h]))
+            done = False
+            for h in range(m):
+                # branch-free skip of alpha < 1/255 (only possible by rounding at the ellipse's edge)
+                alpha = hq[h]
+                ok = alpha >= ALPHA_MIN
+                alpha = alpha if ok else 0.0
+                test_t = t * (1.0 - alpha)
+                if test_t < T_MIN:
+                    done = True
+                    break
+                kidx[p, i] = ridx[base + hit[h]]
+                kval[p, i] = alpha * t
+                i += ok
+                t = test_t
+            if done:
+                break
+            base = top
+        cnt[p] = i
+        trans[p] = t
