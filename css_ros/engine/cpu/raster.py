@@ -117,30 +117,25 @@ _depth_bin = njit(inline="always")(depth_bin)
 _pixel_vote = njit(inline="always")(pixel_vote)
 
 
+# _update_kernel with ``use_model`` (a sensor model): a pixel labelled y at expected depth d = sum kappa z / sum kappa
+# (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead, r = y * B + b,
+# with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class goes to acc_base[chunk, j]
+# (added to every class by add_increments), the sparse rest to acc. So a symmetric vote (p on the label, the same small
+# share on every other class) costs what a one-hot vote costs. Voting pixels without any contribution are counted as
+# "no depth" (they add nothing). Without it the arithmetic is exactly the paper's update.
+# With ``store``, each voting pixel's contributions (tile-list position as uint16, kappa as float32) are appended to its
+# chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T) for the render of the same frame;
+# pixels not composited, or that did not fit, get pix_cnt = -1.
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
                    tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
                    store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
     """acc[chunk, c, j] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, class-major: a tile's
     flush of one class writes neighbouring entries); counts[chunk] = (used, ignored, out of range, no depth) of the
-    chunk's pixels.
-
-    Each pixel's vote is :func:`~css_ros.engine.label_input.pixel_vote` of ``labels[v, u]`` (any integer dtype) and
-    ``confidence[v, u]`` (float32 / float64; 1 without ``has_confidence``), taken as it comes: no class or weight
-    planes. Only rows of a tile with a voting pixel are composited, only those pixels walked.
-
-    With ``use_model`` (a sensor model), a pixel labelled y at expected depth d = sum kappa z / sum kappa
-    (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead,
-    r = y * B + b, with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class
-    goes to acc_base[chunk, j] (added to every class by :func:`add_increments`), the sparse rest to acc. So a
-    symmetric vote (p on the label, the same small share on every other class) costs what a one-hot vote
-    costs. Voting pixels without any contribution are counted as "no depth" (they add nothing).
-    Without it the arithmetic is exactly the paper's update.
-
-    With ``store``, each voting pixel's contributions (tile-list position as uint16, kappa as float32) are appended
-    to its chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T) for the render of the same
-    frame; pixels not composited, or that did not fit, get pix_cnt = -1.
-    """
+    chunk's pixels. Each pixel's vote is :func:`~css_ros.engine.label_input.pixel_vote` of ``labels[v, u]`` (any
+    integer dtype) and ``confidence[v, u]`` (float32 / float64; 1 without ``has_confidence``), taken as it comes: no
+    class or weight planes. Only rows of a tile with a voting pixel are composited, only those pixels walked. With a
+    sensor model and with a store: see the comment above."""
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
     num_classes = acc.shape[1]
