@@ -6,10 +6,11 @@ A tile first copies the rows of its depth-sorted list into columns (:func:`load_
 tile, :func:`row_candidates` keeps the entries whose alpha ellipse meets the row's segment of the tile (the minimum
 of the Mahalanobis q over the segment, a clamped quadratic, is <= qmax: in trained splats about 2/3 of the entries
 whose box spans the row) with their row terms (2 b dy, c dy^2), so a pixel's q is two FMAs. :func:`composite_row`
-then walks each pixel front to back in chunks of 64 candidates: q of the chunk (a vectorised loop) and a bit mask
-of the hits (q <= qmax), the hits taken from the mask by count-trailing-zeros (no per-candidate stores), their alphas
-in a second vectorised loop (polynomial exp), then the compositing in order. A pixel stops where its transmittance
-would drop below T_MIN, and the chunks behind that point are never tested.
+then walks the row's pixels front to back in chunks of 64 candidates: per pixel, q of the chunk (a vectorised loop)
+and a bit mask of the hits (q <= qmax), the hits taken from the mask by count-trailing-zeros (no per-candidate
+stores); the alphas of the whole row's hits in one vectorised loop (polynomial exp), then each pixel's compositing
+in order. A pixel stops where its transmittance would drop below T_MIN, and the chunks behind that point are never
+tested.
 
 A pixel's result (its contributions' list positions and kappa, front to back, and its final transmittance) is
 exactly the per-pixel brute force: the candidate tests are conservative and the hit test is q <= qmax as before.
@@ -61,13 +62,15 @@ def exp_nonpositive(x):  # pragma: no cover
 @njit(inline="always")
 def new_scratch(tile):  # pragma: no cover
     """Per-thread walk scratch, sized for lists of _START entries and grown by :func:`load_tile`: (tile columns
-    (COLS, cap), candidate row terms (CAND, cap), candidate list positions (cap,), bit masks, per-pixel contribution
-    positions (tile, cap) int32 and kappas (tile, cap), counts (tile,), final transmittances (tile,), active pixels
-    (tile,), chunk buffers (3, CHUNK) (q, alpha, opacity) and (CHUNK,) hit positions)."""
-    return (np.empty((COLS, _START)), np.empty((CAND, _START)), np.empty(_START, dtype=np.int32),
-            np.empty(_START // CHUNK, dtype=np.uint64), np.empty((tile, _START), dtype=np.int32),
-            np.empty((tile, _START)), np.empty(tile, dtype=np.int32), np.empty(tile), np.ones(tile, dtype=np.bool_),
-            np.empty((3, CHUNK)), np.empty(CHUNK, dtype=np.int32))
+    (COLS, cap), candidate row terms (CAND, cap), candidate list positions (cap,) uint32, bit masks, per-pixel
+    contribution positions (tile, cap) uint32 and kappas (tile, cap), counts (tile,), final transmittances (tile,),
+    active pixels (tile,), the row's hits of one chunk step ((3, tile * CHUNK): q then alpha, opacity, and the q of one
+    pixel's chunk), their list positions (tile * CHUNK,) uint32 and per-pixel (first hit, hit count, still walking)
+    (3, tile). List positions are unsigned: numba then indexes with them without a negative-index test."""
+    return (np.empty((COLS, _START)), np.empty((CAND, _START)), np.empty(_START, dtype=np.uint32),
+            np.empty(_START // CHUNK, dtype=np.uint64), np.empty((tile, _START), dtype=np.uint32),
+            np.empty((tile, _START)), np.empty(tile, dtype=np.int64), np.empty(tile), np.ones(tile, dtype=np.bool_),
+            np.empty((3, tile * CHUNK)), np.empty(tile * CHUNK, dtype=np.uint32), np.empty((3, tile), dtype=np.int64))
 
 
 @njit(inline="always")
@@ -75,22 +78,22 @@ def load_tile(walk, lists, start, end, scratch):  # pragma: no cover
     """Copy the rows ``walk[lists[start:end]]`` (:attr:`ProjectedGaussians.walk`) into the tile columns (one
     contiguous array per quantity, so the candidate tests vectorise), growing every list-sized scratch array first
     if needed. Returns the scratch."""
-    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
     n = end - start
     if n > cols.shape[1]:
         cap = max(n, 2 * cols.shape[1])
         cols = np.empty((COLS, cap))
         cand = np.empty((CAND, cap))
-        ridx = np.empty(cap, dtype=np.int32)
+        ridx = np.empty(cap, dtype=np.uint32)
         words = np.empty((cap + CHUNK - 1) // CHUNK, dtype=np.uint64)
-        kidx = np.empty((kidx.shape[0], cap), dtype=np.int32)
+        kidx = np.empty((kidx.shape[0], cap), dtype=np.uint32)
         kval = np.empty((kval.shape[0], cap))
     tile_list = lists[start:end]
     for k in range(n):
         j = tile_list[k]
         for c in range(COLS):
             cols[c, k] = walk[j, c]
-    return cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit
+    return cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state
 
 
 @njit(inline="always", fastmath=FAST)
@@ -119,78 +122,108 @@ def row_candidates(cols, n, v, u0, u1, cand, ridx, words):  # pragma: no cover
             mask |= np.uint64(qmin <= qm[k] * (1.0 + 1e-9) + 1e-12) << np.uint64(k)
         words[w] = mask
     cx, ca, cby, ccy, co, cq = cand[0], cand[1], cand[2], cand[3], cand[4], cand[5]
+    go = cols[5]
     r = 0
     for w in range(nw):
         mask = words[w]
         base = w * CHUNK
+        top = min(base + CHUNK, n)
+        x, y, a, b, c, o, qm = gx[base:top], gy[base:top], ga[base:top], gb[base:top], gc[base:top], \
+            go[base:top], gq[base:top]
         while mask != 0:
-            k = base + np.int64(_cttz(mask))
+            k = _cttz(mask)  # unsigned: no negative-index test on the loads below
             mask &= mask - np.uint64(1)
-            dy = fv - gy[k]
-            ridx[r] = k
-            cx[r] = gx[k]
-            ca[r] = ga[k]
-            cby[r] = 2.0 * gb[k] * dy
-            ccy[r] = gc[k] * dy * dy
-            co[r] = cols[5, k]
-            cq[r] = gq[k]
+            dy = fv - y[k]
+            ridx[r] = np.uint32(base) + np.uint32(k)
+            cx[r] = x[k]
+            ca[r] = a[k]
+            cby[r] = 2.0 * b[k] * dy
+            ccy[r] = c[k] * dy * dy
+            co[r] = o[k]
+            cq[r] = qm[k]
             r += 1
     return r
 
 
 @njit(inline="always", fastmath=FAST)
-def composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit):  # pragma: no cover
+def composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit, state):  # pragma: no cover
     """Front-to-back compositing of the pixels u0..u1 of one row over its r candidates (:func:`row_candidates`).
+
+    The walk steps through the candidates in chunks of CHUNK. In each step every pixel still walking tests the
+    chunk (q and a bit mask of the hits) and appends its hits to one buffer for the whole row; the alphas of all of
+    them are computed in one loop (a loop of a few hits per pixel would wait on the exp polynomial's latency), then
+    each pixel composites its hits in order and stops where its transmittance would drop below T_MIN.
 
     Outputs per pixel p = u - u0: cnt[p] contributions, their tile-list positions kidx[p, :cnt[p]] and kappas
     kval[p, :cnt[p]] = alpha T, front to back; trans[p] the final transmittance (kappa_b). Inactive pixels get
     cnt 0 and T 1."""
     cx, ca, cby, ccy, co, cq = cand[0], cand[1], cand[2], cand[3], cand[4], cand[5]
-    qall, hq, ho = chunk[0], chunk[1], chunk[2]
-    for p in range(u1 - u0 + 1):
+    hq, ho, qall = chunk[0], chunk[1], chunk[2]
+    first, count, walking = state[0], state[1], state[2]
+    npx = u1 - u0 + 1
+    for p in range(npx):
         cnt[p] = 0
         trans[p] = 1.0
-        if not active[p]:
-            continue
-        fu = float(u0 + p)
-        t = 1.0
-        i = 0
-        base = 0
-        while base < r:
-            top = min(base + CHUNK, r)
-            x, a, by, cy, qm = cx[base:top], ca[base:top], cby[base:top], ccy[base:top], cq[base:top]
+        walking[p] = active[p]
+    base = 0
+    while base < r:
+        top = min(base + CHUNK, r)
+        x, a, by, cy, qm, o = cx[base:top], ca[base:top], cby[base:top], ccy[base:top], cq[base:top], co[base:top]
+        rr = ridx[base:top]
+        total = 0
+        for p in range(npx):
+            first[p] = total
+            count[p] = 0
+            if walking[p] == 0:
+                continue
+            fu = float(u0 + p)
             mask = np.uint64(0)
             for k in range(top - base):
                 dx = fu - x[k]
                 q = (a[k] * dx + by[k]) * dx + cy[k]
                 qall[k] = q
                 mask |= np.uint64(q <= qm[k]) << np.uint64(k)
-            m = 0
             while mask != 0:
-                k = np.int64(_cttz(mask))
+                k = _cttz(mask)
                 mask &= mask - np.uint64(1)
-                hit[m] = k
-                hq[m] = qall[k]
-                ho[m] = co[base + k]
-                m += 1
-            for h in range(m):
-                hq[h] = min(ALPHA_MAX, ho[h] * exp_nonpositive(-0.5 * hq[h]))
+                hit[total] = rr[k]
+                hq[total] = qall[k]
+                ho[total] = o[k]
+                total += 1
+            count[p] = total - first[p]
+        for h in range(total):
+            hq[h] = min(ALPHA_MAX, ho[h] * exp_nonpositive(-0.5 * hq[h]))
+        alive = False
+        for p in range(npx):
+            if walking[p] == 0:
+                continue
+            t = trans[p]
+            start = cnt[p]
+            alphas = hq[first[p]:first[p] + count[p]]
+            positions = hit[first[p]:first[p] + count[p]]
+            out_k = kidx[p, start:]
+            out_v = kval[p, start:]
+            i = 0
             done = False
-            for h in range(m):
+            for h in range(alphas.shape[0]):
                 # branch-free skip of alpha < 1/255 (only possible by rounding at the ellipse's edge)
-                alpha = hq[h]
+                alpha = alphas[h]
                 ok = alpha >= ALPHA_MIN
                 alpha = alpha if ok else 0.0
                 test_t = t * (1.0 - alpha)
                 if test_t < T_MIN:
                     done = True
                     break
-                kidx[p, i] = ridx[base + hit[h]]
-                kval[p, i] = alpha * t
+                out_k[i] = positions[h]
+                out_v[i] = alpha * t
                 i += ok
                 t = test_t
+            cnt[p] = start + i
+            trans[p] = t
             if done:
-                break
-            base = top
-        cnt[p] = i
-        trans[p] = t
+                walking[p] = 0
+            else:
+                alive = True
+        if not alive:
+            break
+        base = top

@@ -196,9 +196,9 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         ldepth = np.empty(scratch[0].shape[1])
                     present[:] = False
                     loaded = True
-                cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+                cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                 r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
-                composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+                composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit, state)
                 for p in range(u1 - u0 + 1):
                     if not active[p]:
                         continue
@@ -378,9 +378,9 @@ def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, b
                     if not loaded:
                         scratch = load_tile(walk, lists, start, end, scratch)
                         loaded = True
-                    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+                    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                     r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
-                    composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+                    composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit, state)
                 kidx, kval, cnt, trans = scratch[4], scratch[5], scratch[6], scratch[7]
                 for u in range(u0, u1 + 1):
                     p = u - u0
@@ -410,13 +410,13 @@ def _kappa_kernel(offsets, lists, walk, width, height, tile, tiles_x,
         start, end = offsets[t], offsets[t + 1]
         n = end - start
         scratch = load_tile(walk, lists, start, end, scratch)
-        cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit = scratch
+        cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
         ty, tx = t // tiles_x, t % tiles_x
         u0 = tx * tile
         u1 = min(width, u0 + tile) - 1
         for v in range(ty * tile, min(height, ty * tile + tile)):
             r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
-            composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit)
+            composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit, state)
             for u in range(u0, u1 + 1):
                 p = u - u0
                 if not count_only:
@@ -587,7 +587,7 @@ def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cover
+def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no cover
     """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
     the variances from column :func:`linear_width` on.
 
@@ -602,7 +602,6 @@ def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cov
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
     lin = _linear_width(num_classes)
-    attrs = np.empty((m, lin + num_classes), dtype=np.float32)
     for j in prange(m):
         for c in range(num_classes + 5, lin):
             attrs[j, c] = np.float32(0.0)
@@ -620,6 +619,29 @@ def dirichlet_attributes(concentrations, ids, colors, packed):  # pragma: no cov
             e = concentrations[row, c] * inv
             attrs[j, c] = np.float32(e)
             attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
+
+
+def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray, packed: np.ndarray,
+                         out: np.ndarray | None = None) -> np.ndarray:
+    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
+    the variances from column :func:`linear_width` on.
+
+    Args:
+        concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
+            (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
+            camera depth z, splat units).
+        out: a float32 array of at least M rows of that width to fill (kept between frames by the caller: a fresh
+            one of tens of MB page-faults every frame), or None.
+    Returns:
+        attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
+        reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
+    """
+    m, num_classes = ids.shape[0], concentrations.shape[1]
+    width = linear_width(num_classes) + num_classes
+    if out is None or out.shape[0] < m or out.shape[1] != width:
+        out = np.empty((m, width), dtype=np.float32)
+    attrs = out[:m]
+    _dirichlet_kernel(concentrations, ids, colors, packed, attrs)
     return attrs
 
 
