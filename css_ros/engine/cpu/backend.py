@@ -10,8 +10,8 @@ import numpy as np
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, bin_tiles,
-                     dirichlet_attributes, linear_width, render_semantic)
+from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, attribute_buffer,
+                     bin_tiles, dirichlet_attributes, linear_width, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -53,9 +53,8 @@ class NumbaBackend(RasterBackend):
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
         num_classes = concentrations.shape[1]
-        width = linear_width(num_classes) + num_classes
-        if self._attrs.shape[0] < proj.count or self._attrs.shape[1] != width:
-            self._attrs = np.empty((proj.count + proj.count // 4, width), dtype=np.float32)
+        if self._attrs.shape[0] < proj.count or self._attrs.shape[1] != linear_width(num_classes) + num_classes:
+            self._attrs = attribute_buffer(proj.count + proj.count // 4, num_classes)
         attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed, self._attrs)
         store = self._store if self._store.owner is frame else None
         return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs,

@@ -588,23 +588,11 @@ def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True)
 def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no cover
-    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
-    the variances from column :func:`linear_width` on.
-
-    Args:
-        concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
-            (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
-            camera depth z, splat units).
-    Returns:
-        attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
-        reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
-    """
+    """attrs[j] of :func:`dirichlet_attributes` for every projected Gaussian j (the padding columns untouched)."""
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
     lin = _linear_width(num_classes)
     for j in prange(m):
-        for c in range(num_classes + 5, lin):
-            attrs[j, c] = np.float32(0.0)
         row = ids[j]
         total = 0.0
         for c in range(num_classes):
@@ -621,6 +609,12 @@ def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no
             attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
 
 
+def attribute_buffer(rows: int, num_classes: int) -> np.ndarray:
+    """(rows, linear_width(C) + C) float32 zeros: room for the attribute rows of :func:`dirichlet_attributes`, which
+    never writes the padding columns."""
+    return np.zeros((rows, linear_width(num_classes) + num_classes), dtype=np.float32)
+
+
 def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray, packed: np.ndarray,
                          out: np.ndarray | None = None) -> np.ndarray:
     """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
@@ -630,8 +624,9 @@ def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
             camera depth z, splat units).
-        out: a float32 array of at least M rows of that width to fill (kept between frames by the caller: a fresh
-            one of tens of MB page-faults every frame), or None.
+        out: a float32 array of at least M rows of that width whose padding columns are zero (as
+            :func:`attribute_buffer` makes them), kept between frames by the caller (a fresh one of tens of MB
+            page-faults every frame), or None.
     Returns:
         attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
         reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
@@ -639,7 +634,7 @@ def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np
     m, num_classes = ids.shape[0], concentrations.shape[1]
     width = linear_width(num_classes) + num_classes
     if out is None or out.shape[0] < m or out.shape[1] != width:
-        out = np.empty((m, width), dtype=np.float32)
+        out = attribute_buffer(m, num_classes)
     attrs = out[:m]
     _dirichlet_kernel(concentrations, ids, colors, packed, attrs)
     return attrs
