@@ -117,6 +117,64 @@ _depth_bin = njit(inline="always")(depth_bin)
 _pixel_vote = njit(inline="always")(pixel_vote)
 
 
+@njit(inline="always")
+def _row_votes(row_labels, row_conf, has_confidence, num_classes, ignore_label, vote, weight, active):  # pragma: no cover
+    """:func:`~css_ros.engine.label_input.pixel_vote` of a tile row's pixels: vote[p], weight[p], active[p] (USED);
+    returns the row's (used, ignored, out of range) counts."""
+    used = 0
+    ignored = 0
+    out_of_range = 0
+    for p in range(row_labels.shape[0]):
+        conf = 1.0
+        if has_confidence:
+            conf = row_conf[p]
+        c, w, status = _pixel_vote(row_labels[p], conf, num_classes, ignore_label)
+        used += status == USED
+        ignored += status == IGNORED
+        out_of_range += status == OUT_OF_RANGE
+        vote[p] = c
+        weight[p] = w
+        active[p] = status == USED
+    return used, ignored, out_of_range
+
+
+@njit(inline="always", fastmath=FAST)
+def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, acc_base, ch):  # pragma: no cover
+    """Add a tile's accumulator rows (the present ones) into the chunk's class-major rows ``acc`` (C, M): a class row
+    as it is; with a sensor model, each (label, depth bin) row r through its table, base[r] into acc_base[ch] and
+    resid[r, c] into class c."""
+    n = tile_list.shape[0]
+    num_classes = acc.shape[0]
+    if not use_model:
+        for c in range(num_classes):
+            if present[c]:
+                out = acc[c]
+                for k in range(n):
+                    out[tile_list[k]] += lacc[c, k]
+        return
+    any_base = False
+    for r in range(present.shape[0]):
+        if present[r]:
+            b0 = base[r]
+            if b0 != 0.0:
+                if not any_base:
+                    any_base = True
+                    for k in range(n):
+                        lbase[k] = 0.0
+                for k in range(n):
+                    lbase[k] += lacc[r, k] * b0
+            for c in range(num_classes):
+                pc = resid[r, c]
+                if pc != 0.0:
+                    out = acc[c]
+                    for k in range(n):
+                        out[tile_list[k]] += lacc[r, k] * pc
+    if any_base:
+        out = acc_base[ch]
+        for k in range(n):
+            out[tile_list[k]] += lbase[k]
+
+
 # _update_kernel with ``use_model`` (a sensor model): a pixel labelled y at expected depth d = sum kappa z / sum kappa
 # (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead, r = y * B + b,
 # with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class goes to acc_base[chunk, j]
@@ -168,21 +226,13 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
             depth_loaded = False
             for v in range(ty * tile, min(height, ty * tile + tile)):
                 active = scratch[8]
-                voting = False
-                row_labels = labels[v, u0:u1 + 1]
                 row_conf = confidence[v, u0:u1 + 1] if has_confidence else confidence[0, 0:1]
-                for p in range(u1 + 1 - u0):
-                    conf = 1.0
-                    if has_confidence:
-                        conf = row_conf[p]
-                    c, w, status = _pixel_vote(row_labels[p], conf, num_classes, ignore_label)
-                    used += status == USED
-                    ignored += status == IGNORED
-                    out_of_range += status == OUT_OF_RANGE
-                    vote[p] = c
-                    weight[p] = w
-                    active[p] = status == USED
-                    voting |= status == USED
+                n_used, n_ignored, n_out = _row_votes(labels[v, u0:u1 + 1], row_conf, has_confidence, num_classes,
+                                                      ignore_label, vote, weight, active)
+                used += n_used
+                ignored += n_ignored
+                out_of_range += n_out
+                voting = n_used > 0
                 if store:
                     row_cnt = pix_cnt[v * width + u0:v * width + u1 + 1]
                     row_cnt[:] = -1
@@ -237,37 +287,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         pix_cnt[q] = c
                         pix_t[q] = trans[p]
                         pos += c
-            if not loaded:
-                continue
-            tile_list = lists[start:end]
-            if use_model:
-                any_base = False
-                for r in range(num_rows):
-                    if present[r]:
-                        b0 = base[r]
-                        if b0 != 0.0:
-                            if not any_base:
-                                any_base = True
-                                for k in range(n):
-                                    lbase[k] = 0.0
-                            for k in range(n):
-                                lbase[k] += lacc[r, k] * b0
-                        for c in range(num_classes):
-                            pc = resid[r, c]
-                            if pc != 0.0:
-                                out = acc[ch, c]
-                                for k in range(n):
-                                    out[tile_list[k]] += lacc[r, k] * pc
-                if any_base:
-                    out = acc_base[ch]
-                    for k in range(n):
-                        out[tile_list[k]] += lbase[k]
-            else:
-                for c in range(num_classes):
-                    if present[c]:
-                        out = acc[ch, c]
-                        for k in range(n):
-                            out[tile_list[k]] += lacc[c, k]
+            if loaded:
+                _flush_tile(lists[start:end], lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch)
         counts[ch, USED] = used
         counts[ch, IGNORED] = ignored
         counts[ch, OUT_OF_RANGE] = out_of_range
