@@ -203,7 +203,7 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         t.append(time.perf_counter())
         backend.update((proj, bins, cam), smap._frame_labels(cam, lab, None), conc, soft)
         t.append(time.perf_counter())
-        attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed, backend._attrs)
+        attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         t.append(time.perf_counter())
         buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0, np.zeros(3), False,
                               store=backend._store)

@@ -10,8 +10,8 @@ import numpy as np
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, attribute_buffer,
-                     bin_tiles, dirichlet_attributes, linear_width, render_semantic)
+from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, bin_tiles,
+                     dirichlet_attributes, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -32,7 +32,6 @@ class NumbaBackend(RasterBackend):
         self._scratch = ProjectionScratch()
         self._workspace = UpdateWorkspace()
         self._store = ContributionStore()
-        self._attrs = np.empty((0, 0), dtype=np.float32)  # the render's attribute rows, kept between frames
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
@@ -52,10 +51,7 @@ class NumbaBackend(RasterBackend):
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
-        num_classes = concentrations.shape[1]
-        if self._attrs.shape[0] < proj.count or self._attrs.shape[1] != linear_width(num_classes) + num_classes:
-            self._attrs = attribute_buffer(proj.count + proj.count // 4, num_classes)
-        attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed, self._attrs)
+        attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
         store = self._store if self._store.owner is frame else None
         return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs,
                                store=store)

@@ -542,9 +542,9 @@ class UpdateWorkspace:
             self._base[:] = 0.0
         size = nchunks * num_classes * m
         if self._acc.size < size:
-            self._acc = np.zeros(size + size // 4)
+            self._acc = np.zeros(size)
         if with_base and self._base.size < nchunks * m:
-            self._base = np.zeros(nchunks * m + nchunks * m // 4)
+            self._base = np.zeros(nchunks * m)
         self._pending = True
         base = self._base[:nchunks * m].reshape(nchunks, m) if with_base else _NO_BASE
         return self._acc[:size].reshape(nchunks, num_classes, m), base
@@ -630,14 +630,8 @@ def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no
             attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
 
 
-def attribute_buffer(rows: int, num_classes: int) -> np.ndarray:
-    """(rows, linear_width(C) + C) float32 zeros: room for the attribute rows of :func:`dirichlet_attributes`, which
-    never writes the padding columns."""
-    return np.zeros((rows, linear_width(num_classes) + num_classes), dtype=np.float32)
-
-
-def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray, packed: np.ndarray,
-                         out: np.ndarray | None = None) -> np.ndarray:
+def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray,
+                         packed: np.ndarray) -> np.ndarray:
     """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
     the variances from column :func:`linear_width` on.
 
@@ -645,18 +639,12 @@ def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
             camera depth z, splat units).
-        out: a float32 array of at least M rows of that width whose padding columns are zero (as
-            :func:`attribute_buffer` makes them), kept between frames by the caller (a fresh one of tens of MB
-            page-faults every frame), or None.
     Returns:
         attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
         reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
-    m, num_classes = ids.shape[0], concentrations.shape[1]
-    width = linear_width(num_classes) + num_classes
-    if out is None or out.shape[0] < m or out.shape[1] != width:
-        out = attribute_buffer(m, num_classes)
-    attrs = out[:m]
+    num_classes = concentrations.shape[1]
+    attrs = np.zeros((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
     _dirichlet_kernel(concentrations, ids, colors, packed, attrs)
     return attrs
 
