@@ -53,8 +53,11 @@ class NumbaBackend(RasterBackend):
         proj, bins, camera = frame
         attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
         store = self._store if self._store.owner is frame else None
-        return render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb, want_probs,
-                               store=store)
+        buffers = render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb,
+                                  want_probs, store=store)
+        if store is not None:
+            store.release()  # between frames the store holds no memory (the update's accumulators are kept)
+        return buffers
 
     def render_view(self, frame: Any, concentrations: np.ndarray, settings: "RenderSettings") -> "FrameImages":
         """The final outputs in one compiled pass after the render (:mod:`.finalize`)."""

@@ -484,10 +484,15 @@ class ContributionStore:
 
     Bounded: per work chunk ``STORE_SLOTS_PER_PIXEL`` x (pixels / chunks) entries; pixels that do not fit, that the
     update did not composite (no vote) or whose tile list is longer than 65535 are walked by the render. The
-    ``np.empty`` buffers are kept for frames of the same size (untouched pages cost no memory).
+    ``np.empty`` buffers (untouched pages cost no memory) are given back by :meth:`release` once the render has
+    replayed them, so that between frames they hold no memory.
     """
 
     def __init__(self) -> None:
+        self.release()
+
+    def release(self) -> None:
+        """Drop the buffers (and the frame they belong to)."""
         self._key: tuple[int, int] | None = None
         self.owner: object | None = None
         self.k = np.empty((1, 0), np.uint16)
