@@ -23,8 +23,9 @@ if TYPE_CHECKING:
     from .sensor_model import ConfidenceMap
 
 #: The per-pixel images of a rendered view (RenderedView's fields); ``probabilities`` is asked for separately.
+#: ``surprise`` is made by an observed frame's update (``SemanticMap.observe``); a query render has none.
 IMAGE_OUTPUTS: tuple[str, ...] = ("labels", "expectation", "variance", "background", "evidence", "rgb", "depth",
-                                  "confidence")
+                                  "confidence", "surprise")
 
 
 def check_outputs(outputs: Iterable[str] | None) -> frozenset[str]:

@@ -9,11 +9,12 @@ value's meaning (the only host pass, for inputs no ROS encoding produces).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import InputError
+from .change_rules import ChangeRules
 
 #: label dtypes the compiled passes read directly (one kernel specialisation each)
 KERNEL_LABEL_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int32), np.dtype(np.int64))
@@ -22,9 +23,13 @@ KERNEL_CONFIDENCE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 #: status of a pixel under :func:`pixel_vote` (indices of the counts the passes return)
 USED, IGNORED, OUT_OF_RANGE = 0, 1, 2
-#: length of the counts array a compiled pass fills: used, ignored, out of range, no depth (sensor model)
-NUM_COUNTS = 4
+#: length of the counts array a compiled pass fills: used, ignored, out of range, no depth (sensor model), transient
+#: (a transient class: no evidence), occluded (measured depth nearer than the splat's: no evidence); see
+#: :mod:`css_ros.engine.change_rules`
+NUM_COUNTS = 6
 NO_DEPTH = 3
+TRANSIENT = 4
+OCCLUDED = 5
 
 
 def pixel_vote(label, conf, num_classes, ignore_label):  # type: ignore[no-untyped-def]
@@ -49,6 +54,14 @@ def pixel_vote(label, conf, num_classes, ignore_label):  # type: ignore[no-untyp
     return int(label), w, USED
 
 
+def transient_status(c, status, transient):  # type: ignore[no-untyped-def]
+    """TRANSIENT for a USED vote of a class marked in ``transient`` ((C,) bool; may be empty: none), else
+    ``status`` (:mod:`css_ros.engine.change_rules`). Scalar code for numba / numba-cuda."""
+    if status == USED and c < transient.shape[0] and transient[c]:
+        return TRANSIENT
+    return status
+
+
 @dataclass(frozen=True)
 class FrameLabels:
     """A frame's label input for a backend's update.
@@ -59,12 +72,19 @@ class FrameLabels:
             or None (every pixel weight 1).
         num_classes: C; labels outside 0..C-1 are out of range.
         ignore_label: the "no label" value.
+        depth: (H, W) C-contiguous float32 measured depth in metres along the optical axis, registered to the labels
+            (NaN, inf or <= 0: no measurement), or None (:mod:`css_ros.engine.change_rules`).
+        rules: the map's rules for a changing world (transient classes, depth tolerance, forgetting).
+        want_surprise: also make the (H, W) float32 surprise image (observe's ``surprise`` output).
     """
 
     labels: np.ndarray
     confidence: np.ndarray | None
     num_classes: int
     ignore_label: int
+    depth: np.ndarray | None = None
+    rules: ChangeRules = field(default_factory=ChangeRules)
+    want_surprise: bool = False
 
 
 def kernel_labels(labels: np.ndarray) -> np.ndarray:
@@ -90,7 +110,7 @@ def count_votes(labels: np.ndarray, confidence: np.ndarray | None, num_classes: 
                 ignore_label: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vectorised :func:`pixel_vote` over a whole image (numpy; the torch twin and the tests' reference):
     (classes (H, W) int64, -1 where none; weights (H, W) float32, 0 where none; counts (3,) used, ignored, out of
-    range)."""
+    range). Transient classes and depth are applied after it (:mod:`css_ros.engine.change_rules`)."""
     lab = np.asarray(labels).astype(np.int64)
     if labels.dtype == np.uint64:
         lab = np.minimum(np.asarray(labels), np.uint64(2**63 - 1)).astype(np.int64)
@@ -110,12 +130,14 @@ def count_votes(labels: np.ndarray, confidence: np.ndarray | None, num_classes: 
 
 
 def check_frame_labels(labels: object, confidence: object, shape: tuple[int, int], num_classes: int,
-                       ignore_label: int) -> FrameLabels:
-    """Validate a frame's labels (and confidence) for a camera of image ``shape`` (H, W) without touching pixels.
+                       ignore_label: int, depth: object = None, rules: ChangeRules | None = None,
+                       want_surprise: bool = False) -> FrameLabels:
+    """Validate a frame's labels (and confidence, measured depth) for a camera of image ``shape`` (H, W) without
+    touching pixels (a depth image that is not float32 is converted once).
 
     Raises:
-        InputError: masked arrays, not 2-D, not integers, another size than the camera's, a confidence that is not
-            real numbers or of another shape.
+        InputError: masked arrays, not 2-D, not integers, another size than the camera's, a confidence or depth that
+            is not real numbers or of another shape.
     """
     from .map_args import check_real_array
 
@@ -137,4 +159,15 @@ def check_frame_labels(labels: object, confidence: object, shape: tuple[int, int
         if conf.shape != lab.shape:
             raise InputError(f"confidence shape {conf.shape} differs from labels {lab.shape}")
         conf = kernel_confidence(conf)
-    return FrameLabels(kernel_labels(lab), conf, int(num_classes), int(ignore_label))
+    dep = None
+    if depth is not None:
+        if type(depth) is np.ndarray and depth.dtype == np.float32:
+            dep = depth
+        else:
+            dep = check_real_array(depth, "depth")
+        if dep.shape != lab.shape:
+            raise InputError(f"depth shape {dep.shape} differs from labels {lab.shape}")
+        with np.errstate(over="ignore", invalid="ignore"):
+            dep = np.ascontiguousarray(dep, dtype=np.float32)
+    return FrameLabels(kernel_labels(lab), conf, int(num_classes), int(ignore_label), dep,
+                       rules if rules is not None else ChangeRules(), bool(want_surprise))

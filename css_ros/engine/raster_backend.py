@@ -21,17 +21,24 @@ if TYPE_CHECKING:
 
 
 class UpdateCounts:
-    """Pixel counts of one update (used, ignored, out of range, no depth), as a backend hands them over: the CPU's
-    are ready; a device backend's may arrive with the next view's one copy (:meth:`get` then costs nothing) or are
-    fetched by :meth:`get` (one synchronisation)."""
+    """Pixel counts of one update (used, ignored, out of range, no depth, transient, occluded:
+    :data:`~css_ros.engine.label_input.NUM_COUNTS`) and, when asked for (``FrameLabels.want_surprise``), the (H, W)
+    float32 surprise image, as a backend hands them over: the CPU's are ready; a device backend's may arrive with the
+    next view's one copy (:meth:`get` then costs nothing) or are fetched by :meth:`get` (one synchronisation)."""
 
-    def __init__(self, counts: "np.ndarray | None" = None) -> None:
-        self._counts = None if counts is None else tuple(int(v) for v in np.asarray(counts)[:4])
+    def __init__(self, counts: "np.ndarray | None" = None, surprise: "np.ndarray | None" = None) -> None:
+        self._counts = None if counts is None else tuple(int(v) for v in np.asarray(counts)[:6])
+        self._surprise = surprise
 
-    def get(self) -> tuple[int, int, int, int]:
-        """(used, ignored, out_of_range, no_depth)."""
+    def get(self) -> tuple[int, int, int, int, int, int]:
+        """(used, ignored, out_of_range, no_depth, transient, occluded)."""
         assert self._counts is not None
-        return self._counts  # type: ignore[return-value]
+        return self._counts + (0,) * (6 - len(self._counts))  # type: ignore[return-value]
+
+    def surprise(self) -> "np.ndarray | None":
+        """The (H, W) float32 surprise image (1 - E[theta_y] under the map before the update, NaN without a label),
+        or None when it was not asked for (:mod:`css_ros.engine.change_rules`)."""
+        return self._surprise
 
 
 class RasterBackend(ABC):
@@ -54,9 +61,11 @@ class RasterBackend(ABC):
         :func:`~css_ros.engine.label_input.pixel_vote` of its label and confidence as they came in (``inputs``).
 
         With ``soft`` (a sensor model, docs/spec.md "Sensor model"), y_i^c = weight_i * table[label_i * B + b_i, c]
-        with b_i the depth bin of the pixel's expected depth sum kappa z / sum kappa. Returns the pixel counts (used,
-        ignored, out of range and, with ``soft``, labelled pixels without any contribution), possibly still on a
-        device until :meth:`UpdateCounts.get`."""
+        with b_i the depth bin of the pixel's expected depth sum kappa z / sum kappa. ``inputs.depth`` and
+        ``inputs.rules`` (transient classes, measured depth, forgetting) and ``inputs.want_surprise`` as
+        :mod:`css_ros.engine.change_rules` defines them. Returns the pixel counts (used, ignored, out of range, with
+        ``soft`` labelled pixels without any contribution, transient, occluded) and the surprise image when asked
+        for, possibly still on a device until :meth:`UpdateCounts.get`."""
 
     @abstractmethod
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,

@@ -13,6 +13,8 @@ from ..errors import MapError, SensorModelError
 from .backends import make_backend
 from .final_form import RenderSettings, check_outputs
 from .label_input import FrameLabels, check_frame_labels
+from .change_rules import (DEFAULT_DEPTH_TOLERANCE, DEFAULT_DEPTH_TOLERANCE_RELATIVE, check_half_life,
+                           make_rules)
 from .sensor_model import NO_SENSOR_MODEL
 from .field3d import FieldIndex, FieldQuery, GaussianSemantics, gaussian_semantics, query_field
 from .spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
@@ -65,6 +67,10 @@ class RenderedView:
         confidence: (H, W) float32 calibrated probability that ``labels`` is right (the sensor model's
             :class:`~css_ros.engine.sensor_model.ConfidenceMap` of E and evidence; 0 where the label is
             ``ignore_label``), or None when the map has no calibrated confidence.
+        surprise: (H, W) float32, only from :meth:`SemanticMap.observe`: 1 - E[theta_y] of the observed label y under
+            the map before this frame's update (0 = the map was sure of it, near 1 = the map expected something else:
+            a segmentation error or a changed world); NaN where the pixel has no label
+            (:mod:`css_ros.engine.change_rules`). None for query renders.
     """
 
     labels: np.ndarray
@@ -78,18 +84,24 @@ class RenderedView:
     probabilities: np.ndarray | None = None
     depth: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    surprise: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class UpdateStats:
-    """Pixel counts of one update: used (labelled, weight > 0), ignored (ignore value or zero
-    confidence), out_of_range (ids >= C or negative, treated as ignored) and, with a sensor model,
-    no_depth (used pixels that no Gaussian covers: they have no rendered depth and add nothing)."""
+    """Pixel counts of one update: used (labelled, weight > 0, voted), ignored (ignore value or zero
+    confidence), out_of_range (ids >= C or negative, treated as ignored), with a sensor model no_depth (used
+    pixels that no Gaussian covers: they have no rendered depth and add nothing), transient (labelled with a
+    transient class: no evidence) and occluded (measured depth nearer than the map's rendered depth by more than the
+    tolerance: no evidence; :mod:`css_ros.engine.change_rules`). used + ignored + out_of_range + transient +
+    occluded = the image's pixels."""
 
     used: int
     ignored: int
     out_of_range: int
     no_depth: int = 0
+    transient: int = 0
+    occluded: int = 0
 
 
 class SemanticMap:
@@ -116,6 +128,13 @@ class SemanticMap:
             the paper's update, bit for bit.
         depth_scale: metres per splat unit (the scale of ``splat_to_map``): the sensor model's depth bins
             and ``RenderedView.depth`` are in metres.
+        transient_classes: class ids whose pixels never add evidence (people, animals, vehicles in motion); they still
+            count in the input statistics (``UpdateStats.transient``).
+        evidence_half_life: None (default: the paper's update, evidence adds up forever) or h > 0 observations: each
+            Gaussian that receives evidence from a frame first has its accumulated evidence alpha - alpha_0 multiplied
+            by 2^(-1/h). Such a map's evidence is not additive: merges and evidence exchange refuse it.
+        depth_tolerance, depth_tolerance_relative: the measured-depth tolerance max(depth_tolerance m,
+            depth_tolerance_relative x depth) of ``observe(..., depth=...)`` (:mod:`css_ros.engine.change_rules`).
     Raises:
         MapError: an argument of the wrong type or outside its bounds (:mod:`css_ros.engine.map_args`: C in
             1..MAX_CLASSES, prior and background in (0, MAX_CONCENTRATION], the bounds a map file is loaded with).
@@ -126,7 +145,9 @@ class SemanticMap:
                  unknown_threshold: float = DEFAULT_UNKNOWN_THRESHOLD,
                  backend: BackendName = "numba", background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  device: int | None = None, sensor_model: "SensorModel | None" = None,
-                 depth_scale: float = 1.0) -> None:
+                 depth_scale: float = 1.0, transient_classes: Sequence[int] | None = None,
+                 evidence_half_life: float | None = None, depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+                 depth_tolerance_relative: float = DEFAULT_DEPTH_TOLERANCE_RELATIVE) -> None:
         self.model = map_args.check_model(model)
         self.num_classes = map_args.check_num_classes(num_classes)
         self.prior = map_args.check_concentration(prior, "prior")
@@ -145,6 +166,10 @@ class SemanticMap:
         self._backend = make_backend(backend, model, **({} if device is None else {"device": int(device)}))
         self._concentrations = np.full((model.num_gaussians, self.num_classes), self.prior, dtype=np.float64)
         self.depth_scale = float(depth_scale)
+        self.evidence_half_life = check_half_life(evidence_half_life)
+        #: the rules for a changing world the backends apply (:mod:`css_ros.engine.change_rules`)
+        self.change_rules = make_rules(self.num_classes, transient_classes, self.evidence_half_life, depth_tolerance,
+                                       depth_tolerance_relative, self.depth_scale, self.prior)
         #: pixel counts of the latest update (``observe`` returns the view, this keeps its counts); None before
         self.last_update: UpdateStats | None = None
         self._sensor_model: SensorModel | None = None
@@ -229,24 +254,31 @@ class SemanticMap:
         return e_b, e_b * (1.0 - e_b) / (1.0 + s_b), s_b
 
     # ------------------------------------------------------------------ inputs
-    def _frame_labels(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None) -> FrameLabels:
-        """The frame's labels and confidence checked (shape, dtype) and handed on as they came
+    @property
+    def transient_classes(self) -> list[int]:
+        """Class ids whose pixels never add evidence."""
+        return self.change_rules.transient_ids()
+
+    def _frame_labels(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None,
+                      depth: np.ndarray | None = None, want_surprise: bool = False) -> FrameLabels:
+        """The frame's labels, confidence and measured depth checked (shape, dtype) and handed on as they came
         (:mod:`css_ros.engine.label_input`): the backend's compiled pass applies the label rule and counts."""
         return check_frame_labels(labels, confidence, (camera.height, camera.width), self.num_classes,
-                                  self.ignore_label)
+                                  self.ignore_label, depth, self.change_rules, want_surprise)
 
     # ------------------------------------------------------------------ engine
     def _update_frame(self, frame: Any, camera: "Camera", labels: np.ndarray,
-                      confidence: np.ndarray | None) -> "UpdateCounts":
+                      confidence: np.ndarray | None, depth: np.ndarray | None = None) -> "UpdateCounts":
         """Update with one frame; the counts may still be on a device (:meth:`_finish_update` reads them)."""
-        inputs = self._frame_labels(camera, labels, confidence)
+        inputs = self._frame_labels(camera, labels, confidence, depth)
         pending = self._backend.update(frame, inputs, self._concentrations, self._soft)
         self.frames_observed += 1
         return pending
 
     def _finish_update(self, pending: "UpdateCounts") -> UpdateStats:
-        used, ignored, out_of_range, no_depth = pending.get()
-        stats = UpdateStats(used, ignored, out_of_range, no_depth if self._soft is not None else 0)
+        used, ignored, out_of_range, no_depth, transient, occluded = pending.get()
+        stats = UpdateStats(used, ignored, out_of_range, no_depth if self._soft is not None else 0, transient,
+                            occluded)
         self.last_update = stats
         return stats
 
@@ -263,40 +295,46 @@ class SemanticMap:
                               check_outputs(outputs), bool(probabilities))
 
     @staticmethod
-    def _view(img: "FrameImages") -> RenderedView:
+    def _view(img: "FrameImages", surprise: np.ndarray | None = None) -> RenderedView:
         return RenderedView(labels=img.labels, expectation=img.expectation, variance=img.variance,  # type: ignore[arg-type]
                             background=img.background, evidence=img.evidence, rgb=img.rgb,  # type: ignore[arg-type]
                             u_var=img.u_var, u_exp=img.u_exp, probabilities=img.probabilities, depth=img.depth,
-                            confidence=img.confidence)
+                            confidence=img.confidence, surprise=surprise)
 
     # ------------------------------------------------------------------ public API
-    def update(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None) -> UpdateStats:
+    def update(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None,
+               depth: np.ndarray | None = None) -> UpdateStats:
         """Fuse one segmentation (SPEC §4): alpha_n^c += sum_i kappa_in y_i^c at ``camera``'s pose.
 
         Args:
             camera: pose (T_map_cam of the optical frame) and intrinsics of the segmented image.
             labels: (H, W) integer class ids; ``ignore_label`` and ids >= C (or < 0) add nothing.
             confidence: optional (H, W) float weights in [0, 1] (NaN counts as 0); y_i = conf_i * onehot.
+            depth: optional (H, W) measured depth in metres along the optical axis, registered to the labels (NaN, 0
+                or inf: no measurement): pixels nearer than the map's surface and Gaussians in front of the measured
+                surface add no evidence (:mod:`css_ros.engine.change_rules`).
         Raises:
             InputError: wrong shape or dtype (confidence: real numbers; masked arrays refused).
             CameraError: ``camera`` is not a Camera.
         """
         frame = self._backend.prepare(map_args.check_camera(camera, "update"))
-        return self._finish_update(self._update_frame(frame, camera, labels, confidence))
+        return self._finish_update(self._update_frame(frame, camera, labels, confidence, depth))
 
     def observe(self, camera: "Camera", labels: np.ndarray, confidence: np.ndarray | None = None,
-                probabilities: bool = False, outputs: Iterable[str] | None = None) -> RenderedView:
+                probabilities: bool = False, outputs: Iterable[str] | None = None,
+                depth: np.ndarray | None = None) -> RenderedView:
         """SPEC §7 per observed frame: rasterise once, update, then render at the same pose.
 
         ``outputs``: the images to deliver (names of :data:`css_ros.engine.final_form.IMAGE_OUTPUTS`; None = all);
-        the others are None in the view and cost no copy from the device."""
+        the others are None in the view and cost no copy from the device. ``surprise`` is made by the update (before
+        it changes the map). ``depth``: the measured depth as in :meth:`update`."""
         settings = self.render_settings(outputs, probabilities)
         camera = map_args.check_camera(camera, "observe")
-        inputs = self._frame_labels(camera, labels, confidence)
+        inputs = self._frame_labels(camera, labels, confidence, depth, "surprise" in settings.outputs)
         img, pending = self._backend.observe_view(camera, inputs, self._concentrations, self._soft, settings)
         self.frames_observed += 1
         self._finish_update(pending)  # a device backend's counts came with the view's one copy
-        return self._view(img)
+        return self._view(img, pending.surprise())
 
     def render(self, camera: "Camera", probabilities: bool = False,
                outputs: Iterable[str] | None = None) -> RenderedView:
