@@ -16,8 +16,11 @@ Policies (documented in the README's reliability section):
   and the previous valid one stays in use; frames before the first valid camera_info are dropped.
 - **Pose**: non-finite or out-of-bounds positions (|x| > :data:`POSITION_BOUND_M`) and quaternions
   whose norm is outside ``QUATERNION_NORM_TOLERANCE`` are refused; others are normalised.
-- **Images** (segmentation, confidence, colour, GT): unsupported encodings, truncated data and a
+- **Images** (segmentation, confidence, colour, GT, depth): unsupported encodings, truncated data and a
   size different from the camera_info's are refused.
+- **Depth** (REP 118): 16UC1 in millimetres (0: no measurement) or 32FC1 in metres (NaN, inf, 0 or negative: no
+  measurement); every "no measurement" becomes NaN. A depth at another resolution than its segmentation (same
+  field of view) is brought to it by the nearest pixel, never interpolated across edges (:func:`depth_for`).
 """
 from __future__ import annotations
 
@@ -28,8 +31,8 @@ import numpy as np
 
 from ..engine.camera import QUATERNION_NORM_TOLERANCE
 from ..errors import InputError
-from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
-                       image_to_array, pose_to_arrays)
+from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, DEPTH_ENCODINGS, LABEL_ENCODINGS,
+                       camera_info_to_intrinsics, image_to_array, pose_to_arrays)
 
 #: Largest image accepted by default [pixels] (4096 x 4096); node parameter / replay option ``max_image_pixels``.
 DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
@@ -124,6 +127,34 @@ def decode_confidence(msg: Any) -> tuple[np.ndarray, int]:
     return np.clip(conf, 0.0, 1.0), bad
 
 
+#: metres per unit of each depth encoding
+DEPTH_UNITS = {"16UC1": 1e-3, "32FC1": 1.0}
+
+
+@dataclass(frozen=True)
+class RawDepth:
+    """A depth image as received: ``values`` (H, W) uint16 or float32 in ``unit`` metres each. Kept so until a frame
+    takes it (:meth:`metres`): most depth images of a camera faster than its segmentation are never used."""
+
+    values: np.ndarray
+    unit: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.values.shape[0], self.values.shape[1]
+
+    def metres(self) -> np.ndarray:
+        """(H, W) float32 depth [m] along the optical axis; NaN where there is no measurement (0, NaN, inf, < 0)."""
+        d = self.values.astype(np.float32) * np.float32(self.unit)
+        return np.where(np.isfinite(d) & (d > 0), d, np.float32(np.nan)).astype(np.float32, copy=False)
+
+
+def decode_depth(msg: Any) -> RawDepth:
+    """A depth image (16UC1 millimetres or 32FC1 metres) -> :class:`RawDepth`; FrameRejected ``bad depth``."""
+    values = _image(msg, DEPTH_ENCODINGS, "bad depth")
+    return RawDepth(values, DEPTH_UNITS[str(msg.encoding)])
+
+
 def decode_image(msg: Any) -> np.ndarray:
     """Colour camera image -> (H, W, 3) uint8 RGB (mono8 repeated over the channels)."""
     rgb = _image(msg, COLOR_ENCODINGS, "bad image")
@@ -149,6 +180,23 @@ def decode_pose(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     if not lo <= norm <= hi:
         raise FrameRejected("invalid pose", f"quaternion {quat.tolist()} has norm {norm:.4g} outside [{lo}, {hi}]")
     return position, quat / norm
+
+
+def depth_for(depth: RawDepth, labels_shape: tuple[int, int], tolerance_px: float) -> np.ndarray:
+    """The depth [m] (H, W) float32 at the segmentation's resolution ``labels_shape`` (NaN: no measurement).
+
+    Another resolution with the same field of view (one scale factor for x and y, within ``tolerance_px`` of
+    rounding) takes the nearest source pixel (:func:`resample_to` with ``labels``): depth is never interpolated
+    across an edge (a value between a person and the wall behind is neither). Raises FrameRejected ``depth size
+    mismatch`` for another aspect ratio."""
+    h, w = labels_shape
+    H, W = depth.shape
+    if (H, W) == (h, w):
+        return depth.metres()
+    if abs(H * w / W - h) > tolerance_px or abs(W * h / H - w) > tolerance_px:
+        raise FrameRejected("depth size mismatch", f"depth {W}x{H} is not the segmentation's {w}x{h} scaled by one "
+                            "factor in x and y (is it registered to the segmentation's camera?)")
+    return RawDepth(resample_to(depth.values, (h, w), labels=True), depth.unit).metres()
 
 
 def resample_to(image: np.ndarray, shape: tuple[int, int], labels: bool = False) -> np.ndarray:
