@@ -127,17 +127,17 @@ def decode_confidence(msg: Any) -> tuple[np.ndarray, int]:
     return np.clip(conf, 0.0, 1.0), bad
 
 
-#: metres per unit of each depth encoding
-DEPTH_UNITS = {"16UC1": 1e-3, "32FC1": 1.0}
+#: units per metre of each depth encoding (REP 118)
+DEPTH_UNITS_PER_METRE = {"16UC1": 1000.0, "32FC1": 1.0}
 
 
 @dataclass(frozen=True)
 class RawDepth:
-    """A depth image as received: ``values`` (H, W) uint16 or float32 in ``unit`` metres each. Kept so until a frame
-    takes it (:meth:`metres`): most depth images of a camera faster than its segmentation are never used."""
+    """A depth image as received: ``values`` (H, W) uint16 or float32, ``per_metre`` of them a metre. Kept so until a
+    frame takes it (:meth:`metres`): most depth images of a camera faster than its segmentation are never used."""
 
     values: np.ndarray
-    unit: float
+    per_metre: float
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -145,14 +145,16 @@ class RawDepth:
 
     def metres(self) -> np.ndarray:
         """(H, W) float32 depth [m] along the optical axis; NaN where there is no measurement (0, NaN, inf, < 0)."""
-        d = self.values.astype(np.float32) * np.float32(self.unit)
+        d = self.values.astype(np.float32)
+        if self.per_metre != 1.0:
+            d /= np.float32(self.per_metre)   # a division: 1500 mm is 1.5 m exactly (x 0.001 rounds it)
         return np.where(np.isfinite(d) & (d > 0), d, np.float32(np.nan)).astype(np.float32, copy=False)
 
 
 def decode_depth(msg: Any) -> RawDepth:
     """A depth image (16UC1 millimetres or 32FC1 metres) -> :class:`RawDepth`; FrameRejected ``bad depth``."""
     values = _image(msg, DEPTH_ENCODINGS, "bad depth")
-    return RawDepth(values, DEPTH_UNITS[str(msg.encoding)])
+    return RawDepth(values, DEPTH_UNITS_PER_METRE[str(msg.encoding)])
 
 
 def decode_image(msg: Any) -> np.ndarray:
@@ -196,7 +198,7 @@ def depth_for(depth: RawDepth, labels_shape: tuple[int, int], tolerance_px: floa
     if abs(H * w / W - h) > tolerance_px or abs(W * h / H - w) > tolerance_px:
         raise FrameRejected("depth size mismatch", f"depth {W}x{H} is not the segmentation's {w}x{h} scaled by one "
                             "factor in x and y (is it registered to the segmentation's camera?)")
-    return RawDepth(resample_to(depth.values, (h, w), labels=True), depth.unit).metres()
+    return RawDepth(resample_to(depth.values, (h, w), labels=True), depth.per_metre).metres()
 
 
 def resample_to(image: np.ndarray, shape: tuple[int, int], labels: bool = False) -> np.ndarray:
