@@ -237,3 +237,19 @@ def bad_encoding_is_warned_once_and_dropped(client: rh.RosClient, robot: DepthRo
     client.send_image("segmentation", s, robot.labels, "mono8")
     assert client.wait_until(lambda: int(float(client.diagnostics().get("frames_with_depth", 0))) == with_d + 1,
                              20.0), client.diagnostics()
+
+
+@pytest.mark.parametrize("params, message", [
+    (dict(transient_classes="[persn]"), "cannot start: parameter transient_classes: 'persn' is no class name or id "
+                                        "of the class setup (0:floor, 1:wall_left, 2:wall_right, 3:person)"),
+    (dict(evidence_half_life=10.0, publish_evidence=True), "cannot start: parameter evidence_half_life=10.0: with a "
+                                                           "half-life the map's evidence is no longer additive")])
+def test_start_up_errors_name_the_parameter(tmp_path, params, message):
+    node = rh.NodeProcess(dict(model_path=str(rh.write_wall_model(tmp_path / "wall.ply")), checkpoint_path="",
+                               class_file=str(write_classes(tmp_path / "classes.yaml")), warmup=False, **params),
+                          rh.next_domain_id(), tmp_path / "node.log")
+    try:
+        assert node.proc.wait(120) == 2, node.log()[-3000:]
+    finally:
+        node.stop()
+    assert message in node.log(), node.log()[-3000:]
