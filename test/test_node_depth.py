@@ -22,6 +22,7 @@ BLOCK = (slice(10, 26), slice(8, 22))       # someone 1 m away hides this block 
 PERSON = (slice(4, 30), slice(36, 42))      # labelled person (transient), at the wall's depth
 UNLABELLED = slice(0, 3)                    # rows without a label
 FPS, DEPTH_FPS, DURATION = 5.0, 30.0, 4.0
+BLOCK_PIXELS = 16 * 14
 
 
 def scene_labels() -> np.ndarray:
@@ -253,3 +254,51 @@ def test_start_up_errors_name_the_parameter(tmp_path, params, message):
     finally:
         node.stop()
     assert message in node.log(), node.log()[-3000:]
+
+
+def test_each_camera_reads_its_own_depth(tmp_path):
+    """cameras [front, left], depth_topic depth: front/depth hides the block of front's frames only; each camera's
+    ~/<ns>/surprise comes with its frames."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from css_ros.ros.conversions import camera_info_msg, header_msg, image_msg
+
+    domain = rh.next_domain_id()
+    node = rh.NodeProcess(dict(model_path=str(rh.write_wall_model(tmp_path / "wall.ply")), class_file="",
+                               num_classes=rh.NUM_CLASSES, checkpoint_path="", log_period=0.5, input_qos="reliable",
+                               cameras=["front", "left"], depth_topic="depth", max_pending_frames=16),
+                          domain, tmp_path / "node.log")
+    client = rh.RosClient(domain)
+    try:
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = {ns: [client.node.create_publisher(t, f"{ns}/{k}", qos) for t, k in
+                     ((CameraInfo, "camera_info"), (Image, "depth"), (Image, "segmentation"))] for ns in ("front", "left")}
+        got: dict[str, set[int]] = {"front": set(), "left": set()}
+        for ns in got:
+            client.node.create_subscription(Image, f"/css_node/{ns}/surprise",
+                                            lambda m, ns=ns: got[ns].add(stamp_to_ns(m.header.stamp)), qos)
+        everything = [p for v in pubs.values() for p in v] + [client.pub["pose"]]
+        assert client.wait_until(lambda: node.wait_log("inputs (", 0.1) and all(
+            p.get_subscription_count() > 0 for p in everything), rh.NODE_START_S), node.log()[-3000:]
+        assert client.wait_outputs_heard(("front/surprise", "left/surprise")), client.diagnostics()
+        wall = np.full((rh.HEIGHT, rh.WIDTH), 3000, np.uint16)
+        blocked = wall.copy()
+        blocked[BLOCK] = 1000
+        stamps = [time.time_ns() + i * 10**8 for i in range(8)]
+        for i, s in enumerate(stamps):
+            ns = ("front", "left")[i % 2]
+            client.send_pose(s - 10**7)
+            client.send_pose(s + 10**7)
+            info, depth, seg = pubs[ns]
+            info.publish(camera_info_msg(rh.K, rh.WIDTH, rh.HEIGHT, header_msg(s, f"{ns}_optical")))
+            seg.publish(image_msg(rh.wall_labels(), "mono8", header_msg(s, f"{ns}_optical")))
+            depth.publish(image_msg(blocked if ns == "front" else wall, "16UC1", header_msg(s, f"{ns}_optical")))
+            time.sleep(0.1)
+        assert client.wait_diag("frames_processed", 8, 30.0) == 8, (client.diagnostics(), node.log()[-3000:])
+        d = client.diagnostics()
+        assert int(d["frames_with_depth"]) == 8 and int(d["label_pixels_occluded"]) == 4 * BLOCK_PIXELS, d
+        assert client.wait_until(lambda: got["front"] == set(stamps[0::2]) and got["left"] == set(stamps[1::2]), 10.0), got
+    finally:
+        client.close()
+        assert node.stop() == 0, node.log()[-2000:]
