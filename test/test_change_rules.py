@@ -174,3 +174,20 @@ def test_sensor_model_and_depth_together_match_the_plain_rule_on_one_bin():
 def test_bad_arguments_are_refused(kwargs, message):
     with pytest.raises(MapError, match=message):
         SemanticMap(random_scene(0, n=10), C, **kwargs)
+
+
+def test_half_life_is_kept_in_the_map_file_and_refuses_merges(tmp_path):
+    from css_ros.engine.merge import merge_maps
+
+    model = random_scene(0, n=20)
+    smap = SemanticMap(model, C, evidence_half_life=5.0)
+    path = smap.save(tmp_path / "forgets.npz")
+    loaded = SemanticMap.load(path, model)
+    assert loaded.evidence_half_life == 5.0 and loaded.change_rules.decay == pytest.approx(2 ** -0.2)
+    assert SemanticMap.load(path, model, evidence_half_life=None).evidence_half_life is None
+    plain = SemanticMap(model, C)
+    assert SemanticMap.load(plain.save(tmp_path / "plain.npz"), model).evidence_half_life is None
+    with pytest.raises(MapError, match="not additive"):
+        merge_maps([plain, loaded])
+    with pytest.raises(MapError, match="not additive"):
+        merge_maps([loaded, plain])
