@@ -79,7 +79,19 @@ def test_the_engine_gets_the_parameters(tmp_path, model_path):
     smap = load_engine(p, lambda s: None, lambda s: None).smap
     assert smap.transient_classes == [2] and smap.evidence_half_life == 12.5
     assert (smap.change_rules.tol_abs, smap.change_rules.tol_rel) == (0.2, 0.01)
-    assert change_kwargs(NodeParams(), ClassSet.default(4))["evidence_half_life"] is None
+    assert "evidence_half_life" not in change_kwargs(NodeParams(), ClassSet.default(4))   # a file's may apply
+
+
+def test_a_resumed_map_keeps_its_files_half_life_unless_the_parameter_is_set(tmp_path, model, model_path):
+    ckpt = tmp_path / "map.npz"
+    SemanticMap(model, 4, evidence_half_life=6.0).save(ckpt)
+    base = dict(model_path=str(model_path), class_file="", num_classes=4, checkpoint_path=str(ckpt))
+    assert load_engine(params_from_values(base), print, print).smap.evidence_half_life == 6.0
+    assert load_engine(params_from_values({**base, "evidence_half_life": 2.0}), print, print).smap.evidence_half_life \
+        == 2.0
+    with pytest.raises(ConfigError, match=r"evidence half-life \(6 observations\).*cannot be exchanged"):
+        load_engine(params_from_values({**base, "publish_evidence": True}), print, print)
+    assert ckpt.is_file()   # refused at start, not renamed aside
 
 
 # ------------------------------------------------------------------ worker
@@ -179,11 +191,16 @@ def test_without_full_resolution_outputs_there_is_no_surprise(model):
     assert sink.views[0].surprise is None and math.isnan(w.last_frame.surprise_mean)
 
 
-def test_load_map_refuses_a_half_life_map_while_the_node_exchanges_evidence(model, tmp_path, monkeypatch):
-    w, _, _ = make_worker(model, publish_evidence=True)
+def test_load_map_takes_a_file_only_with_the_running_maps_half_life(model, tmp_path):
     path = tmp_path / "m.npz"
-    SemanticMap(model, rh.NUM_CLASSES).save(path)
-    loaded = SemanticMap(model, rh.NUM_CLASSES, evidence_half_life=3.0)   # a file that holds a half-life
-    monkeypatch.setattr(SemanticMap, "load", classmethod(lambda cls, *a, **k: loaded))
-    with pytest.raises(MapError, match="half-life"):
+    SemanticMap(model, rh.NUM_CLASSES, evidence_half_life=3.0).save(path)
+    w, _, _ = make_worker(model, publish_evidence=True)
+    with pytest.raises(MapError, match="half-life .*not additive, and this node exchanges evidence"):
         w.load_map(path)
+    w, _, _ = make_worker(model)
+    with pytest.raises(MapError, match="half-life 3 observations, this node's map none: restart"):
+        w.load_map(path)
+    w, _, _ = make_worker(model, SemanticMap(model, rh.NUM_CLASSES, evidence_half_life=3.0))
+    assert "loaded" in w.load_map(path)                           # the file's rate is the running map's
+    w, _, _ = make_worker(model, SemanticMap(model, rh.NUM_CLASSES, evidence_half_life=8.0), evidence_half_life=8.0)
+    assert "loaded" in w.load_map(path)                           # the node's parameter applies to the file

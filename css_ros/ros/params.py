@@ -142,9 +142,10 @@ class NodeParams:
                                       "animals, vehicles in motion), by name in the class setup or by id; an "
                                       "unknown name is a start-up error", items=str)
     evidence_half_life: float = _p(0.0, "observations", "a Gaussian's accumulated evidence halves over this many "
-                                   "observations of it (the map forgets what is no longer seen so); 0 or "
-                                   "negative: off (evidence adds up forever). Evidence is then no longer "
-                                   "additive: evidence exchange (publish_evidence, evidence_in) is refused")
+                                   "observations of it (the map follows a changing world); 0 or negative: not "
+                                   "set (a fresh map does not forget, a resumed one keeps the half-life its "
+                                   "checkpoint holds). A map that forgets refuses the evidence exchange "
+                                   "(publish_evidence, evidence_in): its evidence is no longer additive")
     depth_tolerance: float = _p(DEFAULT_DEPTH_TOLERANCE, "m", "measured depth nearer than the map's rendered "
                                 "depth by more than max(depth_tolerance, depth_tolerance_relative x depth): the "
                                 "pixel is occluded (adds no evidence); Gaussians in front of the measured surface "
@@ -419,7 +420,7 @@ def _check_changing_world(p: NodeParams, bad: Callable[[str, str], ConfigError])
 
 
 def half_life(p: NodeParams) -> float | None:
-    """The map's evidence half-life [observations] of these parameters (None: off)."""
+    """The evidence half-life [observations] these parameters set (None: not set)."""
     return p.evidence_half_life if p.evidence_half_life > 0 else None
 
 

@@ -135,10 +135,15 @@ def transient_class_ids(entries: list[str], classes: ClassSet) -> list[int]:
 
 
 def change_kwargs(params: NodeParams, classes: ClassSet) -> dict[str, Any]:
-    """The map's rules for a changing world (SemanticMap keyword arguments) from the parameters."""
-    return dict(transient_classes=transient_class_ids(params.transient_classes, classes),
-                evidence_half_life=half_life(params), depth_tolerance=params.depth_tolerance,
-                depth_tolerance_relative=params.depth_tolerance_relative)
+    """The map's rules for a changing world (SemanticMap keyword arguments) from the parameters. evidence_half_life
+    only when set (> 0): a fresh map then forgets at that rate, a resumed one from now on; when not set a fresh map
+    does not forget and a resumed one keeps the half-life its file holds."""
+    out: dict[str, Any] = dict(transient_classes=transient_class_ids(params.transient_classes, classes),
+                               depth_tolerance=params.depth_tolerance,
+                               depth_tolerance_relative=params.depth_tolerance_relative)
+    if half_life(params) is not None:   # not given: a resumed map keeps its file's half-life (SemanticMap.load)
+        out["evidence_half_life"] = half_life(params)
+    return out
 
 
 def check_exchange(params: NodeParams, smap: SemanticMap) -> None:

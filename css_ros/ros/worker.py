@@ -28,7 +28,7 @@ from ..engine.semantic_map import SemanticMap
 from ..errors import CameraError, MapError
 from ..engine.photometric import psnr
 from ..io.frames import resample_to
-from .params import NodeParams
+from .params import NodeParams, half_life
 from .work import CandidateJob, FrameJob, PointQueryJob, RequestJob, WarnLimiter, WorkQueue
 
 
@@ -66,6 +66,20 @@ def mean_surprise(surprise: np.ndarray | None) -> float:
     finite = np.isfinite(surprise)
     n = int(np.count_nonzero(finite))
     return float(np.sum(surprise, where=finite, dtype=np.float64) / n) if n else math.nan
+
+
+def check_half_life_of(loaded: SemanticMap, running: SemanticMap, path: Path, exchange: bool) -> None:
+    """Refuse (MapError) a map file for ``~/load_map`` whose evidence half-life is not the running map's (its
+    concentrations replace the running map's, whose rules stay), or that forgets while the node exchanges evidence."""
+    h, mine = loaded.evidence_half_life, running.evidence_half_life
+    if h is not None and exchange:
+        raise MapError(f"map file {path} has an evidence half-life ({h:g} observations): its evidence is not "
+                       "additive, and this node exchanges evidence")
+    if h != mine:
+        def name(v: float | None) -> str:
+            return "none" if v is None else f"{v:g} observations"
+        raise MapError(f"map file {path} has the evidence half-life {name(h)}, this node's map {name(mine)}: restart "
+                       "the node on it (it resumes with the file's half-life unless evidence_half_life is set)")
 
 
 class CheckpointPolicy:
@@ -339,11 +353,11 @@ class MapWorker:
         Returns a status line; raises MapError (the current map is then kept unchanged).
         """
         # sensor_model passed (None included): a checkpoint fused with another sensor model is refused
+        # the node's evidence_half_life when set, else the file's (as at start)
+        given = {"evidence_half_life": half_life(self.p)} if half_life(self.p) is not None else {}
         loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C, sensor_model=self.smap.sensor_model,
-                                  evidence_half_life=self.smap.evidence_half_life)
-        if loaded.evidence_half_life is not None and (self.p.publish_evidence or self.p.evidence_in.strip()):
-            raise MapError(f"map file {path} has an evidence half-life ({loaded.evidence_half_life:g} observations): "
-                           "its evidence is not additive, and this node exchanges evidence")
+                                  **given)
+        check_half_life_of(loaded, self.smap, path, self.p.publish_evidence or bool(self.p.evidence_in.strip()))
         with self.map_lock:
             self.smap.concentrations[...] = loaded.concentrations
             self.smap.frames_observed = loaded.frames_observed
