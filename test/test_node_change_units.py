@@ -191,6 +191,18 @@ def test_without_full_resolution_outputs_there_is_no_surprise(model):
     assert sink.views[0].surprise is None and math.isnan(w.last_frame.surprise_mean)
 
 
+def test_a_model_swap_keeps_the_rules_for_a_changing_world(model):
+    from css_ros.engine.transfer import transfer_map
+    from css_ros.ros.model_swap import keep_sensor_model
+
+    old = SemanticMap(model, 4, transient_classes=[1, 3], evidence_half_life=9.0, depth_tolerance=0.2,
+                      depth_scale=2.0)
+    moved, _ = transfer_map(old, model)
+    keep_sensor_model(old, moved)
+    assert moved.transient_classes == [1, 3] and moved.evidence_half_life == 9.0
+    assert moved.change_rules == old.change_rules and moved.change_rules.depth_scale == 2.0
+
+
 def test_load_map_takes_a_file_only_with_the_running_maps_half_life(model, tmp_path):
     path = tmp_path / "m.npz"
     SemanticMap(model, rh.NUM_CLASSES, evidence_half_life=3.0).save(path)

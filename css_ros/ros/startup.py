@@ -165,8 +165,10 @@ def describe_changing_world(smap: SemanticMap, names: tuple[str, ...], params: N
     rules = smap.change_rules
     depth = (f"depth from {params.depth_topic} (tolerance max({rules.tol_abs:g} m, {rules.tol_rel:g} x depth))"
              if params.depth_topic else "no depth_topic")
-    forget = ("evidence half-life " f"{smap.evidence_half_life:g} observations" if smap.evidence_half_life is not None
-              else "no forgetting")
+    forget = "no forgetting"
+    if smap.evidence_half_life is not None:
+        forget = (f"evidence half-life {smap.evidence_half_life:g} observations"
+                  + ("" if params.evidence_half_life > 0 else " (the checkpoint's)"))
     return f"changing world: {depth}; transient classes {transient}; {forget}"
 
 
