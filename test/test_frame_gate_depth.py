@@ -116,10 +116,27 @@ def test_a_frame_waits_for_its_depth_while_the_topic_has_a_publisher():
     assert not g.rec.warnings
 
 
+def test_a_depth_at_the_stamp_wins_over_an_earlier_one_that_came_first():
+    """A 30 Hz depth camera: the depth 33 ms before the frame has arrived, the one at its stamp comes after the
+    segmentation: the frame waits for it and takes it; a depth after the stamp ends the wait too."""
+    g = DepthGate()
+    g.posed(T0, 0.0)
+    g.depth(T0 - 33 * 10**6, 0.0, mm(3000))
+    assert g.seg(T0, 0.01) == []
+    frames = g.depth(T0, 0.05, mm(1000))
+    assert len(frames) == 1 and np.all(frames[0].depth == np.float32(1.0))
+    g.posed(T0 + 10**8, 0.1)
+    g.depth(T0 + 10**8 - 20 * 10**6, 0.1, mm(2000))               # 20 ms before: within sync_slop
+    assert g.seg(T0 + 10**8, 0.11) == []
+    frames = g.depth(T0 + 10**8 + 40 * 10**6, 0.15, mm(4000))     # 40 ms after: ends the wait, the earlier is nearer
+    assert len(frames) == 1 and np.all(frames[0].depth == np.float32(2.0))
+    assert not g.rec.warnings
+
+
 def test_without_its_depth_by_pose_wait_a_frame_is_fused_without_depth_and_warned():
     g = DepthGate()
     g.posed(T0, 0.0)
-    g.depth(T0 + 2 * 10**8, 0.0, mm(1000))                        # 200 ms off: another frame's depth
+    g.depth(T0 - 2 * 10**8, 0.0, mm(1000))                        # 200 ms before: another frame's depth
     assert g.seg(T0, 0.01) == [] and g.gate.poll(0.01 + WAIT * 0.99) == []
     frames = g.gate.poll(0.01 + WAIT)
     assert len(frames) == 1 and frames[0].depth is None

@@ -1,9 +1,10 @@
 """css_node in a changing world over real DDS: a depth camera at 30 Hz beside a 5 Hz segmentation (robot timing:
-latency and jitter, the depth arriving before the segmentation for some frames and after it for others), in 16UC1 and
-32FC1. Someone 1 m in front of the wall hides a block of the view: those pixels are counted occluded and add no
-evidence (the map equals the engine's with that block unlabelled); a person labelled as such (transient_classes by
-name) adds none either; ~/surprise comes with each frame, NaN where the segmentation has no label; a depth stream in
-another encoding is warned once (rate-limited) and dropped, its frames fused without depth at once."""
+latency and jitter, the depth arriving before the segmentation for half the frames and after it for the others,
+when the depth 33 ms earlier is already there: each frame must take the depth of its own stamp), in 16UC1 and 32FC1.
+Someone 1 m in front of the wall hides a block of the view: those pixels are counted occluded and add no evidence
+(the map equals the engine's with that block unlabelled); a person labelled as such (transient_classes by name) adds
+none either; ~/surprise comes with each frame, NaN where the segmentation has no label; a depth stream in another
+encoding is warned once (rate-limited) and dropped, its frames fused without depth at once."""
 from __future__ import annotations
 
 import time
@@ -32,18 +33,19 @@ def scene_labels() -> np.ndarray:
     return labels
 
 
-def scene_depth_m() -> np.ndarray:
-    """The measured depth [m]: the wall at 3 m, the block at 1 m, holes (no measurement) outside the block."""
+def scene_depth_m(block: bool = True) -> np.ndarray:
+    """The measured depth [m]: the wall at 3 m, the block at 1 m (``block``), holes (no measurement) outside it."""
     d = np.full((rh.HEIGHT, rh.WIDTH), 3.0)
-    d[BLOCK] = 1.0
+    if block:
+        d[BLOCK] = 1.0
     holes = np.random.default_rng(1).random(d.shape) < 0.03
     holes[BLOCK] = False
     d[holes] = 0.0
     return d
 
 
-def depth_array(encoding: str) -> np.ndarray:
-    d = scene_depth_m()
+def depth_array(encoding: str, block: bool = True) -> np.ndarray:
+    d = scene_depth_m(block)
     if encoding == "16UC1":
         return np.round(d * 1000).astype(np.uint16)
     return np.where(d > 0, d, np.nan).astype(np.float32)
@@ -56,22 +58,22 @@ def write_classes(path: Path) -> Path:
 
 
 def robot_events(t0: float) -> tuple[list[tuple[float, str, int]], list[float]]:
-    """(arrival [s], kind, index) of a DURATION s stream and the segmentation stamps [s] (from ``t0``). Depth
-    k at t0 + k / 30 arrives 20-45 ms later; segmentation i at the depth stamp 6 i arrives 100-140 ms later; for
-    every other segmentation its depth arrives 150-200 ms after the segmentation instead (a late depth). Poses at
-    100 Hz between the stamps, camera_info at each segmentation stamp."""
+    """(arrival [s], kind, index) of a DURATION s stream and the segmentation stamps [s] (from ``t0``). Depth k at
+    t0 + k / 30; segmentation i at the stamp of depth 6 i, 100-140 ms late. The depth stream is in order (one
+    camera's topic) with a latency of 20-40 ms in the first half (before its segmentation) and 250-270 ms in the second
+    (after it, when the depth 33 ms earlier has long arrived). Poses at 100 Hz between the stamps, camera_info at each
+    segmentation stamp."""
     rng = np.random.default_rng(0)
     per = int(DEPTH_FPS / FPS)
     events: list[tuple[float, str, int]] = []
     seg_stamps = []
     for k in range(int(DURATION * DEPTH_FPS)):
         t = t0 + k / DEPTH_FPS
-        late = k % per == 0 and (k // per) % 2 == 1
-        arrival = t + rng.uniform(0.10, 0.14)
         if k % per == 0:
             seg_stamps.append(t)
-            events += [(t, "info", k), (arrival, "seg", k)]
-        events.append((arrival + rng.uniform(0.15, 0.2) if late else t + rng.uniform(0.02, 0.045), "depth", k))
+            events += [(t, "info", k), (t + rng.uniform(0.10, 0.14), "seg", k)]
+        latency = 0.02 if t - t0 < DURATION / 2 else 0.25
+        events.append((t + latency + rng.uniform(0.0, 0.02), "depth", k))
     events += [(t0 - 0.05 + j / 100.0 + 0.005, "pose", j) for j in range(int((DURATION + 0.5) * 100))]
     return sorted(events), seg_stamps
 
@@ -100,7 +102,9 @@ class DepthRobot:
         """Publish the robot stream in real time; returns the segmentation stamps [ns]."""
         wall0, stamp0 = time.monotonic(), time.time_ns() * 1e-9
         events, seg_stamps = robot_events(0.3)
-        depth = depth_array(encoding)
+        # only the depths at a segmentation's stamp show the block: a frame given a neighbour (33 ms off) shows none
+        depth, between = depth_array(encoding), depth_array(encoding, block=False)
+        per = int(DEPTH_FPS / FPS)
         ns = lambda t: int(round((stamp0 + t) * 1e9))   # noqa: E731
         for t, kind, k in events:
             delay = wall0 + t - time.monotonic()
@@ -114,7 +118,7 @@ class DepthRobot:
             elif kind == "seg":
                 self.client.send_image("segmentation", stamp, self.labels, "mono8")
             else:
-                self.send_depth(stamp, depth, encoding)
+                self.send_depth(stamp, depth if k % per == 0 else between, encoding)
         return [ns(t) for t in seg_stamps]
 
 

@@ -13,8 +13,10 @@ pose is not yet bracketed (or whose confidence, or its camera's first camera_inf
 ``pose_wait`` s; frames of a camera are emitted in stamp order.
 
 With ``depth_topic`` set, a frame also takes the depth image of its camera nearest its stamp (within
-``sync_slop``): while ``depth_expected(camera)`` (the node: the depth topic has a publisher) it waits for one up to
-``pose_wait`` s, like for its confidence, but then goes on **without** depth (counted and warned, never dropped:
+``sync_slop``). While ``depth_expected(camera)`` (the node: the depth topic has a publisher) it first waits, up to
+``pose_wait`` s like for its confidence, until a depth stamped at or after its own has arrived (a depth camera faster
+than the segmentation has one 33 ms before and one at the stamp: the one at the stamp must win even when it comes
+after the segmentation); then it takes the nearest, or goes on **without** depth (counted and warned, never dropped:
 the depth only refines the update). A depth message that cannot be used (bad encoding, truncated) is warned and
 dropped, and the frame with its stamp goes on without depth at once (it does not wait for another). The depth is
 brought to the segmentation's resolution by the nearest pixel (:func:`~css_ros.io.frames.depth_for`).
@@ -491,8 +493,8 @@ class FrameGate:
             if not waited and any(self._nearest(st.buffers[k], fr.stamp_ns) is None for k in self.cfg.wait_for):
                 break
             if not waited and self.depth_expected is not None and self.depth_expected(cam) and \
-                    self._nearest(st.buffers["depth"], fr.stamp_ns) is None:
-                break
+                    not any(t >= fr.stamp_ns for t, _ in st.buffers["depth"]):
+                break   # a depth at or after the stamp may still come: nearer than one before it
             if st.info is None and not waited:
                 # the camera's first camera_info may arrive after its first segmentation: DDS orders no two topics
                 break

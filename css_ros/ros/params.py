@@ -80,9 +80,10 @@ class NodeParams:
     use_confidence: bool = _p(True, "", "synchronise segmentation_confidence whenever it has a publisher")
     depth_topic: str = _p("", "topic", "measured depth registered to the segmentation (sensor_msgs/Image 16UC1 in "
                           "millimetres or 32FC1 in metres along the optical axis; 0, NaN, inf: no measurement), "
-                          "matched by stamp like the colour image; relative names are read under each camera's "
-                          "namespace (<ns>/<depth_topic>); a frame waits for it up to pose_wait while it has a "
-                          "publisher, then is fused without depth (counted); empty: off")
+                          "matched by stamp like the colour image (nearest within sync_slop); relative names are "
+                          "read under each camera's namespace (<ns>/<depth_topic>); while it has a publisher a frame "
+                          "waits up to pose_wait for a depth stamped at or after its own, else it is fused without "
+                          "depth (counted); empty: off")
     # --- poses, cameras and frames (docs/reliability.md "Poses by time"; README "On your robot")
     pose_source: str = _p("topic", "", "where camera poses come from: topic (the pose topic, pose_type, composed "
                           "with camera_extrinsics) or tf (/tf and /tf_static: the pose of each segmentation's "
