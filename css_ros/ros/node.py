@@ -242,7 +242,8 @@ class CssNode(Node):
             reporter.publish()
 
     def _diagnostics_info(self) -> dict[str, str]:
-        """Diagnostics entries beyond the counters: the update in use and ``subscribers[<output>]``."""
+        """Diagnostics entries beyond the counters: the update in use, ``subscribers[<output>]`` and the last fused
+        frame's ``last_pixels_transient``, ``last_pixels_occluded`` and ``last_surprise_mean``."""
         counts = {f"subscribers[{name}]": str(n) for name, n in self.outputs.subscriber_counts().items()}
         last = self.worker.last_frame
         frame = {"last_pixels_transient": str(last.transient), "last_pixels_occluded": str(last.occluded),
