@@ -104,11 +104,19 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
                                                    i32_1), 256),
         ("moments", k.moments_kernel.py_func, (f64_2, i32_1, i64_1, f32_2), 256),
     ]
-    # the update reads the labels as the segmentation topic carries them (here uint8, mono8) and a float32 confidence
-    update_args = (i64_1, i32_1, f64_2, i32_1, uint8[:, ::1], f32_2, boolean, int64, int64, f64_2, i64_1, i64_1)
-    out += [(f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func, update_args, nt),
-            (f"update_model_C{num_classes}", k.make_update_kernel(num_classes, tile, True, MODEL_BINS).py_func,
-             (*update_args, f64_1, f64_2), nt)]
+    # the update reads the labels as the segmentation topic carries them (here uint8, mono8) and a float32 confidence;
+    # then the changing world's arguments (transient mask, depth, tolerances, depth scale, pair rows, moments,
+    # surprise); "_world" variants compile all of its rules in (measured depth, surprise, transient classes)
+    update_args = (i64_1, i32_1, f64_2, i32_1, uint8[:, ::1], f32_2, boolean, int64, int64, f64_2, i32_1, i64_1,
+                   boolean[::1], f32_2, float64, float64, float64, i32_1, f32_2, f32_2)
+    for world, label in ((False, ""), (True, "_world")):
+        out += [(f"update{label}_C{num_classes}",
+                 k.make_update_kernel(num_classes, tile, False, 1, world, world, world).py_func, update_args, nt),
+                (f"update_model{label}_C{num_classes}",
+                 k.make_update_kernel(num_classes, tile, True, MODEL_BINS, world, world, world).py_func,
+                 (*update_args, f64_1, f64_2), nt)]
+    out.append(("apply_increments", k.apply_increments_kernel.py_func,
+                (f64_2, i32_1, i64_1, f64_2, i32_1, float64, float64, f64_2), 256))
     render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, f64_1, f64_2, i64_1, int64, int64, int64, int64,
                   i32_1, float32[::1], uint8[::1], f64_1, f64_2, f64_1, f64_1, f64_1)
     for score, probs, mass, label in ((False, False, False, "render"), (False, True, False, "render_probs"),
