@@ -164,7 +164,7 @@ def stub_map(model: Any, num_classes: int) -> Any:
     from css_ros.engine.label_input import NUM_COUNTS
 
     smap = SemanticMap(model, num_classes, backend="cuda")
-    backend = smap._backend
+    backend: Any = smap._backend
     backend.ops = ops = StubOps()
     backend.k = StubKernels(backend.k)
     for name in ("means", "cov3d", "opacities", "max_std", "sh"):

@@ -273,9 +273,9 @@ def test_sensor_model_with_depth_transient_surprise_and_half_life():
 
 def test_rules_keep_one_synchronisation_and_the_default_its_launches():
     """After the first frame of a size: an observe without the rules (and without the surprise) is the plain
-    update's five launches; with measured depth, transient classes, the surprise and a half-life it is seven (the
-    moments before the update, the increments applied) and still one copy to the host, and the uploads are the
-    camera, the labels and the depth."""
+    update's five launches; the surprise adds one (the moments before the update); with measured depth, transient
+    classes, the surprise and a half-life it is seven (the increments applied too); always one copy to the host, and
+    the uploads are the camera, the labels (and the depth)."""
     model, cam = random_scene(24, n=120), camera(width=W, height=H, f=12.0)
     pixels = scene_pixels(model, cam)
     lab, conf = frame_inputs(cam, 3)
@@ -283,6 +283,7 @@ def test_rules_keep_one_synchronisation_and_the_default_its_launches():
     plain = SemanticMap(model, C, backend="cuda")
     world = SemanticMap(model, C, backend="cuda", transient_classes=[0], evidence_half_life=3.0)
     for smap, frame, launches, uploads in ((plain, dict(outputs=("labels",)), 5, ["plan_camera", "labels"]),
+                                           (plain, dict(outputs=("labels", "surprise")), 6, ["plan_camera", "labels"]),
                                            (world, dict(depth=depth), 7, ["plan_camera", "labels", "depth"])):
         backend, ops = smap._backend, smap._backend.ops
         smap.observe(cam, lab, None, **frame)             # binds the launches of this size
