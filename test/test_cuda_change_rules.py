@@ -59,10 +59,11 @@ def pixel_vote(raw, conf, ignore):
 
 
 def world_reference(pixels, alpha, labels, conf, *, ignore=255, transient=(), depth=None, scale=1.0, decay=1.0,
-                    soft=None):
+                    soft=None, front=True):
     """The changing world's update of one frame in float64, pixel by pixel (the module docstring of change_rules):
     (alpha after, counts (used, ignored, out of range, no depth, transient, occluded), surprise (P,) NaN without a
-    vote). ``soft``: a sensor model's (edges in splat units, table) with the bin of the rendered depth."""
+    vote). ``soft``: a sensor model's (edges in splat units, table) with the bin of the rendered depth; ``front``
+    False: keep the contributions in front of the measured surface (to show that the rule matters)."""
     kap, bg, z = pixels
     z = np.where(np.isfinite(z), z, 0.0)     # Gaussians not in view: kappa 0 everywhere
     e_n = alpha / alpha.sum(axis=1, keepdims=True)
@@ -90,7 +91,8 @@ def world_reference(pixels, alpha, labels, conf, *, ignore=255, transient=(), de
             if d < (k @ z) / k.sum() * scale - tau:
                 counts[5] += 1
                 continue
-            keep &= z * scale >= d - tau
+            if front:
+                keep &= z * scale >= d - tau
         counts[0] += 1
         vote = np.zeros(C)
         vote[y] = w
@@ -181,9 +183,11 @@ def test_transient_occluded_and_front_drop_match_the_brute_force(case):
     assert sum(counts) - counts[3] == cam.width * cam.height
     assert counts[4] > 0 and counts[5] > 0 and counts[0] > 0
     np.testing.assert_allclose(gpu.concentrations, want, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
-    # the rules changed the result: without them the same frame adds more (front contributions, occluded pixels)
+    # each rule changed the result: without the depth rules, or without the front drop alone, the frame adds more
     plain, _, _ = world_reference(pixels, alpha0, lab, conf, transient=(1,), scale=scale)
     assert np.abs(plain - want).max() > 0.05
+    kept, _, _ = world_reference(pixels, alpha0, lab, conf, transient=(1,), depth=depth, scale=scale, front=False)
+    assert np.abs(kept - want).max() > 0.05
     assert np.all(gpu.concentrations[:, 1] == PRIOR)       # the transient class never gets evidence
 
 
