@@ -52,6 +52,25 @@ PACK_COLS = 8   # per kept pair: u, v, conic a, b, c, opacity, qmax, depth
 # The update's staged rows hold a float32 sum per class: up to C = 40 a batch of 64 Gaussians fits in
 # 12 KiB; beyond, the batch shrinks so that 12 blocks (37.5 % occupancy) stay resident on an sm_80 SM.
 UPDATE_SHARED_BUDGET = 12 * 1024
+# Registers per thread of the update (test/test_cuda_ptx.py's budget). The variants with the changing world's rules
+# tell ptxas through launch bounds (left alone it gives them 72 on sm_80; with the bound 60, no spills); the
+# paper's update is compiled as it always was.
+UPDATE_MAX_REGISTERS = 64
+REGISTERS_PER_SM = 65536
+
+
+def update_launch_bounds(tile: int) -> tuple[int, int]:
+    """(threads per block, resident blocks) that hold the update to :data:`UPDATE_MAX_REGISTERS` registers."""
+    nt = tile * tile
+    return nt, max(1, REGISTERS_PER_SM // (UPDATE_MAX_REGISTERS * nt))
+
+
+def _update_jit(tile: int, with_rules: bool) -> Any:
+    """``cuda.jit`` of an update kernel: with launch bounds for a variant with rules (not under the simulator, which
+    has none)."""
+    if with_rules and not simulator_enabled():
+        return cuda.jit(launch_bounds=update_launch_bounds(tile))  # type: ignore[call-arg]  # (mypy sees the simulator)
+    return cuda.jit
 
 
 _fov_limits = cuda.jit(device=True, inline=True)(fov_limits)
@@ -357,29 +376,27 @@ def measured_depth(depth, u, v):  # pragma: no cover
 def gate_pixel(status, measured, zsum, ksum, tol_abs, tol_rel, depth_scale):  # pragma: no cover
     """(status, front) of a pixel after the measured-depth rule (:func:`css_ros.engine.change_rules.depth_gate`):
     OCCLUDED for a USED pixel whose measurement is nearer than its rendered depth sum kappa z / sum kappa (splat
-    units, times ``depth_scale``: metres) by more than the tolerance; ``front`` [m]: the contributions of Gaussians
-    nearer than it add no evidence (-inf: none dropped)."""
+    units, times ``depth_scale``: metres) by more than the tolerance; ``front``: float32, in splat units, the camera
+    depth of the Gaussians whose contributions add no evidence when nearer (-inf: none dropped; the voting walk then
+    compares it with the staged float32 z, a register fewer than the float64 metres)."""
     if status != USED:
-        return status, -math.inf
+        return status, float32(-math.inf)
     rendered = math.nan
     if ksum > float32(0.0):
         rendered = float64(zsum) / float64(ksum) * depth_scale
     occluded, front = _depth_gate(measured, rendered, tol_abs, tol_rel)
     if occluded:
-        return OCCLUDED, -math.inf
-    return status, front
+        return OCCLUDED, float32(-math.inf)
+    return status, float32(front / depth_scale)
 
 
 @cuda.jit(device=True, inline=True)
-def write_surprise(surprise, u, v, asked, esum, trans, num_classes):  # pragma: no cover
-    """surprise[v, u] = 1 - E^y (E^y = sum_n kappa_n E_n^y + kappa_b / C before the update) for a pixel with a vote
-    (``asked``), NaN for one without (ignored, out of range); nothing outside the image."""
+def write_surprise(surprise, u, v, esum, trans, num_classes):  # pragma: no cover
+    """surprise[v, u] = 1 - E^y with E^y = sum_n kappa_n E_n^y (``esum``: NaN for a pixel without a vote, which
+    makes its surprise NaN) + kappa_b / C before the update; nothing outside the image."""
     height, width = surprise.shape
     if u < width and v < height:
-        value = math.nan
-        if asked:
-            value = 1.0 - (float64(esum) + float64(trans) / num_classes)
-        surprise[v, u] = float32(value)
+        surprise[v, u] = float32(1.0 - (float64(esum) + float64(trans) / num_classes))
 
 
 @cuda.jit(device=True, inline=True)
@@ -484,7 +501,7 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
     e_rows = batch if with_surprise else 1
     gated = with_depth or with_transient
 
-    @cuda.jit
+    @_update_jit(tile, gated or with_surprise)
     def update_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
                       target, counts, sizes, transient, depth, tol_abs, tol_rel, depth_scale, pair_row, mom,
                       surprise):  # pragma: no cover
@@ -512,7 +529,7 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
         end = offsets[t + 1]
         if with_transient:
             status = _transient_status(lab, status, transient)
-        front = -math.inf
+        front = float32(-math.inf)
         if with_depth:  # walk 1 (pixels with a measurement): the rendered depth of the gate
             measured = measured_depth(depth, u, v)
             zsum, ksum, _, _ = first_walk(s_g, s_z, s_row, order, packed, pair_row, mom, start, end, batch, tid, fu,
@@ -521,10 +538,15 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
         count_pixels(status, counts)
         if gated:
             count_changes(status, counts)
-        voted = status == USED
-        done = not (asked if with_surprise else voted)
-        trans = float32(1.0)
+        done = status != USED
         esum = float32(0.0)
+        if with_surprise:  # pixels with a vote walk for their surprise, those the rules stopped vote nothing
+            done = not asked
+            if status != USED:
+                w = float32(0.0)
+            if not asked:
+                esum = float32(math.nan)
+        trans = float32(1.0)
         for b0 in range(start, end, batch):
             if cuda.syncthreads_count(0 if done else 1) == 0:
                 break  # every labelled pixel of the tile has terminated
@@ -545,18 +567,15 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
                 if not done:
                     kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
                     contrib = kappa * w
-                    if with_surprise:
-                        if kappa != float32(0.0):
-                            esum += kappa * mom[s_row[k], lab]
-                        if not voted:
-                            contrib = float32(0.0)
-                    if with_depth and float64(s_z[k]) * depth_scale < front:
+                    if with_surprise and kappa != float32(0.0):
+                        esum += kappa * mom[s_row[k], lab]
+                    if with_depth and s_z[k] < front:
                         contrib = float32(0.0)  # in front of the measured surface: no evidence
                 vote(s_acc, k, contrib, lab, lane)
             cuda.syncthreads()
             flush_sums(s_acc, s_id, n, C, tid, nt, target)
         if with_surprise:
-            write_surprise(surprise, u, v, asked, esum, trans, C)
+            write_surprise(surprise, u, v, esum, trans, C)
     return update_kernel
 
 
@@ -670,7 +689,7 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int, with_d
     e_rows = batch if with_surprise else 1
     gated = with_depth or with_transient
 
-    @cuda.jit
+    @_update_jit(tile, gated or with_surprise)
     def update_model_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
                             target, counts, sizes, transient, depth, tol_abs, tol_rel, depth_scale, pair_row, mom,
                             surprise, edges, table):  # pragma: no cover
@@ -703,12 +722,14 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int, with_d
         walking = asked if with_surprise else status == USED
         zsum, ksum, esum, trans = first_walk(s_g, s_z, s_mrow, order, packed, pair_row, mom, start, end, batch, tid,
                                              fu, fv, walking, lab, with_surprise)
-        front = -math.inf
+        front = float32(-math.inf)
         if with_depth:
             status, front = gate_pixel(status, measured_depth(depth, u, v), zsum, ksum, tol_abs, tol_rel,
                                        depth_scale)
         if with_surprise:
-            write_surprise(surprise, u, v, asked, esum, trans, C)
+            if not asked:
+                esum = float32(math.nan)
+            write_surprise(surprise, u, v, esum, trans, C)
         count_pixels(status, counts)  # (barriers: also, walk 1 is over)
         if gated:
             count_changes(status, counts)
@@ -741,7 +762,7 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int, with_d
                 if not done:
                     kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
                     contrib = kappa * w
-                    if with_depth and float64(s_z[k]) * depth_scale < front:
+                    if with_depth and s_z[k] < front:
                         contrib = float32(0.0)  # in front of the measured surface: no evidence
                 vote(s_acc, k, contrib, slot, lane)
             cuda.syncthreads()

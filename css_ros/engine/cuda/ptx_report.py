@@ -88,7 +88,8 @@ def _use_toolkit_libdevice(home: Path) -> None:
 
 def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple, int]]:
     """(name, python function, numba argument types, block size) of every kernel, with the types the
-    backend launches them with (C-contiguous device arrays; Python ints int64, floats float64)."""
+    backend launches them with (C-contiguous device arrays; Python ints int64, floats float64); the launch bounds
+    a kernel is compiled with are :func:`launch_bounds`'s."""
     from numba import boolean, float32, float64, int32, int64, uint8
 
     from . import kernels as k
@@ -127,6 +128,14 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
             ("observe_expected", k.observe_expected_kernel.py_func, (f64_1, i32_1, i32_1, int64, float64, f64_2),
              256)]
     return out
+
+
+def launch_bounds(name: str, tile: int) -> tuple[int, int] | None:
+    """The launch bounds the backend compiles kernel ``name`` with (the update variants with the changing world's
+    rules: :func:`~css_ros.engine.cuda.kernels.update_launch_bounds`), else None."""
+    from . import kernels as k
+
+    return k.update_launch_bounds(tile) if name.startswith(("update_world", "update_model_world")) else None
 
 
 _REGS = re.compile(r"Used (\d+) registers")
@@ -169,7 +178,8 @@ def report(classes: list[int], ccs: list[tuple[int, int]], tile: int) -> list[Ke
                     continue
                 seen.add((name, cc))
                 config.FORCE_CUDA_CC = cc  # type: ignore[attr-defined]  # without libnvrtc: the target
-                ptx, _ = cuda.compile_ptx(func, sig, cc=cc)
+                ptx, _ = cuda.compile_ptx(func, sig, cc=cc,  # type: ignore[call-arg]  # numba-cuda >= 0.20
+                                          launch_bounds=launch_bounds(name, tile))
                 stats.append(KernelStats(name, cc, threads, *assemble(ptx, cc, home)))
     return stats
 
