@@ -1,6 +1,6 @@
 """The CUDA backend's rules for a changing world (css_ros/engine/change_rules.py: transient classes, measured depth,
 forgetting, surprise), run through the numba-cuda simulator against a float64 brute force written here pixel by pixel
-(test/css_reference.py gives every pixel's kappa), on tiny scenes.
+(test/css_reference.py gives every pixel's kappa) and against the numba backend, on tiny scenes.
 
 Like test_cuda_sim.py, the simulator must be switched on before numba is imported: these tests run in a subprocess
 started by test/test_cuda_backend.py (NUMBA_ENABLE_CUDASIM=1; on a machine with a GPU, CSS_CUDA_CHECKS=device runs
@@ -157,6 +157,21 @@ def counts_of(stats):
     return (stats.used, stats.ignored, stats.out_of_range, stats.no_depth, stats.transient, stats.occluded)
 
 
+def both(model, **kwargs):
+    """(cuda map, numba map) with the same arguments."""
+    return SemanticMap(model, C, backend="cuda", **kwargs), SemanticMap(model, C, **kwargs)
+
+
+def assert_same(gpu, cpu, view=None, cpu_view=None):
+    """The CUDA map agrees with the numba map: the last update's counts exactly, the concentrations within the float32
+    walk's tolerance, the surprise images within SURPRISE_ATOL (NaN at the same pixels)."""
+    assert gpu.last_update == cpu.last_update
+    np.testing.assert_allclose(gpu.concentrations, cpu.concentrations, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+    if view is not None:
+        np.testing.assert_array_equal(np.isnan(view.surprise), np.isnan(cpu_view.surprise))
+        np.testing.assert_allclose(view.surprise, cpu_view.surprise, atol=SURPRISE_ATOL, equal_nan=True)
+
+
 CASES = [
     # a random cloud, metres = 2 splat units
     dict(scene=lambda: random_scene(21, n=120), cam=dict(width=W, height=H, f=12.0), scale=2.0),
@@ -174,9 +189,11 @@ def test_transient_occluded_and_front_drop_match_the_brute_force(case):
     pixels = scene_pixels(model, cam)
     lab, conf = frame_inputs(cam, case)
     depth = measured_depth(pixels, scale, case).reshape(cam.height, cam.width)
-    gpu = SemanticMap(model, C, backend="cuda", depth_scale=scale, transient_classes=[1],
-                      depth_tolerance=TOL_ABS, depth_tolerance_relative=TOL_REL)
+    gpu, cpu = both(model, depth_scale=scale, transient_classes=[1], depth_tolerance=TOL_ABS,
+                    depth_tolerance_relative=TOL_REL)
     stats = gpu.update(cam, lab, conf, depth=depth)
+    cpu.update(cam, lab, conf, depth=depth)
+    assert_same(gpu, cpu)
     alpha0 = np.full((model.num_gaussians, C), PRIOR)
     want, counts, _ = world_reference(pixels, alpha0, lab, conf, transient=(1,), depth=depth, scale=scale)
     assert counts_of(stats) == counts
@@ -203,6 +220,9 @@ def test_depth_without_a_measurement_is_the_plain_update():
     sa = a.update(cam, lab, conf, depth=depth)
     sb = b.update(cam, lab, conf)
     assert sa == sb and sa.occluded == 0 and sa.used > 0
+    cpu = SemanticMap(model, C)
+    cpu.update(cam, lab, conf, depth=depth)
+    assert_same(a, cpu)
     np.testing.assert_allclose(a.concentrations, b.concentrations, rtol=1e-6, atol=0)
     want, counts, _ = world_reference(scene_pixels(model, cam), np.full((model.num_gaussians, C), PRIOR), lab, conf)
     assert counts_of(sa) == counts
@@ -210,15 +230,16 @@ def test_depth_without_a_measurement_is_the_plain_update():
 
 
 def test_surprise_and_half_life_over_several_frames():
-    """Four observed frames of moving cameras with an evidence half-life of 1.5 observations, transient classes and
-    measured depth: after each frame the concentrations follow the float64 brute force applied frame after frame
-    (only Gaussians that received evidence decay), and each frame's surprise is 1 - E^y under the map before it (NaN
-    without a vote), brought by the view's one copy."""
+    """Four frames of moving cameras with an evidence half-life of 1.5 observations, transient classes and measured
+    depth every other frame: after each frame the concentrations follow the float64 brute force applied frame after
+    frame (only Gaussians that received evidence decay) and the numba map; each observed frame's surprise is
+    1 - E^y under the map before it (NaN without a vote), brought by the view's one copy. The last frame is an
+    update alone (the batched path's frame: its own increments buffer)."""
     model = random_scene(23, n=120)
     cams = [camera(width=W, height=H, f=12.0, position=(0.08 * i, -0.03 * i, 0.05 * i)) for i in range(4)]
     half_life = 1.5
-    gpu = SemanticMap(model, C, backend="cuda", transient_classes=[2], evidence_half_life=half_life,
-                      depth_tolerance=TOL_ABS, depth_tolerance_relative=TOL_REL)
+    gpu, cpu = both(model, transient_classes=[2], evidence_half_life=half_life, depth_tolerance=TOL_ABS,
+                    depth_tolerance_relative=TOL_REL)
     decay = 2.0 ** (-1.0 / half_life)
     want = np.full((model.num_gaussians, C), PRIOR)
     ops = gpu._backend.ops
@@ -230,11 +251,18 @@ def test_surprise_and_half_life_over_several_frames():
         pixels = scene_pixels(model, cam)
         lab, conf = frame_inputs(cam, 40 + i)
         depth = measured_depth(pixels, 1.0, 40 + i).reshape(cam.height, cam.width) if i % 2 else None
+        before = want
+        want, counts, surprise = world_reference(pixels, before, lab, conf, transient=(2,), depth=depth, decay=decay)
+        if i == len(cams) - 1:
+            assert counts_of(gpu.update(cam, lab, conf, depth=depth)) == counts
+            cpu.update(cam, lab, conf, depth=depth)
+            assert_same(gpu, cpu)
+            np.testing.assert_allclose(gpu.concentrations, want, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
+            break
         copies.clear()
         view = gpu.observe(cam, lab, conf, depth=depth)
         assert len(copies) == 1                          # counts and surprise came with the view
-        before = want
-        want, counts, surprise = world_reference(pixels, before, lab, conf, transient=(2,), depth=depth, decay=decay)
+        assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, depth=depth))
         assert counts_of(gpu.last_update) == counts
         np.testing.assert_allclose(gpu.concentrations, want, rtol=KAPPA_RTOL, atol=KAPPA_ATOL, err_msg=f"frame {i}")
         got = view.surprise
@@ -258,8 +286,8 @@ def test_sensor_model_with_depth_transient_surprise_and_half_life():
                          rng.dirichlet(np.full(C, 0.7), (C, SENSOR["bins"])))
     model, cam = random_scene(0, n=60, log_scale=(-3.0, -1.5)), camera(width=W, height=H, f=12.0)
     scale = 1.25
-    gpu = SemanticMap(model, C, backend="cuda", sensor_model=sensor, depth_scale=scale, transient_classes=[3],
-                      evidence_half_life=2.0, depth_tolerance=TOL_ABS, depth_tolerance_relative=TOL_REL)
+    gpu, cpu = both(model, sensor_model=sensor, depth_scale=scale, transient_classes=[3], evidence_half_life=2.0,
+                    depth_tolerance=TOL_ABS, depth_tolerance_relative=TOL_REL)
     soft = sensor.soft_labels(scale)
     pixels = scene_pixels(model, cam)
     want = np.full((model.num_gaussians, C), PRIOR)
@@ -267,6 +295,7 @@ def test_sensor_model_with_depth_transient_surprise_and_half_life():
         lab, conf = frame_inputs(cam, 60 + i)
         depth = measured_depth(pixels, scale, 60 + i).reshape(cam.height, cam.width)
         view = gpu.observe(cam, lab, conf, depth=depth)
+        assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, depth=depth))
         want, counts, surprise = world_reference(pixels, want, lab, conf, transient=(3,), depth=depth, scale=scale,
                                                  decay=2.0 ** -0.5, soft=(soft.edges, soft.table))
         assert counts_of(gpu.last_update) == counts
@@ -332,13 +361,15 @@ def test_a_frame_beyond_the_plan_forgets_once():
     model, cam = random_scene(25, n=120), camera(width=W, height=H, f=12.0)
     pixels = scene_pixels(model, cam)
     lab, conf = frame_inputs(cam, 9)
-    gpu = SemanticMap(model, C, backend="cuda", evidence_half_life=1.0)
+    gpu, cpu = both(model, evidence_half_life=1.0)
     gpu.concentrations[...] = 0.5                        # evidence to forget
+    cpu.concentrations[...] = 0.5
     backend = gpu._backend
     tx = -(-cam.width // TILE_SIZE)
     plan = ViewPlan(backend.ops, cam.width, cam.height, tx, tx * -(-cam.height // TILE_SIZE), 3, 400)
     backend._plans[(cam.width, cam.height)] = plan
     view = gpu.observe(cam, lab, conf)
+    assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf))
     assert plan.buffers.pairs > 3
     want, counts, surprise = world_reference(pixels, np.full((model.num_gaussians, C), 0.5), lab, conf, decay=0.5)
     assert counts_of(gpu.last_update) == counts
