@@ -161,9 +161,10 @@ class StubKernels:
 def stub_map(model: Any, num_classes: int) -> Any:
     """A SemanticMap on backend "cuda" whose device is the stub device."""
     from css_ros import SemanticMap
+    from css_ros.engine.label_input import NUM_COUNTS
 
     smap = SemanticMap(model, num_classes, backend="cuda")
-    backend = smap._backend
+    backend: Any = smap._backend
     backend.ops = ops = StubOps()
     backend.k = StubKernels(backend.k)
     for name in ("means", "cov3d", "opacities", "max_std", "sh"):
@@ -173,7 +174,10 @@ def stub_map(model: Any, num_classes: int) -> Any:
     backend._empty_views = backend._word_views(ops.zeros(16, np.int32))
     backend._empty_scores = ops.zeros((1, 2), np.float64)
     backend._no_confidence = ops.zeros((1, 1), np.float32)
-    backend._counts_dev = ops.zeros(4, np.int64)
+    backend._no_image = ops.zeros((1, 1), np.float32)
+    backend._no_transient = ops.zeros(1, np.bool_)
+    backend._transient = (b"", backend._no_transient)
+    backend._counts_dev = ops.zeros(NUM_COUNTS, np.int32)
     backend._conc = None
     backend._plans.clear()
     backend._out = None

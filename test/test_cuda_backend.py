@@ -2,7 +2,8 @@
 
 - test_simulated_kernels runs test/test_cuda_sim.py in a subprocess with NUMBA_ENABLE_CUDASIM=1
   (the simulator must be chosen before numba is imported; this process has numba CPU kernels loaded); on a machine
-  with a GPU it runs the same checks on the device.
+  with a GPU it runs the same checks on the device. test_simulated_change_rules does the same for
+  test/test_cuda_change_rules.py.
 - Without a GPU and without the simulator, asking for backend "cuda" is a clear CssError.
 - On a machine with a GPU, the same comparison with the numba path runs on the device.
 """
@@ -45,6 +46,20 @@ def test_simulated_kernels():
         env["CSS_CUDA_CHECKS"] = "device"
     out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                           str(ROOT / "test" / "test_cuda_sim.py")],
+                         env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-3000:]
+    assert " passed" in out.stdout and "skipped" not in out.stdout.splitlines()[-1], out.stdout[-2000:]
+
+
+@needs_numba_cuda
+def test_simulated_change_rules():
+    """The changing world's rules of test_cuda_change_rules.py (float64 brute force) under the simulator, or on the
+    GPU where there is one."""
+    env = _env(not GPU)
+    if GPU:
+        env["CSS_CUDA_CHECKS"] = "device"
+    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                          str(ROOT / "test" / "test_cuda_change_rules.py")],
                          env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-3000:]
     assert " passed" in out.stdout and "skipped" not in out.stdout.splitlines()[-1], out.stdout[-2000:]

@@ -11,7 +11,8 @@ Budgets and why (block = one 8x8 tile = 64 threads for update/render; 256 for th
   and ADE20k's 150: the staged batch shrinks for large C): its inner step is a few FLOPs per
   shared-memory read, so latency is hidden by warps, not ILP. The sensor-model variant
   (update_model, 4 depth bins: 64 row slots per staged Gaussian) has the same budget, its shared
-  memory within the same 12 KiB.
+  memory within the same 12 KiB, and so have both with every rule of a changing world compiled in
+  (update_world, update_model_world: measured depth, surprise, transient classes).
 - Render / score: <= 64 registers in one class pass (C <= 40), <= 80 with several passes (the running
   argmax, its E and Var carried across passes); the per-pixel class sums of one pass (2 min(C, 40) x
   64 x 4 B) dominate shared memory, so occupancy falls with C up to 40 and then stays: >= 33 % at
@@ -19,7 +20,7 @@ Budgets and why (block = one 8x8 tile = 64 threads for update/render; 256 for th
   broadcast reads of the class moments).
 - Projection: <= 128 registers, i.e. 25 % occupancy (16 warps/SM streaming one Gaussian per thread;
   its float64 EWA maths, shared with the CPU kernel, is register-heavy; 25 % holds up to 128).
-- emit_keys / moments / view_gain / observe_expected: <= 64 registers.
+- emit_keys / moments / view_gain / observe_expected / apply_increments (forgetting): <= 64 registers.
 - score_gain (the score with the info gain's second walk for the evidence mass): the render's budget.
 """
 from __future__ import annotations
@@ -66,9 +67,9 @@ def _kernels(stats, prefix):
 
 @pytest.mark.slow
 def test_every_kernel_assembled_for_both_architectures(stats):
-    names = {"project", "emit_keys", "moments", "view_gain", "observe_expected"} | {
-        f"{k}_C{c}" for c in CLASSES for k in ("update", "update_model", "render", "render_probs", "score",
-                                               "score_gain")}
+    names = {"project", "emit_keys", "moments", "view_gain", "observe_expected", "apply_increments"} | {
+        f"{k}_C{c}" for c in CLASSES for k in ("update", "update_model", "update_world", "update_model_world",
+                                               "render", "render_probs", "score", "score_gain")}
     assert set(stats) == {(n, cc) for n in names for cc in ARCHS}
 
 
@@ -81,7 +82,7 @@ def test_no_local_memory_anywhere(stats):
 
 @pytest.mark.slow
 def test_update_budget(stats):
-    for prefix in ("update", "update_model"):
+    for prefix in ("update", "update_model", "update_world", "update_model_world"):
         for key, r in _kernels(stats, prefix):
             assert r["registers"] <= 64 and r["occupancy"] >= 0.375, (key, r)
             assert r["shared"] <= 12 * 1024, (key, r)
@@ -104,7 +105,7 @@ def test_render_budget(stats):
 def test_streaming_kernels_budget(stats):
     for key, r in _kernels(stats, "project"):
         assert r["registers"] <= 128 and r["occupancy"] >= 0.25, (key, r)
-    for prefix in ("emit_keys", "moments", "view_gain", "observe_expected"):
+    for prefix in ("emit_keys", "moments", "view_gain", "observe_expected", "apply_increments"):
         for key, r in _kernels(stats, prefix):
             assert r["registers"] <= 64, (key, r)
 

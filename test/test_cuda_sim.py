@@ -488,13 +488,17 @@ def test_labels_and_confidence_as_they_come(dtype, conf_dtype, ignore):
 def test_observe_and_query_make_one_synchronisation_and_bind_launches_once():
     """After the first frame of a size, an observe and a query render each make exactly one device -> host copy (the
     view's, which also brings the update's counts and the frame's sizes) and no other download, and launch only
-    launches bound at the first frame: project, emit keys, update, moments, render for an observe."""
+    launches bound at the first frame: project, emit keys, update, moments, render for an observe of every image but
+    the surprise (which adds the moments before the update: test_cuda_change_rules.py)."""
+    from css_ros.engine.final_form import IMAGE_OUTPUTS
+
+    outputs = tuple(n for n in IMAGE_OUTPUTS if n != "surprise")
     model = random_scene(9, n=120)
     gpu = SemanticMap(model, C, backend="cuda")
     backend, ops = gpu._backend, gpu._backend.ops
     cams = [camera(width=W, height=H, f=12.0, position=(0.05 * i, 0.0, 0.0)) for i in range(3)]
     lab, conf = labels_and_confidence(cams[0], 30)
-    gpu.observe(cams[0], lab, conf)          # binds the launches of this size
+    gpu.observe(cams[0], lab, conf, outputs=outputs)          # binds the launches of this size
     gpu.render(cams[0])
     calls: list[str] = []
     depth = [0]   # the numpy ops' download_words calls download itself: count the outermost transfers only
@@ -515,7 +519,7 @@ def test_observe_and_query_make_one_synchronisation_and_bind_launches_once():
     bindings, launches = backend.launches.bindings, backend.launches.count
     for cam in cams[1:]:
         calls.clear()
-        gpu.observe(cam, lab, conf)
+        gpu.observe(cam, lab, conf, outputs=outputs)
         assert calls == ["download_words"]
         assert backend.launches.count - launches == 5
         launches = backend.launches.count
@@ -659,9 +663,10 @@ def test_one_exchange_warp_sum_equals_the_five_shuffles(dtype):
 
 
 def test_stub_device_counts_the_host_work_of_a_frame():
-    """benchmarks/cuda_host.py's stub device runs the backend's Python as on a GPU with no kernel: an observe is 5
-    launches (project, emit keys, update, moments, render), a query render 4, one synchronisation each, no launch
-    bound again after the warm-up, and the host time is measured (> 0)."""
+    """benchmarks/cuda_host.py's stub device runs the backend's Python as on a GPU with no kernel: an observe of every
+    image (the surprise included) is 6 launches (project, emit keys, the moments before the update, update, moments,
+    render), a query render 4, one synchronisation each, no launch bound again after the warm-up, and the host time
+    is measured (> 0)."""
     import importlib.util
     from pathlib import Path
 
@@ -673,7 +678,7 @@ def test_stub_device_counts_the_host_work_of_a_frame():
     cams = [camera(width=W, height=H, f=12.0, position=(0.05 * i, 0.0, 0.0)) for i in range(3)]
     labels = [np.random.default_rng(i).integers(0, C, (H, W)).astype(np.uint8) for i in range(3)]
     r = cuda_host.measure(model, cams, labels, C, frames=5)
-    assert r["launches_per_observe"] == 5 and r["launches_per_query"] == 4
+    assert r["launches_per_observe"] == 6 and r["launches_per_query"] == 4
     assert r["syncs_per_observe"] == 1 and r["syncs_per_query"] == 1
     assert r["new_bindings"] == 0 and r["uploads_per_observe"] == 2   # the camera row and the labels
     assert 0 < r["observe_ms"] < 1e3 and 0 < r["query_ms"] < 1e3

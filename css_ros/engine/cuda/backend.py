@@ -98,24 +98,42 @@ class PairMasses:
 
 
 class DeviceCounts(UpdateCounts):
-    """An update's pixel counts (NUM_COUNTS,) int64 on the device: the next view's one copy brings them
-    (:meth:`arrived`), else :meth:`get` downloads them (one synchronisation)."""
+    """An update's pixel counts (NUM_COUNTS,) int32 on the device and, when it made one, its (H, W) float32 surprise
+    image on the device (``surprise_device``): the next view's one copy brings them (:meth:`arrived`), else
+    :meth:`get` / :meth:`surprise` download them."""
 
-    def __init__(self, ops: Any, device: Any) -> None:
+    def __init__(self, ops: Any, device: Any, surprise_device: Any = None) -> None:
         super().__init__()
         self.ops = ops
         self.device = device
+        self.surprise_device = surprise_device
         self.ready = False
 
-    def arrived(self, counts: np.ndarray) -> None:
-        """The counts, copied to the host with a view's output."""
+    @property
+    def surprise_shape(self) -> tuple[int, int]:
+        """(H, W) of the surprise image ((0, 0) without one)."""
+        if self.surprise_device is None:
+            return (0, 0)
+        return int(self.surprise_device.shape[0]), int(self.surprise_device.shape[1])
+
+    def arrived(self, counts: np.ndarray, surprise: "np.ndarray | None" = None) -> None:
+        """The counts (and the surprise image), copied to the host with a view's output."""
         self._counts = tuple(int(v) for v in counts[:NUM_COUNTS])
+        self._surprise = surprise
         self.ready = True
 
-    def get(self) -> tuple[int, int, int, int]:
+    def _fetch(self) -> None:
         if not self.ready:
-            self.arrived(self.ops.download(self.device))
+            surprise = None if self.surprise_device is None else self.ops.download(self.surprise_device)
+            self.arrived(self.ops.download(self.device), surprise)
+
+    def get(self) -> tuple[int, int, int, int, int, int]:
+        self._fetch()
         return super().get()
+
+    def surprise(self) -> "np.ndarray | None":
+        self._fetch()
+        return super().surprise()
 
 
 class CudaBackend(RasterBackend):
@@ -170,7 +188,10 @@ class CudaBackend(RasterBackend):
         self._empty_views = self._word_views(ops.zeros(HEADER_WORDS, np.int32))
         self._empty_scores = karr(ops.zeros((1, 2), np.float64))
         self._no_confidence = ops.zeros((1, 1), np.float32)  # the confidence argument of a frame without one
-        self._counts_dev = ops.zeros(NUM_COUNTS, np.int64)    # the update's pixel counts (DeviceCounts)
+        self._no_image = ops.zeros((1, 1), np.float32)        # an image argument of a rule the frame does not use
+        self._no_transient = ops.zeros(1, np.bool_)            # the transient mask of a map without transient classes
+        self._transient: tuple[bytes, Any] = (b"", self._no_transient)  # the map's mask on the device (bytes, array)
+        self._counts_dev = ops.zeros(NUM_COUNTS, np.int32)    # the update's pixel counts (DeviceCounts)
         self._inputs: dict[tuple, Any] = {}                   # per-frame input buffers (_frame_input)
         self._plans: dict[tuple[int, int], ViewPlan] = {}     # single-view plans per image size
         self.launches = Launches(self.simulated)
@@ -395,43 +416,91 @@ class CudaBackend(RasterBackend):
         With ``soft`` (a sensor model's tables), the kernel variant of
         :func:`~css_ros.engine.cuda.kernels.make_update_kernel` with ``with_model`` runs instead (one more walk
         per labelled pixel for its expected depth) and also counts the labelled pixels without any contribution.
+        The rules of a changing world (:mod:`css_ros.engine.change_rules`) cost only the frames that use them: a
+        measured depth image (one more copy in; the kernel variant's extra walk), transient classes, the surprise
+        image (the moments before the update: one more launch; the image rides along with the view's copy) and
+        forgetting (the increments into a per-pair scratch, then one more launch applies them).
         The counts stay on the device: the next :meth:`render_view` brings them with its one copy, else
-        :meth:`DeviceCounts.get` fetches them (one synchronisation)."""
+        :meth:`DeviceCounts.get` fetches them."""
         self._bind()
         conc = self._device_concentrations(concentrations)
         num_classes = int(conc.shape[1])
         if soft is not None and tuple(soft.table.shape) != (num_classes * soft.num_bins, num_classes):
             raise ValueError(f"sensor-model table of shape {tuple(soft.table.shape)} for {num_classes} classes and "
                              f"{soft.num_bins} depth bins")
-        ops = self.ops
         lab = self._frame_input("labels", inputs.labels)
         has_conf = inputs.confidence is not None
         conf = self._no_confidence if inputs.confidence is None else self._frame_input("confidence", inputs.confidence)
         counts = self._counts_dev
-        ops.fill(counts, 0)
-        args: tuple[Any, ...] = (frame.offsets, frame.order, frame.packed, frame.ids, lab, conf, has_conf,
-                                 int(inputs.ignore_label), frame.tiles_x, conc, counts, frame.sizes)
+        self.ops.fill(counts, 0)
+        rules = inputs.rules
+        forgets = rules.decay != 1.0
+        target, target_ids = conc, frame.ids
+        if forgets:  # the frame's increments apart first: forgetting applies to the Gaussians they touch
+            target, target_ids = self._increments(frame, num_classes), frame.pair_row
+        rule_args, surprise = self._rule_args(frame, inputs, conc)
+        args: tuple[Any, ...] = (frame.offsets, frame.order, frame.packed, target_ids, lab, conf, has_conf,
+                                 int(inputs.ignore_label), frame.tiles_x, target, counts, frame.sizes, *rule_args)
+        flags = (inputs.depth is not None, surprise is not None, rules.any_transient)
         if soft is None:
-            kernel = self.k.make_update_kernel(num_classes, self.tile)
+            kernel = self.k.make_update_kernel(num_classes, self.tile, False, 1, *flags)
         else:
-            kernel = self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins)
+            kernel = self.k.make_update_kernel(num_classes, self.tile, True, soft.num_bins, *flags)
             args = (*args, *self._soft_tables(soft))
         self._go(frame, kernel, frame.tiles_per_view, self.tile * self.tile, args)
+        if forgets:
+            blocks, threads = self._launch_1d(int(target.shape[0]))
+            self._go(frame, self.k.apply_increments_kernel, blocks, threads,
+                     (target, frame.ids, frame.sizes, frame.packed, frame.order, float(rules.decay),
+                      float(rules.prior), conc))
         self._device_newer = True
-        pending = DeviceCounts(ops, counts)
+        pending = DeviceCounts(self.ops, counts, surprise)
         self._pending_counts = pending
         return pending
 
-    def _frame_input(self, name: str, host: np.ndarray) -> Any:
-        """A device buffer per (name, shape, dtype) holding ``host`` (copied asynchronously): the same address every
-        frame of that size, so the update's launch stays bound."""
-        key = (name, host.shape, host.dtype.str)
+    def _rule_args(self, frame: CudaFrame, inputs: "FrameLabels", conc: Any) -> tuple[tuple[Any, ...], Any]:
+        """The update kernel's arguments of the changing world's rules (transient mask, measured depth, tolerances,
+        depth scale, pair rows, moments before the update, surprise image) and the surprise image on the device
+        (None when not asked for). A rule the frame does not use gets a placeholder; the surprise's moments are
+        made here, before the update changes the map (one launch)."""
+        rules = inputs.rules
+        transient = self._no_transient
+        if rules.any_transient:
+            key = np.ascontiguousarray(rules.transient, dtype=np.bool_).tobytes()
+            if self._transient[0] != key:
+                self._transient = (key, self.ops.kernel_array(self.ops.upload(rules.transient, np.bool_)))
+            transient = self._transient[1]
+        depth = self._no_image if inputs.depth is None else self._frame_input("depth", inputs.depth)
+        mom = surprise = None
+        if inputs.want_surprise:
+            mom = self._moments(frame, conc)
+            surprise = self._frame_buffer("surprise", inputs.labels.shape, np.float32)
+        return ((transient, depth, float(rules.tol_abs), float(rules.tol_rel), float(rules.depth_scale),
+                 frame.pair_row, self._no_image if mom is None else mom,
+                 self._no_image if surprise is None else surprise), surprise)
+
+    def _increments(self, frame: CudaFrame, num_classes: int) -> Any:
+        """The (pairs, C) f64 zeroed scratch of an update with forgetting (the plan's, kept; a batch's, made)."""
+        if frame.plan is not None:
+            return frame.plan.increment_buffer(num_classes)
+        return self.ops.zeros((max(frame.num_pairs, 1), num_classes), np.float64)
+
+    def _frame_buffer(self, name: str, shape: tuple[int, ...], dtype: Any) -> Any:
+        """A device buffer per (name, shape, dtype) that a kernel fills (the same address every frame of that size:
+        the launch stays bound)."""
+        key = (name, tuple(shape), np.dtype(dtype).str)
         dev = self._inputs.get(key)
         if dev is None:
             if len(self._inputs) >= 16:  # image sizes and dtypes of a long-lived process: bounded
                 self._inputs.clear()
                 self.launches.clear()
-            dev = self._inputs[key] = self.ops.empty(host.shape, host.dtype)
+            dev = self._inputs[key] = self.ops.empty(shape, dtype)
+        return dev
+
+    def _frame_input(self, name: str, host: np.ndarray) -> Any:
+        """A device buffer per (name, shape, dtype) holding ``host`` (copied asynchronously): the same address every
+        frame of that size, so the update's launch stays bound."""
+        dev = self._frame_buffer(name, host.shape, host.dtype)
         self.ops.host_to_device(dev, host, name)
         return dev
 
@@ -537,17 +606,22 @@ class CudaBackend(RasterBackend):
         brings the U sums, the pending update's counts and the frame's sizes."""
         conc = self._device_concentrations_for_read(concentrations)
         num_classes = int(conc.shape[1])
-        layout = plane_layout(frame.height, frame.width, num_classes, settings)
+        pending, self._pending_counts = self._pending_counts, None
+        if pending is not None and pending.ready:
+            pending = None
+        shape = (0, 0) if pending is None else pending.surprise_shape
+        layout = plane_layout(frame.height, frame.width, num_classes, settings, shape[0] * shape[1])
         out, views = self._output_buffer(layout.words)
         self.ops.zero_words(out, HEADER_WORDS)
-        pending, self._pending_counts = self._pending_counts, None
-        if pending is not None and not pending.ready:  # an update's counts ride along in the header
+        if pending is not None:  # an update's counts ride along in the header, its surprise after the planes
             self.ops.copy_words(out, COUNT_WORDS, pending.device)
+            if pending.surprise_device is not None:
+                self.ops.copy_words(out, layout.surprise, pending.surprise_device)
         self.ops.copy_words(out, SIZE_WORDS, frame.sizes)
         self._launch_render(frame, conc, settings, layout.planes, views, self._empty_scores, False)
         host = self.ops.download_words(out, layout.words)  # the frame's one copy (and synchronisation)
-        if pending is not None and not pending.ready:
-            pending.arrived(host[COUNT_WORDS:COUNT_WORDS + 2 * NUM_COUNTS].view(np.int64))
+        if pending is not None:
+            pending.arrived(host[COUNT_WORDS:COUNT_WORDS + NUM_COUNTS], layout.surprise_image(host, shape))
         return host, layout, num_classes
 
     @staticmethod

@@ -33,7 +33,8 @@ from typing import Any
 
 from numba import cuda, float32, float64, int32
 
-from ..label_input import IGNORED, NO_DEPTH, OUT_OF_RANGE, USED, pixel_vote
+from ..change_rules import depth_gate
+from ..label_input import IGNORED, NO_DEPTH, OCCLUDED, OUT_OF_RANGE, TRANSIENT, USED, pixel_vote, transient_status
 from ..pixel_math import confidence_score, depth_bin, interp, to_byte
 from ..sh import sh_polynomial
 from .arrays import simulator_enabled
@@ -51,6 +52,25 @@ PACK_COLS = 8   # per kept pair: u, v, conic a, b, c, opacity, qmax, depth
 # The update's staged rows hold a float32 sum per class: up to C = 40 a batch of 64 Gaussians fits in
 # 12 KiB; beyond, the batch shrinks so that 12 blocks (37.5 % occupancy) stay resident on an sm_80 SM.
 UPDATE_SHARED_BUDGET = 12 * 1024
+# Registers per thread of the update (test/test_cuda_ptx.py's budget). The variants with the changing world's rules
+# tell ptxas through launch bounds (left alone it gives them 72 on sm_80; with the bound 60, no spills); the
+# paper's update is compiled as it always was.
+UPDATE_MAX_REGISTERS = 64
+REGISTERS_PER_SM = 65536
+
+
+def update_launch_bounds(tile: int) -> tuple[int, int]:
+    """(threads per block, resident blocks) that hold the update to :data:`UPDATE_MAX_REGISTERS` registers."""
+    nt = tile * tile
+    return nt, max(1, REGISTERS_PER_SM // (UPDATE_MAX_REGISTERS * nt))
+
+
+def _update_jit(tile: int, with_rules: bool) -> Any:
+    """``cuda.jit`` of an update kernel: with launch bounds for a variant with rules (not under the simulator, which
+    has none)."""
+    if with_rules and not simulator_enabled():
+        return cuda.jit(launch_bounds=update_launch_bounds(tile))  # type: ignore[call-arg]  # (mypy sees the simulator)
+    return cuda.jit
 
 
 _fov_limits = cuda.jit(device=True, inline=True)(fov_limits)
@@ -63,6 +83,8 @@ _depth_bin = cuda.jit(device=True, inline=True)(depth_bin)
 _interp = cuda.jit(device=True, inline=True)(interp)
 _confidence_score = cuda.jit(device=True, inline=True)(confidence_score)
 _pixel_vote = cuda.jit(device=True, inline=True)(pixel_vote)
+_transient_status = cuda.jit(device=True, inline=True)(transient_status)
+_depth_gate = cuda.jit(device=True, inline=True)(depth_gate)
 
 
 @cuda.jit(device=True, inline=True)
@@ -328,19 +350,140 @@ def walk_step(s_g, k, fu, fv, trans):  # pragma: no cover
     return alpha * trans, test_t, False
 
 
+@cuda.jit(device=True, inline=True)
+def count_changes(status, counts):  # pragma: no cover
+    """Add the block's TRANSIENT and OCCLUDED pixels to ``counts`` (:mod:`css_ros.engine.change_rules`), one atomic
+    each (a barrier: every thread of the block must call it)."""
+    transient = cuda.syncthreads_count(1 if status == TRANSIENT else 0)
+    occluded = cuda.syncthreads_count(1 if status == OCCLUDED else 0)
+    if cuda.threadIdx.x == 0:
+        if transient:
+            cuda.atomic.add(counts, TRANSIENT, transient)
+        if occluded:
+            cuda.atomic.add(counts, OCCLUDED, occluded)
+
+
+@cuda.jit(device=True, inline=True)
+def measured_depth(depth, u, v):  # pragma: no cover
+    """The measured depth of pixel (u, v) in metres as float64 (NaN outside the image: no measurement)."""
+    height, width = depth.shape
+    if u >= width or v >= height:
+        return math.nan
+    return float64(depth[v, u])
+
+
+@cuda.jit(device=True, inline=True)
+def gate_pixel(status, measured, zsum, ksum, tol_abs, tol_rel, depth_scale):  # pragma: no cover
+    """(status, front) of a pixel after the measured-depth rule (:func:`css_ros.engine.change_rules.depth_gate`):
+    OCCLUDED for a USED pixel whose measurement is nearer than its rendered depth sum kappa z / sum kappa (splat
+    units, times ``depth_scale``: metres) by more than the tolerance; ``front``: float32, in splat units, the camera
+    depth of the Gaussians whose contributions add no evidence when nearer (-inf: none dropped; the voting walk then
+    compares it with the staged float32 z, a register fewer than the float64 metres)."""
+    if status != USED:
+        return status, float32(-math.inf)
+    rendered = math.nan
+    if ksum > float32(0.0):
+        rendered = float64(zsum) / float64(ksum) * depth_scale
+    occluded, front = _depth_gate(measured, rendered, tol_abs, tol_rel)
+    if occluded:
+        return OCCLUDED, float32(-math.inf)
+    return status, float32(front / depth_scale)
+
+
+@cuda.jit(device=True, inline=True)
+def write_surprise(surprise, u, v, esum, trans, num_classes):  # pragma: no cover
+    """surprise[v, u] = 1 - E^y with E^y = sum_n kappa_n E_n^y (``esum``: NaN for a pixel without a vote, which
+    makes its surprise NaN) + kappa_b / C before the update; nothing outside the image."""
+    height, width = surprise.shape
+    if u < width and v < height:
+        surprise[v, u] = float32(1.0 - (float64(esum) + float64(trans) / num_classes))
+
+
+@cuda.jit(device=True, inline=True)
+def first_walk(s_g, s_z, s_row, order, packed, pair_row, mom, start, end, batch, tid, fu, fv, walking, lab,
+               want_e):  # pragma: no cover
+    """A pixel's walk of its tile's list before the votes: (sum kappa z (splat units), sum kappa, and with
+    ``want_e`` sum kappa E_n^lab from the pre-update moments ``mom`` (rows ``pair_row``), the final transmittance),
+    float32, for the pixels ``walking`` (the others get zeros and 1). Every thread of the block must call it
+    (barriers); the next walk's first barrier orders its staging after this walk."""
+    done = not walking
+    trans = float32(1.0)
+    zsum = float32(0.0)
+    ksum = float32(0.0)
+    esum = float32(0.0)
+    for b0 in range(start, end, batch):
+        if cuda.syncthreads_count(0 if done else 1) == 0:
+            break
+        n = min(batch, end - b0)
+        if tid < n:
+            j = order[b0 + tid]
+            stage_geometry(s_g, tid, packed, j)
+            s_z[tid] = float32(packed[j, 7])
+            if want_e:
+                s_row[tid] = pair_row[j]
+        cuda.syncthreads()
+        if not done:
+            for k in range(n):
+                kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
+                if done:
+                    break
+                zsum += kappa * s_z[k]
+                ksum += kappa
+                if want_e and kappa != float32(0.0):
+                    esum += kappa * mom[s_row[k], lab]
+    return zsum, ksum, esum, trans
+
+
+@cuda.jit(device=True, inline=True)
+def vote(s_acc, k, contrib, key, lane):  # pragma: no cover
+    """Add a pixel's contribution to staged Gaussian k under its key (class or row slot) in the block's shared
+    sums: a warp whose contributing lanes share one key sums them with shuffles and one lane adds the sum, else each
+    lane adds its own. Every lane of the warp must call it."""
+    active = cuda.ballot_sync(FULL_MASK, contrib != float32(0.0))
+    if active != 0:
+        lead = cuda.shfl_sync(FULL_MASK, key, cuda.ffs(active) - 1)
+        if cuda.all_sync(FULL_MASK, contrib == float32(0.0) or key == lead):
+            total = warp_sum(contrib)
+            if lane == 0:
+                cuda.atomic.add(s_acc, (k, lead), total)
+        elif contrib != float32(0.0):
+            cuda.atomic.add(s_acc, (k, key), contrib)
+
+
+@cuda.jit(device=True, inline=True)
+def flush_sums(s_acc, s_id, n, num_classes, tid, nt, target):  # pragma: no cover
+    """Add each nonzero (staged Gaussian, class) sum of the block to target[s_id[k], c] with one float64 atomic."""
+    for idx in range(tid, n * num_classes, nt):
+        k = idx // num_classes
+        c = idx - k * num_classes
+        val = s_acc[k, c]
+        if val != float32(0.0):
+            cuda.atomic.add(target, (s_id[k], c), float64(val))
+
+
 @lru_cache(maxsize=None)
-def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, num_bins: int = 1) -> Any:
+def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, num_bins: int = 1,
+                       with_depth: bool = False, with_surprise: bool = False, with_transient: bool = False) -> Any:
     """Update kernel for C = ``num_classes`` and ``tile`` x ``tile`` px tiles (compile-time constants);
     with ``with_model``, the sensor-model variant for ``num_bins`` depth bins (:func:`_make_model_update_kernel`).
-    Without it ``num_bins`` is not used, and the kernel is the paper's update, unchanged by the variant.
+    Without it ``num_bins`` is not used, and the kernel is the paper's update, unchanged by the variant. The rules
+    of a changing world (:mod:`css_ros.engine.change_rules`) are compiled in only where a frame uses them:
+    ``with_transient`` (transient classes), ``with_depth`` (a measured depth image: one more walk per pixel with a
+    measurement, for its rendered depth), ``with_surprise`` (the surprise image). Forgetting needs no variant: the
+    backend points ``target`` at a per-pair scratch (``ids`` = the pair rows) and :func:`apply_increments_kernel`
+    applies it.
 
     Launch: grid = tiles of the view, block = tile * tile threads (a multiple of 32). Kernel arguments:
     offsets (T + 1,) i64 tile ranges in ``order``; order (P,) i32 pair of each sorted key; packed (M, 8) f64;
-    ids (M,) i32 model rows; labels (H, W) uint8 / uint16 / int32 / int64 as they came in; confidence (H, W) f32 /
-    f64 (any (1, 1) array when has_confidence is False); has_confidence; ignore_label; tiles_x;
-    concentrations (N, C) f64, to which sum_i kappa_in * weight_i is added at [n, class_i]; counts (4,) i64, to
-    which the image's used / ignored / out-of-range pixels are added (the label rule, :func:`pixel_input`);
-    sizes (2,) i64 the frame's (pairs, keys): beyond the frame's buffers (:func:`overflowed`) nothing is added.
+    ids (M,) i32 rows of ``target``; labels (H, W) uint8 / uint16 / int32 / int64 as they came in; confidence (H, W)
+    f32 / f64 (any (1, 1) array when has_confidence is False); has_confidence; ignore_label; tiles_x;
+    target (N, C) f64 (the concentrations), to which sum_i kappa_in * weight_i is added at [ids[j], class_i];
+    counts (NUM_COUNTS,) i32, to which the image's pixels are added by status (the label rule,
+    :func:`pixel_input`, then the transient and depth rules); sizes (2,) i64 the frame's (pairs, keys): beyond the
+    frame's buffers (:func:`overflowed`) nothing is added; transient (C,) bool; depth (H, W) f32 metres;
+    tol_abs [m], tol_rel, depth_scale [m per splat unit]; pair_row (M,) i32 the row of each pair in ``mom``;
+    mom (R, 2C + 1) f32 the moments before the update (:func:`moments_kernel`); surprise (H, W) f32 out. The
+    arguments of a rule not compiled in may be any array of their dtype and rank.
 
     The pixel walk is float32 (alpha, transmittance, kappa * weight); per staged Gaussian a warp
     whose contributing lanes share one label sums them with shuffles and one lane adds the sum to
@@ -348,16 +491,20 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
     class) sum of the tile then goes to the float64 map with one global atomic.
     """
     if with_model:
-        return _make_model_update_kernel(num_classes, tile, num_bins)
+        return _make_model_update_kernel(num_classes, tile, num_bins, with_depth, with_surprise, with_transient)
     nt = tile * tile
     if nt % WARP:
         raise ValueError(f"tile {tile}: the update kernel needs tile * tile to be a multiple of {WARP}")
     C = num_classes
-    batch = batch_size(4 * STAGE_COLS + 4 + 4 * C, nt, UPDATE_SHARED_BUDGET)
+    batch = batch_size(4 * STAGE_COLS + 4 + 4 * C + 4 * with_depth + 4 * with_surprise, nt, UPDATE_SHARED_BUDGET)
+    z_rows = batch if with_depth else 1
+    e_rows = batch if with_surprise else 1
+    gated = with_depth or with_transient
 
-    @cuda.jit
+    @_update_jit(tile, gated or with_surprise)
     def update_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
-                      concentrations, counts, sizes):  # pragma: no cover
+                      target, counts, sizes, transient, depth, tol_abs, tol_rel, depth_scale, pair_row, mom,
+                      surprise):  # pragma: no cover
         if overflowed(sizes, packed, order):
             return
         t = cuda.blockIdx.x
@@ -372,14 +519,34 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
         s_g = cuda.shared.array((batch, STAGE_COLS), float32)
         s_acc = cuda.shared.array((batch, C), float32)
         s_id = cuda.shared.array(batch, int32)
+        s_z = cuda.shared.array(z_rows, float32)
+        s_row = cuda.shared.array(e_rows, int32)
         lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
-        count_pixels(status, counts)
-        done = status != USED
+        asked = status == USED  # a vote before the rules of a changing world: it has a surprise
         fu = float32(u)
         fv = float32(v)
-        trans = float32(1.0)
         start = offsets[t]
         end = offsets[t + 1]
+        if with_transient:
+            status = _transient_status(lab, status, transient)
+        front = float32(-math.inf)
+        if with_depth:  # walk 1 (pixels with a measurement): the rendered depth of the gate
+            measured = measured_depth(depth, u, v)
+            zsum, ksum, _, _ = first_walk(s_g, s_z, s_row, order, packed, pair_row, mom, start, end, batch, tid, fu,
+                                          fv, status == USED and measured > 0.0, lab, False)
+            status, front = gate_pixel(status, measured, zsum, ksum, tol_abs, tol_rel, depth_scale)
+        count_pixels(status, counts)
+        if gated:
+            count_changes(status, counts)
+        done = status != USED
+        esum = float32(0.0)
+        if with_surprise:  # pixels with a vote walk for their surprise, those the rules stopped vote nothing
+            done = not asked
+            if status != USED:
+                w = float32(0.0)
+            if not asked:
+                esum = float32(math.nan)
+        trans = float32(1.0)
         for b0 in range(start, end, batch):
             if cuda.syncthreads_count(0 if done else 1) == 0:
                 break  # every labelled pixel of the tile has terminated
@@ -388,6 +555,10 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
                 j = order[b0 + tid]
                 stage_geometry(s_g, tid, packed, j)
                 s_id[tid] = ids[j]
+                if with_depth:
+                    s_z[tid] = float32(packed[j, 7])
+                if with_surprise:
+                    s_row[tid] = pair_row[j]
             for idx in range(tid, batch * C, nt):
                 s_acc[idx // C, idx % C] = float32(0.0)
             cuda.syncthreads()
@@ -396,38 +567,102 @@ def make_update_kernel(num_classes: int, tile: int, with_model: bool = False, nu
                 if not done:
                     kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
                     contrib = kappa * w
-                active = cuda.ballot_sync(FULL_MASK, contrib != float32(0.0))
-                if active != 0:
-                    lead = cuda.shfl_sync(FULL_MASK, lab, cuda.ffs(active) - 1)
-                    if cuda.all_sync(FULL_MASK, contrib == float32(0.0) or lab == lead):
-                        total = warp_sum(contrib)
-                        if lane == 0:
-                            cuda.atomic.add(s_acc, (k, lead), total)
-                    elif contrib != float32(0.0):
-                        cuda.atomic.add(s_acc, (k, lab), contrib)
+                    if with_surprise and kappa != float32(0.0):
+                        esum += kappa * mom[s_row[k], lab]
+                    if with_depth and s_z[k] < front:
+                        contrib = float32(0.0)  # in front of the measured surface: no evidence
+                vote(s_acc, k, contrib, lab, lane)
             cuda.syncthreads()
-            for idx in range(tid, n * C, nt):
-                k = idx // C
-                c = idx - k * C
-                val = s_acc[k, c]
-                if val != float32(0.0):
-                    cuda.atomic.add(concentrations, (s_id[k], c), float64(val))
+            flush_sums(s_acc, s_id, n, C, tid, nt, target)
+        if with_surprise:
+            write_surprise(surprise, u, v, esum, trans, C)
     return update_kernel
 
 
-def model_update_layout(num_classes: int, tile: int, num_bins: int) -> tuple[int, int]:
+@cuda.jit
+def apply_increments_kernel(increments, ids, sizes, packed, order, decay, prior, concentrations):  # pragma: no cover
+    """Forgetting (:mod:`css_ros.engine.change_rules`): for each kept pair j < min(sizes[0], rows) whose frame
+    increment increments[j] (C,) f64 is non-zero in some class, concentrations[ids[j]] <- prior + (alpha - prior)
+    * decay + increment; the pair's increments are zeroed again for the next frame (one thread per pair: a
+    Gaussian has one pair per view). Nothing when the frame overflowed its buffers (its update added nothing)."""
+    if overflowed(sizes, packed, order):
+        return
+    num_classes = increments.shape[1]
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for j in range(start, min(sizes[0], increments.shape[0]), stride):
+        touched = False
+        for c in range(num_classes):
+            if increments[j, c] != 0.0:
+                touched = True
+        if not touched:
+            continue
+        n = ids[j]
+        for c in range(num_classes):
+            concentrations[n, c] = prior + (concentrations[n, c] - prior) * decay + increments[j, c]
+            increments[j, c] = 0.0
+
+
+def model_update_layout(num_classes: int, tile: int, num_bins: int, with_surprise: bool = False) -> tuple[int, int]:
     """(staged Gaussians per batch, row slots per Gaussian) of the sensor-model update kernel.
 
     A tile's labelled pixels vote into at most min(tile^2, C B) distinct (label, depth bin) rows; each staged
     Gaussian gets one float32 sum per such row slot. The per-pixel slot arrays (2 tile^2 int32) and the slots'
-    rows (int32) come off the same 12 KiB budget as the paper's update, so its occupancy floor holds."""
+    rows (int32) come off the same 12 KiB budget as the paper's update, so its occupancy floor holds (with the
+    surprise, 4 bytes more per staged Gaussian: its moments row)."""
     nt = tile * tile
     slots = min(nt, num_classes * num_bins)
     fixed = 4 * (2 * nt + slots)
-    return batch_size(4 * STAGE_COLS + 4 + 4 + 4 * slots, nt, UPDATE_SHARED_BUDGET - fixed), slots
+    return batch_size(4 * STAGE_COLS + 4 + 4 + 4 * slots + 4 * with_surprise, nt, UPDATE_SHARED_BUDGET - fixed), slots
 
 
-def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any:
+@cuda.jit(device=True, inline=True)
+def assign_slots(s_key, s_slot, s_row, row, tid):  # pragma: no cover
+    """(slot of the pixel's row or -1, slots in use) of the block: the first pixel of each distinct row >= 0 leads
+    it; slots numbered in pixel order, s_row[slot] = its row. Every thread of the block must call it (barriers)."""
+    s_key[tid] = row
+    cuda.syncthreads()
+    first = tid
+    if row >= 0:
+        for q in range(tid):
+            if s_key[q] == row:
+                first = q
+                break
+    lead = row >= 0 and first == tid
+    cuda.syncthreads()
+    s_key[tid] = 1 if lead else 0
+    cuda.syncthreads()
+    slot = -1
+    if lead:
+        slot = 0
+        for q in range(tid):
+            slot += s_key[q]
+        s_slot[tid] = slot
+        s_row[slot] = row
+    nr = cuda.syncthreads_count(1 if lead else 0)
+    if row >= 0 and not lead:
+        slot = s_slot[first]
+    return slot, nr
+
+
+@cuda.jit(device=True, inline=True)
+def flush_table(s_acc, s_id, s_row, n, nr, num_classes, tid, nt, table, target):  # pragma: no cover
+    """Per (staged Gaussian, class) one float64 sum over the block's slots of sum x table[row, c], added to
+    target[s_id[k], c] with one atomic when non-zero."""
+    for idx in range(tid, n * num_classes, nt):
+        k = idx // num_classes
+        c = idx - k * num_classes
+        acc = float64(0.0)
+        for sl in range(nr):
+            val = s_acc[k, sl]
+            if val != float32(0.0):
+                acc += float64(val) * table[s_row[sl], c]
+        if acc != float64(0.0):
+            cuda.atomic.add(target, (s_id[k], c), acc)
+
+
+def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int, with_depth: bool = False,
+                              with_surprise: bool = False, with_transient: bool = False) -> Any:
     """Update kernel with a sensor model (docs/spec.md "Sensor model"; the CPU's ``_update_kernel`` with
     ``use_model``): a labelled pixel (label y, weight w > 0) at expected depth d = sum kappa z / sum kappa
     (bin b: the largest with edges[b] <= d, clipped to [0, B - 1]) adds kappa * w * table[y B + b, c] to
@@ -436,11 +671,12 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
     Kernel arguments: those of the paper's update, then edges (B + 1,) f64 (splat units), table (C B, C) f64; the
     labelled pixels without any contribution (they add nothing) are added to counts[NO_DEPTH].
 
-    Per tile, two walks over its list: the first only sums kappa z and kappa per pixel (float32; z is the
-    staged camera depth), which gives each pixel's row r = y B + b; the tile's distinct rows get slots
-    (at most min(tile^2, C B)); the second walk is the paper's voting walk with the slot in place of the label
-    (warp shuffles, then float32 shared sums per (staged Gaussian, slot)). The flush applies the table: per
-    (Gaussian, class) one float64 sum over the tile's slots of sum x table[r, c], added with one atomic.
+    Per tile, two walks over its list: the first sums kappa z and kappa per pixel (float32; z is the staged camera
+    depth), which gives each pixel's row r = y B + b, the measured-depth gate its rendered depth and, with the
+    surprise, sum kappa E^y; the tile's distinct rows get slots (at most min(tile^2, C B)); the second walk is the
+    paper's voting walk with the slot in place of the label (warp shuffles, then float32 shared sums per (staged
+    Gaussian, slot)). The flush applies the table: per (Gaussian, class) one float64 sum over the tile's slots of
+    sum x table[r, c], added with one atomic.
     """
     nt = tile * tile
     if nt % WARP:
@@ -449,11 +685,14 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
         raise ValueError(f"num_bins must be >= 1, got {num_bins}")
     C = num_classes
     B = num_bins
-    batch, S = model_update_layout(C, tile, B)
+    batch, S = model_update_layout(C, tile, B, with_surprise)
+    e_rows = batch if with_surprise else 1
+    gated = with_depth or with_transient
 
-    @cuda.jit
+    @_update_jit(tile, gated or with_surprise)
     def update_model_kernel(offsets, order, packed, ids, labels, confidence, has_confidence, ignore_label, tiles_x,
-                            concentrations, counts, sizes, edges, table):  # pragma: no cover
+                            target, counts, sizes, transient, depth, tol_abs, tol_rel, depth_scale, pair_row, mom,
+                            surprise, edges, table):  # pragma: no cover
         if overflowed(sizes, packed, order):
             return
         t = cuda.blockIdx.x
@@ -470,63 +709,38 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
         s_key = cuda.shared.array(nt, int32)     # per pixel: its row, then whether it leads its row's slot
         s_slot = cuda.shared.array(nt, int32)    # per leading pixel: its slot
         s_row = cuda.shared.array(S, int32)      # per slot: its (label, depth bin) row of the table
+        s_mrow = cuda.shared.array(e_rows, int32)  # per staged Gaussian: its row of the moments (surprise)
         lab, w, status = pixel_input(labels, confidence, has_confidence, C, ignore_label, u, v)
-        count_pixels(status, counts)
-        labelled = status == USED
+        asked = status == USED
+        if with_transient:
+            status = _transient_status(lab, status, transient)
         fu = float32(u)
         fv = float32(v)
         start = offsets[t]
         end = offsets[t + 1]
-        # walk 1: the expected depth of every labelled pixel
-        done = not labelled
-        trans = float32(1.0)
-        zsum = float32(0.0)
-        ksum = float32(0.0)
-        for b0 in range(start, end, batch):
-            if cuda.syncthreads_count(0 if done else 1) == 0:
-                break
-            n = min(batch, end - b0)
-            if tid < n:
-                j = order[b0 + tid]
-                stage_geometry(s_g, tid, packed, j)
-                s_z[tid] = float32(packed[j, 7])
-            cuda.syncthreads()
-            if not done:
-                for k in range(n):
-                    kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
-                    if done:
-                        break
-                    zsum += kappa * s_z[k]
-                    ksum += kappa
+        # walk 1: the expected depth of every labelled pixel (and the surprise's sum)
+        walking = asked if with_surprise else status == USED
+        zsum, ksum, esum, trans = first_walk(s_g, s_z, s_mrow, order, packed, pair_row, mom, start, end, batch, tid,
+                                             fu, fv, walking, lab, with_surprise)
+        front = float32(-math.inf)
+        if with_depth:
+            status, front = gate_pixel(status, measured_depth(depth, u, v), zsum, ksum, tol_abs, tol_rel,
+                                       depth_scale)
+        if with_surprise:
+            if not asked:
+                esum = float32(math.nan)
+            write_surprise(surprise, u, v, esum, trans, C)
+        count_pixels(status, counts)  # (barriers: also, walk 1 is over)
+        if gated:
+            count_changes(status, counts)
+        labelled = status == USED
         row = -1
         if labelled and ksum > float32(0.0):
             row = lab * B + _depth_bin(float64(zsum) / float64(ksum), edges)
-        missing = cuda.syncthreads_count(1 if labelled and row < 0 else 0)  # also: walk 1 is over
+        missing = cuda.syncthreads_count(1 if labelled and row < 0 else 0)
         if tid == 0 and missing > 0:
             cuda.atomic.add(counts, NO_DEPTH, missing)
-        # slots: the first pixel of each distinct row leads it; slots numbered in pixel order
-        s_key[tid] = row
-        cuda.syncthreads()
-        first = tid
-        if row >= 0:
-            for q in range(tid):
-                if s_key[q] == row:
-                    first = q
-                    break
-        lead = row >= 0 and first == tid
-        cuda.syncthreads()
-        s_key[tid] = 1 if lead else 0
-        cuda.syncthreads()
-        slot = -1
-        if lead:
-            slot = 0
-            for q in range(tid):
-                slot += s_key[q]
-            s_slot[tid] = slot
-            s_row[slot] = row
-        nr = cuda.syncthreads_count(1 if lead else 0)
-        if row >= 0 and not lead:
-            slot = s_slot[first]
+        slot, nr = assign_slots(s_key, s_slot, s_row, row, tid)
         # walk 2: the paper's voting walk, summed per (staged Gaussian, slot)
         done = row < 0
         trans = float32(1.0)
@@ -538,6 +752,8 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
                 j = order[b0 + tid]
                 stage_geometry(s_g, tid, packed, j)
                 s_id[tid] = ids[j]
+                if with_depth:
+                    s_z[tid] = float32(packed[j, 7])
             for idx in range(tid, n * nr, nt):
                 s_acc[idx // nr, idx % nr] = float32(0.0)
             cuda.syncthreads()
@@ -546,26 +762,11 @@ def _make_model_update_kernel(num_classes: int, tile: int, num_bins: int) -> Any
                 if not done:
                     kappa, trans, done = walk_step(s_g, k, fu, fv, trans)
                     contrib = kappa * w
-                active = cuda.ballot_sync(FULL_MASK, contrib != float32(0.0))
-                if active != 0:
-                    lead_slot = cuda.shfl_sync(FULL_MASK, slot, cuda.ffs(active) - 1)
-                    if cuda.all_sync(FULL_MASK, contrib == float32(0.0) or slot == lead_slot):
-                        total = warp_sum(contrib)
-                        if lane == 0:
-                            cuda.atomic.add(s_acc, (k, lead_slot), total)
-                    elif contrib != float32(0.0):
-                        cuda.atomic.add(s_acc, (k, slot), contrib)
+                    if with_depth and s_z[k] < front:
+                        contrib = float32(0.0)  # in front of the measured surface: no evidence
+                vote(s_acc, k, contrib, slot, lane)
             cuda.syncthreads()
-            for idx in range(tid, n * C, nt):
-                k = idx // C
-                c = idx - k * C
-                acc = float64(0.0)
-                for sl in range(nr):
-                    val = s_acc[k, sl]
-                    if val != float32(0.0):
-                        acc += float64(val) * table[s_row[sl], c]
-                if acc != float64(0.0):
-                    cuda.atomic.add(concentrations, (s_id[k], c), acc)
+            flush_table(s_acc, s_id, s_row, n, nr, C, tid, nt, table, target)
     return update_model_kernel
 
 

@@ -4,8 +4,9 @@ host reads the one copy back as the view's images (no numba here; :mod:`.kernels
 One int32 buffer per frame: 16 header words (two float64 sums: sum log max(Var, floor) and sum E, for U_var and
 U_exp; the pixel counts of the update before the render; the frame's pair and key counts), then the requested
 planes packed in a fixed order, each (H, W) plane H W words (int32 labels, float32 E, Var, kappa_b, evidence,
-depth [m], confidence), the colour (H, W, 3) uint8 in ceil(3 H W / 4) words, the probabilities (H, W, C) float32.
-Only requested planes take space, so the copy moves only requested bytes.
+depth [m], confidence), the colour (H, W, 3) uint8 in ceil(3 H W / 4) words, the probabilities (H, W, C) float32,
+and last the update's (H', W') float32 surprise when that update made one (its own image size: the update before
+the render). Only requested planes take space, so the copy moves only requested bytes.
 """
 from __future__ import annotations
 
@@ -17,9 +18,10 @@ from ..final_form import FrameImages, RenderSettings, uncertainty_from_sums
 
 PL_LABELS, PL_E, PL_VAR, PL_BG, PL_EVIDENCE, PL_DEPTH, PL_CONFIDENCE, PL_RGB, PL_PROBS = range(9)
 NUM_PLANES = 9
-#: int32 words before the planes: two float64 U sums (words 0-3), an update's NUM_COUNTS int64 pixel counts
-#: (words COUNT_WORDS.., see :class:`~css_ros.engine.cuda.backend.DeviceCounts`), the frame's (pairs, keys) as int64
-#: (words SIZE_WORDS..: a single-view plan's frame learns there whether it fitted)
+#: int32 words before the planes: two float64 U sums (words 0-3), an update's NUM_COUNTS int32 pixel counts
+#: (words COUNT_WORDS.., see :class:`~css_ros.engine.cuda.backend.DeviceCounts`; an image has at most
+#: MAX_CAMERA_PIXELS < 2^31 pixels), the frame's (pairs, keys) as int64 (words SIZE_WORDS..: a single-view plan's
+#: frame learns there whether it fitted)
 HEADER_WORDS = 16
 COUNT_WORDS = 4
 SIZE_WORDS = 12
@@ -39,10 +41,13 @@ class PlaneLayout:
         planes: (NUM_PLANES,) int64 offsets (-1: not requested): int32 / float32 element offsets, the colour's in
             bytes.
         words: the buffer's length in int32 words (header included): the bytes the one copy moves, / 4.
+        surprise: word offset of the update's surprise image (-1: none), which the backend copies in, not the
+            render kernel.
     """
 
     planes: np.ndarray
     words: int
+    surprise: int = -1
 
     def images(self, host: np.ndarray, height: int, width: int, num_classes: int) -> FrameImages:
         """The view's images as numpy views into ``host`` (the copied words), U from the header."""
@@ -63,9 +68,17 @@ class PlaneLayout:
         return out
 
 
-def plane_layout(height: int, width: int, num_classes: int, settings: RenderSettings) -> PlaneLayout:
+    def surprise_image(self, host: np.ndarray, shape: tuple[int, int]) -> np.ndarray | None:
+        """The update's (H', W') float32 surprise as a view into ``host``, or None without one."""
+        if self.surprise < 0:
+            return None
+        return host[self.surprise:self.surprise + shape[0] * shape[1]].view(np.float32).reshape(shape)
+
+
+def plane_layout(height: int, width: int, num_classes: int, settings: RenderSettings,
+                 surprise_pixels: int = 0) -> PlaneLayout:
     """The packed layout of the outputs ``settings`` asks for (planes in the order of ``_PLANES``, then colour and
-    probabilities)."""
+    probabilities), then ``surprise_pixels`` words for an update's surprise image (0: none)."""
     hw = height * width
     planes = np.full(NUM_PLANES, -1, dtype=np.int64)
     words = HEADER_WORDS
@@ -79,4 +92,8 @@ def plane_layout(height: int, width: int, num_classes: int, settings: RenderSett
     if settings.probabilities:
         planes[PL_PROBS] = words
         words += hw * num_classes
-    return PlaneLayout(planes, words)
+    surprise = -1
+    if surprise_pixels > 0:
+        surprise = words
+        words += int(surprise_pixels)
+    return PlaneLayout(planes, words, surprise)

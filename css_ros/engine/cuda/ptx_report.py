@@ -88,7 +88,8 @@ def _use_toolkit_libdevice(home: Path) -> None:
 
 def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple, int]]:
     """(name, python function, numba argument types, block size) of every kernel, with the types the
-    backend launches them with (C-contiguous device arrays; Python ints int64, floats float64)."""
+    backend launches them with (C-contiguous device arrays; Python ints int64, floats float64); the launch bounds
+    a kernel is compiled with are :func:`launch_bounds`'s."""
     from numba import boolean, float32, float64, int32, int64, uint8
 
     from . import kernels as k
@@ -104,11 +105,19 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
                                                    i32_1), 256),
         ("moments", k.moments_kernel.py_func, (f64_2, i32_1, i64_1, f32_2), 256),
     ]
-    # the update reads the labels as the segmentation topic carries them (here uint8, mono8) and a float32 confidence
-    update_args = (i64_1, i32_1, f64_2, i32_1, uint8[:, ::1], f32_2, boolean, int64, int64, f64_2, i64_1, i64_1)
-    out += [(f"update_C{num_classes}", k.make_update_kernel(num_classes, tile).py_func, update_args, nt),
-            (f"update_model_C{num_classes}", k.make_update_kernel(num_classes, tile, True, MODEL_BINS).py_func,
-             (*update_args, f64_1, f64_2), nt)]
+    # the update reads the labels as the segmentation topic carries them (here uint8, mono8) and a float32 confidence;
+    # then the changing world's arguments (transient mask, depth, tolerances, depth scale, pair rows, moments,
+    # surprise); "_world" variants compile all of its rules in (measured depth, surprise, transient classes)
+    update_args = (i64_1, i32_1, f64_2, i32_1, uint8[:, ::1], f32_2, boolean, int64, int64, f64_2, i32_1, i64_1,
+                   boolean[::1], f32_2, float64, float64, float64, i32_1, f32_2, f32_2)
+    for world, label in ((False, ""), (True, "_world")):
+        out += [(f"update{label}_C{num_classes}",
+                 k.make_update_kernel(num_classes, tile, False, 1, world, world, world).py_func, update_args, nt),
+                (f"update_model{label}_C{num_classes}",
+                 k.make_update_kernel(num_classes, tile, True, MODEL_BINS, world, world, world).py_func,
+                 (*update_args, f64_1, f64_2), nt)]
+    out.append(("apply_increments", k.apply_increments_kernel.py_func,
+                (f64_2, i32_1, i64_1, f64_2, i32_1, float64, float64, f64_2), 256))
     render_sig = (i64_1, i32_1, f64_2, f32_2, i32_1, f32_2, f64_1, f64_2, i64_1, int64, int64, int64, int64,
                   i32_1, float32[::1], uint8[::1], f64_1, f64_2, f64_1, f64_1, f64_1)
     for score, probs, mass, label in ((False, False, False, "render"), (False, True, False, "render_probs"),
@@ -119,6 +128,14 @@ def kernel_signatures(num_classes: int, tile: int) -> list[tuple[str, Any, tuple
             ("observe_expected", k.observe_expected_kernel.py_func, (f64_1, i32_1, i32_1, int64, float64, f64_2),
              256)]
     return out
+
+
+def launch_bounds(name: str, tile: int) -> tuple[int, int] | None:
+    """The launch bounds the backend compiles kernel ``name`` with (the update variants with the changing world's
+    rules: :func:`~css_ros.engine.cuda.kernels.update_launch_bounds`), else None."""
+    from . import kernels as k
+
+    return k.update_launch_bounds(tile) if name.startswith(("update_world", "update_model_world")) else None
 
 
 _REGS = re.compile(r"Used (\d+) registers")
@@ -161,7 +178,8 @@ def report(classes: list[int], ccs: list[tuple[int, int]], tile: int) -> list[Ke
                     continue
                 seen.add((name, cc))
                 config.FORCE_CUDA_CC = cc  # type: ignore[attr-defined]  # without libnvrtc: the target
-                ptx, _ = cuda.compile_ptx(func, sig, cc=cc)
+                ptx, _ = cuda.compile_ptx(func, sig, cc=cc,  # type: ignore[call-arg]  # numba-cuda >= 0.20
+                                          launch_bounds=launch_bounds(name, tile))
                 stats.append(KernelStats(name, cc, threads, *assemble(ptx, cc, home)))
     return stats
 

@@ -77,13 +77,15 @@ class ViewPlan:
         self.tiles_x, self.tiles_per_view = int(tiles_x), int(tiles_per_view)
         self._cam_host = np.zeros((1, CAM_COLS))
         self._recent: list[tuple[int, int]] = []
-        self.buffers = self._allocate(max(1, int(pairs)), max(1, int(keys)))
         self.moments: dict[int, Any] = {}
+        self.increments: dict[int, Any] = {}
+        self.buffers = self._allocate(max(1, int(pairs)), max(1, int(keys)))
 
     def _allocate(self, pairs: int, keys: int) -> PlanBuffers:
         ops = self.ops
         t = self.tiles_per_view
         self.moments = {}
+        self.increments = {}
         return PlanBuffers(
             pairs, keys, ops.zeros(2, np.int64), ops.zeros((pairs, 8), np.float64), ops.zeros((pairs, 4), np.int32),
             ops.zeros(pairs, np.int32), ops.zeros(pairs, np.int32), ops.zeros(pairs, np.int32),
@@ -98,6 +100,15 @@ class ViewPlan:
         buf = self.moments.get(num_classes)
         if buf is None:
             buf = self.moments[num_classes] = self.ops.empty((self.buffers.pairs, 2 * num_classes + 1), np.float32)
+        return buf
+
+    def increment_buffer(self, num_classes: int) -> Any:
+        """(P, C) f64 per-pair increments of an update with forgetting, zeros (the apply kernel zeroes the rows it
+        consumed: :func:`~css_ros.engine.cuda.kernels.apply_increments_kernel`); one buffer per class count, made on
+        first use (maps without forgetting never have one)."""
+        buf = self.increments.get(num_classes)
+        if buf is None:
+            buf = self.increments[num_classes] = self.ops.zeros((self.buffers.pairs, num_classes), np.float64)
         return buf
 
     def start(self, camera: "Camera") -> PlanBuffers:
