@@ -32,7 +32,7 @@ from ..engine.camera import Camera
 from ..engine.similarity import Similarity
 from ..errors import CameraError
 from .frames import (DEFAULT_MAX_IMAGE_PIXELS, FrameRejected, Intrinsics, decode_camera_info, decode_confidence,
-                     decode_image, decode_labels, decode_pose)
+                     decode_depth, decode_image, decode_labels, decode_pose)
 from .messages import stamp_to_ns
 from .pose_history import LookupStatus, PoseHistory, PoseLookup, PosePolicy
 from .tf_buffer import DEFAULT_TF_BUFFER_S, TfBuffer
@@ -109,7 +109,7 @@ class GateConfig:
     map_frame: str = "map"
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
     max_stamp_future: float = 0.0
-    #: extra image kinds matched to frames and decoded as labels (css_replay: "gt")
+    #: extra image kinds matched to frames, decoded as labels ("depth": as a depth image) (css_replay: "gt", ...)
     extra_label_kinds: tuple[str, ...] = ()
     #: optional kinds ("image", extra kinds) a frame waits for (up to pose_wait) before it is emitted without
     #: them (css_replay: those its bag has, so that log-time order does not decide what a frame gets)
@@ -327,10 +327,11 @@ class FrameGate:
         return self._poll(cam, now)
 
     def on_extra(self, cam: int, kind: str, msg: Any, now: float, topic: str) -> list[GateFrame]:
-        """An extra label image (css_replay's GT), matched to frames like the colour image."""
+        """An extra image matched to frames like the colour image: a label image (css_replay's GT), or with ``kind``
+        "depth" a depth image (:func:`~css_ros.io.frames.decode_depth`: metres, NaN = no measurement)."""
         try:
             stamp = stamp_to_ns(msg.header.stamp)
-            labels = decode_labels(msg, kind)
+            labels = decode_depth(msg) if kind == "depth" else decode_labels(msg, kind)
         except FrameRejected as exc:
             self.warn(topic, exc.reason, f"{exc}; ignored")
             return []

@@ -16,8 +16,10 @@ Policies (documented in the README's reliability section):
   and the previous valid one stays in use; frames before the first valid camera_info are dropped.
 - **Pose**: non-finite or out-of-bounds positions (|x| > :data:`POSITION_BOUND_M`) and quaternions
   whose norm is outside ``QUATERNION_NORM_TOLERANCE`` are refused; others are normalised.
-- **Images** (segmentation, confidence, colour, GT): unsupported encodings, truncated data and a
+- **Images** (segmentation, confidence, colour, GT, depth): unsupported encodings, truncated data and a
   size different from the camera_info's are refused.
+- **Depth** (REP 118): 16UC1 / mono16 in millimetres, 32FC1 in metres, along the optical axis; a pixel without a
+  measurement (0, NaN, +-inf, negative) becomes NaN (no measurement: that pixel is voted as without depth).
 """
 from __future__ import annotations
 
@@ -28,8 +30,8 @@ import numpy as np
 
 from ..engine.camera import QUATERNION_NORM_TOLERANCE
 from ..errors import InputError
-from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, LABEL_ENCODINGS, camera_info_to_intrinsics,
-                       image_to_array, pose_to_arrays)
+from .messages import (COLOR_ENCODINGS, CONFIDENCE_ENCODINGS, DEPTH_ENCODINGS, LABEL_ENCODINGS,
+                       camera_info_to_intrinsics, image_to_array, pose_to_arrays)
 
 #: Largest image accepted by default [pixels] (4096 x 4096); node parameter / replay option ``max_image_pixels``.
 DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
@@ -122,6 +124,19 @@ def decode_confidence(msg: Any) -> tuple[np.ndarray, int]:
     if bad:
         conf = np.where(finite, conf, np.float32(0.0))
     return np.clip(conf, 0.0, 1.0), bad
+
+
+#: metres per unit of the integer depth encodings (16UC1 / mono16: millimetres)
+DEPTH_MM = 0.001
+
+
+def decode_depth(msg: Any) -> np.ndarray:
+    """Depth image (16UC1 / mono16 millimetres, 32FC1 metres) -> (H, W) float32 metres along the optical axis,
+    NaN where there is no measurement (0, NaN, +-inf or negative)."""
+    raw = _image(msg, DEPTH_ENCODINGS, "bad depth")
+    with np.errstate(invalid="ignore"):
+        depth = raw.astype(np.float32) * np.float32(DEPTH_MM) if raw.dtype == np.uint16 else raw.astype(np.float32)
+        return np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(np.nan)).astype(np.float32)
 
 
 def decode_image(msg: Any) -> np.ndarray:
