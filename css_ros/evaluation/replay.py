@@ -401,6 +401,17 @@ def _ece_text(summary: dict[str, Any]) -> str:
     return text + (f" ({dropped} pixels with a NaN / inf value left out)" if dropped else "")
 
 
+def change_headline(cw: dict[str, Any]) -> str:
+    """The headline's line on a changing world (report.md's section has the definitions and the reasons)."""
+    def pct(rec: dict[str, Any]) -> str:
+        return "n/a" if rec["value"] is None else f"{100 * rec['value']:.2f}%"
+
+    sa = cw["surprise_auroc"]["value"]
+    return (f"changing world: transient share {pct(cw['transient_share'])}, static accuracy "
+            f"{pct(cw['static_accuracy'])}, changed objects in their new class {pct(cw['changed_accuracy'])}, "
+            f"surprise AUROC {'n/a' if sa is None else f'{sa:.3f}'}")
+
+
 def headline(metrics: dict[str, Any]) -> str:
     """One-paragraph summary printed at the end of a run."""
     lines = []
@@ -430,6 +441,10 @@ def headline(metrics: dict[str, Any]) -> str:
     if im:
         lines.append("image-level Spearman rho vs error: " + "  ".join(
             f"{k} {v:+.3f}" for k, v in im.items() if v is not None))
+    cw = metrics.get("changing_world")
+    if cw and (cw["rules"]["transient_classes"] or cw["rules"]["depth_topic"] or cw["rules"]["evidence_half_life"]
+               or cw["changed_accuracy"]["value"] is not None):
+        lines.append(change_headline(cw))
     f = metrics["frames"]
     skipped = sum(f["skipped"].values())
     lines.append(f"frames: {f['processed']} processed ({f['trained']} fused), {skipped} skipped; "
