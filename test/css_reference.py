@@ -109,3 +109,54 @@ def update_reference(kappa, alpha, labels, num_classes, ignore_label=255, confid
     if confidence is not None:
         y *= np.asarray(confidence, dtype=np.float64).ravel()[:, None]
     return alpha + kappa.T @ y
+
+
+def camera_depths(means, T_map_cam):
+    """(N,) camera-frame z of the Gaussians' means (optical frame: z forward), splat units."""
+    T = np.asarray(T_map_cam, dtype=np.float64)
+    return ((np.asarray(means, dtype=np.float64) - T[:3, 3]) @ T[:3, :3])[:, 2]
+
+
+def change_update_reference(kappa, background, alpha, labels, num_classes, z_m, depth=None, transient=(),
+                            tol_abs=0.05, tol_rel=0.03, decay=1.0, prior=1.0, ignore_label=255, confidence=None):
+    """The changing-world update pixel by pixel (css_ros.engine.change_rules, written out independently):
+    (new alpha, counts (used, ignored, out_of_range, transient, occluded), surprise (P,) float64 NaN without label).
+    kappa (P, N) dense, background (P,) kappa_b, z_m (N,) camera depth of each Gaussian in metres, depth (P,) metres."""
+    lab = np.asarray(labels).ravel().astype(np.int64)
+    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64).ravel()
+    e_pre = alpha / alpha.sum(axis=1, keepdims=True)
+    inc = np.zeros_like(alpha)
+    counts = dict(used=0, ignored=0, out_of_range=0, transient=0, occluded=0)
+    surprise = np.full(lab.size, np.nan)
+    for i in range(lab.size):
+        y = lab[i]
+        if y == ignore_label:
+            counts["ignored"] += 1
+            continue
+        if y < 0 or y >= num_classes:
+            counts["out_of_range"] += 1
+            continue
+        w = 1.0 if conf is None else min(max(np.nan_to_num(conf[i], nan=0.0), 0.0), 1.0)
+        if not w > 0:
+            counts["ignored"] += 1
+            continue
+        k = kappa[i]
+        surprise[i] = 1.0 - (k @ e_pre[:, y] + background[i] / num_classes)
+        if y in transient:
+            counts["transient"] += 1
+            continue
+        keep = k > 0
+        d = np.nan if depth is None else float(depth[i])
+        if np.isfinite(d) and d > 0 and k.sum() > 0:
+            tol = max(tol_abs, tol_rel * d)
+            rendered = (k @ z_m) / k.sum()
+            if d < rendered - tol:
+                counts["occluded"] += 1
+                continue
+            keep &= z_m >= d - tol
+        counts["used"] += 1
+        inc[:, y] += np.where(keep, k, 0.0) * w
+    out = alpha.copy()
+    got = (inc != 0).any(axis=1)
+    out[got] = prior + (out[got] - prior) * decay + inc[got]
+    return out, counts, surprise

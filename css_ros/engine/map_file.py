@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import MapError
 from .atomic import atomic_file
 from .map_args import MAX_CLASSES, MAX_CONCENTRATION, MIN_CONCENTRATION
+from .change_rules import MAX_HALF_LIFE, MIN_HALF_LIFE
 from .sensor_model import NO_SENSOR_MODEL
 from .spec import MAX_FRAMES
 
@@ -40,6 +41,8 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "frames_observed": ("iu", ()),
     "sources": ("U", ("S",)),
     "sensor_model": ("U", ()),
+    # forgetting (docs/changing_world.md): the evidence half-life in observations the map was fused with, 0 = none
+    "evidence_half_life": ("f", ()),
     # evidence exchange (css_node, docs/maps.md): the origin id of the map's own evidence and, per received source,
     # its id, (epoch, last sequence number, frames, in step) and its evidence as sparse rows (counts per source)
     "evidence_origin": ("U", ()),
@@ -50,7 +53,7 @@ _MAP_MEMBERS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "received_rows": ("iu", ("R",)),
     "received_evidence": ("f", ("R", "C")),
 }
-_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model", "evidence_origin", "evidence_epoch",
+_OPTIONAL_MEMBERS = ("frames_observed", "sources", "sensor_model", "evidence_half_life", "evidence_origin", "evidence_epoch",
                      "received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
 _RECEIVED_MEMBERS = ("received_sources", "received_state", "received_counts", "received_rows", "received_evidence")
 #: Most contributing sources a map file may list (origin ids of the nodes whose evidence it holds).
@@ -94,6 +97,8 @@ class MapContents:
         evidence_origin: origin id under which css_node publishes the map's own evidence ("": none / not known).
         evidence_epoch: epoch of that own evidence when the map was saved (0: none / not known).
         received: evidence of other nodes held in ``concentrations``, per origin id.
+        evidence_half_life: the half-life in observations the evidence was fused with (None: the paper's update,
+            evidence adds up; stored as 0).
     """
 
     fingerprint: str
@@ -106,6 +111,7 @@ class MapContents:
     evidence_origin: str = ""
     evidence_epoch: int = 0
     received: Mapping[str, SourceEvidence] = field(default_factory=dict)
+    evidence_half_life: float | None = None
 
     @property
     def num_gaussians(self) -> int:
@@ -144,6 +150,7 @@ def write_map_file(path: Path, contents: MapContents) -> None:
             frames_observed=np.int64(contents.frames_observed),
             sources=np.array(sorted(contents.sources), dtype=str).reshape(-1),
             sensor_model=np.array(contents.sensor_model),
+            evidence_half_life=np.float64(contents.evidence_half_life or 0.0),
             evidence_origin=np.array(contents.evidence_origin),
             evidence_epoch=np.uint64(contents.evidence_epoch),
             **_received_members(contents.received, contents.num_classes),
@@ -305,6 +312,7 @@ def read_map_file(path: Path, model: "GaussianModel | None" = None, num_classes:
             frames = int(data["frames_observed"]) if "frames_observed" in files else 0
             sources = [str(v) for v in data["sources"]] if "sources" in files else []
             sensor_model = str(data["sensor_model"]) if "sensor_model" in files else NO_SENSOR_MODEL
+            half_life = float(data["evidence_half_life"]) if "evidence_half_life" in files else 0.0
             evidence_origin = str(data["evidence_origin"]) if "evidence_origin" in files else ""
             evidence_epoch = int(data["evidence_epoch"]) if "evidence_epoch" in files else 0
             members = {k: np.array(data[k]) for k in _RECEIVED_MEMBERS if k in files and received}
@@ -322,10 +330,14 @@ def read_map_file(path: Path, model: "GaussianModel | None" = None, num_classes:
             raise MapError(f"map file {path}: {name}={value!r} outside [{MIN_CONCENTRATION:g}, {MAX_CONCENTRATION:g}]")
     if not 0 <= frames <= MAX_FRAMES:
         raise MapError(f"map file {path}: frames_observed={frames} outside [0, {MAX_FRAMES}]")
+    if half_life != 0.0 and not MIN_HALF_LIFE <= half_life <= MAX_HALF_LIFE:
+        raise MapError(f"map file {path}: evidence_half_life={half_life!r} is neither 0 (none) nor in "
+                       f"[{MIN_HALF_LIFE:g}, {MAX_HALF_LIFE:g}]")
     return MapContents(fingerprint=fingerprint, concentrations=conc, prior=prior, background=background,
                        frames_observed=frames, sources=sources, sensor_model=sensor_model,
                        evidence_origin=evidence_origin, evidence_epoch=evidence_epoch,
-                       received=_received_sources(path, members, conc, prior))
+                       received=_received_sources(path, members, conc, prior),
+                       evidence_half_life=half_life or None)
 
 
 def _received_sources(path: Path, members: dict[str, np.ndarray], conc: np.ndarray,

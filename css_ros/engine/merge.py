@@ -34,6 +34,11 @@ def check_compatible(a: "SemanticMap", b: "SemanticMap", name_a: str = "first ma
     if a.depth_scale != b.depth_scale:
         raise MapError(f"{name_a} has depth_scale {a.depth_scale:g} m per splat unit, {name_b} {b.depth_scale:g}: their "
                        "depths (and a sensor model's depth bins) are in other units")
+    for m, name in ((a, name_a), (b, name_b)):
+        if m.evidence_half_life is not None:
+            raise MapError(f"{name} forgets its evidence (evidence_half_life {m.evidence_half_life:g} observations): "
+                           "its evidence is not additive, so it cannot be merged or exchanged (fuse without a "
+                           "half-life to merge)")
     if a.fused_sensor_model != b.fused_sensor_model:
         raise MapError(f"{name_a} and {name_b} were fused with different sensor models "
                        f"({a.fused_sensor_model[:12] or 'none'} vs {b.fused_sensor_model[:12] or 'none'}): their "

@@ -489,7 +489,8 @@ class SemanticMap:
             write_map_file(path, MapContents(
                 fingerprint=self.model.fingerprint, concentrations=conc, prior=self.prior, background=self.background,
                 frames_observed=self.frames_observed, sources=self.sources, sensor_model=self.fused_sensor_model,
-                evidence_origin=self.evidence_origin, evidence_epoch=self.evidence_epoch, received=self.received))
+                evidence_origin=self.evidence_origin, evidence_epoch=self.evidence_epoch, received=self.received,
+                evidence_half_life=self.evidence_half_life))
         except OSError as exc:
             raise MapError(f"cannot save the map to {path}: {exc.strerror or exc}") from exc
         return path
@@ -503,7 +504,8 @@ class SemanticMap:
         is read (no pickles, no decompression bombs, no huge allocations). ``expected_classes``: refuse
         a map with another number of classes before reading it. Extra keyword arguments
         (ignore_label, unknown_threshold, backend, ...) go to the constructor; prior, background and
-        num_classes come from the file.
+        num_classes come from the file, and so does ``evidence_half_life`` unless given (a map keeps forgetting at
+        the rate it was fused with; passing another one changes it from now on).
         Raises:
             MapError (naming ``path``): a path that does not exist or is not a regular file, prior /
                 background / num_classes passed as arguments (they come from the file), a bad
@@ -519,6 +521,7 @@ class SemanticMap:
         if fixed:
             raise MapError(f"load takes {', '.join(fixed)} from the map file, not as an argument")
         f = read_map_file(path, model, expected_classes)
+        kwargs.setdefault("evidence_half_life", f.evidence_half_life)
         smap = cls(model, f.num_classes, prior=f.prior, background=f.background, **kwargs)
         has_evidence = bool(np.any(f.concentrations != f.prior))
         if "sensor_model" in kwargs and f.sensor_model != smap.sensor_fingerprint and has_evidence:

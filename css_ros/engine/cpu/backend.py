@@ -42,11 +42,12 @@ class NumbaBackend(RasterBackend):
                soft: "SoftLabels | None" = None) -> UpdateCounts:
         proj, bins, _ = frame
         self._store.owner = None
-        acc, acc_base, counts = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store)
+        acc, acc_base, counts, surprise = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store,
+                                                            concentrations)
         self._store.owner = frame
-        add_increments(concentrations, proj.ids, acc, acc_base)
+        add_increments(concentrations, proj.ids, acc, acc_base, inputs.rules.decay, inputs.rules.prior)
         self._workspace.done()
-        return UpdateCounts(counts)
+        return UpdateCounts(counts, surprise)
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:

@@ -20,7 +20,9 @@ import numpy as np
 from numba import njit, prange
 
 from ..buffers import RenderBuffers
-from ..label_input import IGNORED, NO_DEPTH, NUM_COUNTS, OUT_OF_RANGE, USED, FrameLabels, pixel_vote
+from ..change_rules import depth_gate
+from ..label_input import (IGNORED, NO_DEPTH, NUM_COUNTS, OCCLUDED, OUT_OF_RANGE, TRANSIENT, USED, FrameLabels,
+                           pixel_vote, transient_status)
 from ..pixel_math import depth_bin
 from ..spec import TILE_SIZE
 from .composite import FAST, composite_row, load_tile, new_scratch, row_candidates
@@ -115,27 +117,58 @@ def attribute_classes(width: int) -> int:
 _linear_width = njit(inline="always")(linear_width)
 _depth_bin = njit(inline="always")(depth_bin)
 _pixel_vote = njit(inline="always")(pixel_vote)
+_transient_status = njit(inline="always")(transient_status)
+_depth_gate = njit(inline="always")(depth_gate)
 
 
 @njit(inline="always")
-def _row_votes(row_labels, row_conf, has_confidence, num_classes, ignore_label, vote, weight, active):  # pragma: no cover
-    """:func:`~css_ros.engine.label_input.pixel_vote` of a tile row's pixels: vote[p], weight[p], active[p] (USED);
-    returns the row's (used, ignored, out of range) counts."""
+def _row_votes(row_labels, row_conf, has_confidence, num_classes, ignore_label, transient, want_surprise, vote,
+               weight, active, kind):  # pragma: no cover
+    """:func:`~css_ros.engine.label_input.pixel_vote` and :func:`~css_ros.engine.label_input.transient_status` of a
+    tile row's pixels: vote[p] (the class, also of a transient pixel), weight[p], kind[p] (the status), active[p]
+    (USED, or TRANSIENT when the surprise is wanted: walked); returns the row's (used, ignored, out of range,
+    transient) counts."""
     used = 0
     ignored = 0
     out_of_range = 0
+    transients = 0
     for p in range(row_labels.shape[0]):
         conf = 1.0
         if has_confidence:
             conf = row_conf[p]
         c, w, status = _pixel_vote(row_labels[p], conf, num_classes, ignore_label)
+        status = _transient_status(c, status, transient)
         used += status == USED
         ignored += status == IGNORED
         out_of_range += status == OUT_OF_RANGE
+        transients += status == TRANSIENT
         vote[p] = c
         weight[p] = w
-        active[p] = status == USED
-    return used, ignored, out_of_range
+        kind[p] = status
+        active[p] = status == USED or (want_surprise and status == TRANSIENT)
+    return used, ignored, out_of_range, transients
+
+
+@njit(inline="always", fastmath=FAST)
+def _pixel_surprise(kidx, kval, c, t, tile_list, e_pre, label, inv_c):  # pragma: no cover
+    """1 - E^y of one pixel before the update: sum kappa E_n^y (``e_pre`` rows of the tile list) + kappa_b / C."""
+    e = t * inv_c
+    for i in range(c):
+        e += kval[i] * e_pre[tile_list[kidx[i]], label]
+    return np.float32(1.0 - e)
+
+
+@njit(inline="always", fastmath=FAST)
+def _rendered_depth(kidx, kval, c, ldepth):  # pragma: no cover
+    """(sum kappa z / sum kappa, sum kappa) of one pixel's contributions (z from ``ldepth``, splat units); NaN
+    depth without any."""
+    zsum = 0.0
+    ksum = 0.0
+    for i in range(c):
+        kv = kval[i]
+        zsum += kv * ldepth[kidx[i]]
+        ksum += kv
+    return (zsum / ksum if ksum > 0.0 else np.nan), ksum
 
 
 @njit(inline="always", fastmath=FAST)
@@ -187,23 +220,31 @@ def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, ac
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
                    tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
-                   store, st_k, st_v, pix_off, pix_cnt, pix_t):  # pragma: no cover
+                   store, st_k, st_v, pix_off, pix_cnt, pix_t, gate):  # pragma: no cover
     """acc[chunk, c, j] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, class-major: a tile's
-    flush of one class writes neighbouring entries); counts[chunk] = (used, ignored, out of range, no depth) of the
-    chunk's pixels. Each pixel's vote is :func:`~css_ros.engine.label_input.pixel_vote` of ``labels[v, u]`` (any
-    integer dtype) and ``confidence[v, u]`` (float32 / float64; 1 without ``has_confidence``), taken as it comes: no
-    class or weight planes. Only rows of a tile with a voting pixel are composited, only those pixels walked. With a
-    sensor model and with a store: see the comment above."""
+    flush of one class writes neighbouring entries); counts[chunk] = (used, ignored, out of range, no depth,
+    transient, occluded) of the chunk's pixels. Each pixel's vote is :func:`~css_ros.engine.label_input.pixel_vote`
+    of ``labels[v, u]`` (any integer dtype) and ``confidence[v, u]`` (float32 / float64; 1 without
+    ``has_confidence``), taken as it comes: no class or weight planes. Only rows of a tile with a voting pixel are
+    composited, only those pixels walked. With a sensor model and with a store: see the comment above.
+
+    ``gate`` = (depth (H, W) float32 metres, has_depth, tol_abs, tol_rel, depth_scale, transient (C,) bool,
+    want_surprise, e_pre (M, C) float32 E before the update, surprise (H, W) float32 out): the rules of
+    :mod:`css_ros.engine.change_rules` (transient classes, measured depth, surprise)."""
+    depth, has_depth, tol_abs, tol_rel, depth_scale, transient, want_surprise, e_pre, surprise = gate
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
     num_classes = acc.shape[1]
     num_bins = edges.shape[0] - 1 if use_model else 1
     num_rows = num_classes * num_bins
     cap = st_k.shape[1]
+    need_depth = use_model or has_depth
+    inv_c = 1.0 / num_classes
     for ch in prange(nchunks):
         pos = 0
         scratch = new_scratch(tile)
         vote = np.empty(tile, dtype=np.int64)
+        kind = np.empty(tile, dtype=np.int64)
         weight = np.empty(tile)
         # Tile-local accumulator (label row, list position): the per-contribution scatter stays in
         # cache; only the rows present in the tile are zeroed and flushed to the chunk's rows. A row is a
@@ -216,9 +257,12 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
         ignored = 0
         out_of_range = 0
         no_depth = 0
+        transients = 0
+        occluded = 0
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
             n = end - start
+            tile_list = lists[start:end]
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
@@ -227,16 +271,17 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
             for v in range(ty * tile, min(height, ty * tile + tile)):
                 active = scratch[8]
                 row_conf = confidence[v, u0:u1 + 1] if has_confidence else confidence[0, 0:1]
-                n_used, n_ignored, n_out = _row_votes(labels[v, u0:u1 + 1], row_conf, has_confidence, num_classes,
-                                                      ignore_label, vote, weight, active)
+                n_used, n_ignored, n_out, n_trans = _row_votes(labels[v, u0:u1 + 1], row_conf, has_confidence,
+                                                               num_classes, ignore_label, transient, want_surprise,
+                                                               vote, weight, active, kind)
                 used += n_used
                 ignored += n_ignored
                 out_of_range += n_out
-                voting = n_used > 0
+                transients += n_trans
                 if store:
                     row_cnt = pix_cnt[v * width + u0:v * width + u1 + 1]
                     row_cnt[:] = -1
-                if not voting:
+                if not (n_used > 0 or (want_surprise and n_trans > 0)):
                     continue
                 if not loaded:
                     scratch = load_tile(walk, lists, start, end, scratch)
@@ -249,50 +294,69 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                 cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                 r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
                 composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, hit, state)
+                if need_depth and not depth_loaded:  # the tile list's camera depths, contiguous
+                    for k in range(n):
+                        ldepth[k] = packed[tile_list[k], 7]
+                    depth_loaded = True
                 for p in range(u1 - u0 + 1):
                     if not active[p]:
                         continue
                     c = cnt[p]
-                    w = weight[p]
-                    row = vote[p]
-                    if use_model:
-                        if not depth_loaded:  # the tile list's camera depths, contiguous
-                            for k in range(n):
-                                ldepth[k] = packed[lists[start + k], 7]
-                            depth_loaded = True
-                        zsum = 0.0
-                        ksum = 0.0
-                        for i in range(c):
-                            kv = kval[p, i]
-                            zsum += kv * ldepth[kidx[p, i]]
-                            ksum += kv
-                        b = 0
-                        if ksum > 0.0:
-                            b = _depth_bin(zsum / ksum, edges)
-                        else:
-                            no_depth += 1
-                        row = row * num_bins + b
-                    if not present[row]:
-                        present[row] = True
-                        for k in range(n):
-                            lacc[row, k] = 0.0
-                    for i in range(c):
-                        lacc[row, kidx[p, i]] += kval[p, i] * w
+                    kp = kidx[p]
+                    vp = kval[p]
                     if store and pos + c <= cap and n <= _STORE_MAX_LIST:
                         q = v * width + u0 + p
                         for i in range(c):
-                            st_k[ch, pos + i] = np.uint16(kidx[p, i])
-                            st_v[ch, pos + i] = np.float32(kval[p, i])
+                            st_k[ch, pos + i] = np.uint16(kp[i])
+                            st_v[ch, pos + i] = np.float32(vp[i])
                         pix_off[q] = pos
                         pix_cnt[q] = c
                         pix_t[q] = trans[p]
                         pos += c
+                    if want_surprise:
+                        surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], tile_list, e_pre, vote[p], inv_c)
+                    if kind[p] != USED:
+                        continue  # a transient class: no evidence
+                    row = vote[p]
+                    w = weight[p]
+                    front = -np.inf
+                    if need_depth:
+                        rendered, ksum = _rendered_depth(kp, vp, c, ldepth)
+                        if has_depth:
+                            occ, front = _depth_gate(np.float64(depth[v, u0 + p]), rendered * depth_scale, tol_abs,
+                                                     tol_rel)
+                            if occ:
+                                occluded += 1
+                                used -= 1
+                                continue
+                        if use_model:
+                            b = 0
+                            if ksum > 0.0:
+                                b = _depth_bin(rendered, edges)
+                            else:
+                                no_depth += 1
+                            row = row * num_bins + b
+                    if not present[row]:
+                        present[row] = True
+                        for k in range(n):
+                            lacc[row, k] = 0.0
+                    if front > -np.inf:  # contributions in front of the measured surface add nothing
+                        lim = front / depth_scale
+                        for i in range(c):
+                            k = kp[i]
+                            if ldepth[k] >= lim:
+                                lacc[row, k] += vp[i] * w
+                    else:
+                        for i in range(c):
+                            lacc[row, kp[i]] += vp[i] * w
             if loaded:
-                _flush_tile(lists[start:end], lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch)
+                _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch)
         counts[ch, USED] = used
         counts[ch, IGNORED] = ignored
         counts[ch, OUT_OF_RANGE] = out_of_range
         counts[ch, NO_DEPTH] = no_depth
+        counts[ch, TRANSIENT] = transients
+        counts[ch, OCCLUDED] = occluded
 
 
 @njit(inline="always", fastmath=FAST)
@@ -527,6 +591,8 @@ _NO_STORE = (np.empty((1, 0), np.uint16), np.empty((1, 0), np.float32), np.empty
 _NO_MODEL = (np.zeros(2), np.zeros(1), np.zeros((1, 1)))
 _NO_BASE = np.zeros((0, 0))
 _NO_CONFIDENCE = np.zeros((1, 1), dtype=np.float32)
+_NO_PLANE = np.zeros((1, 1), dtype=np.float32)
+_NO_TRANSIENT = np.zeros(0, dtype=np.bool_)
 
 
 class UpdateWorkspace:
@@ -561,7 +627,8 @@ class UpdateWorkspace:
 
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLabels,
                       soft: SoftLabels | None = None, workspace: UpdateWorkspace | None = None,
-                      store: ContributionStore | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      store: ContributionStore | None = None, concentrations: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums, with the frame's pixel counts.
 
     Args:
@@ -571,10 +638,13 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
         workspace: accumulators kept between frames (call its ``done`` after :func:`add_increments`), or None for
             fresh ones.
         store: if given, records the contributions for a following :func:`render_semantic`.
+        concentrations: (N, C) float64 alpha before the update; needed only for the surprise
+            (``inputs.want_surprise``).
     Returns:
         ((chunks, C, M) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
         increments of every class of those rows ((0, 0) without ``soft``) (apply both with :func:`add_increments`),
-        (NUM_COUNTS,) int64 pixel counts: used, ignored, out of range, no depth (0 without ``soft``)).
+        (NUM_COUNTS,) int64 pixel counts: used, ignored, out of range, no depth (0 without ``soft``), transient,
+        occluded; the (H, W) float32 surprise image, or None when not asked for).
     """
     height, width = inputs.labels.shape
     nchunks = _num_chunks(bins)
@@ -582,17 +652,44 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     counts = np.zeros((nchunks, NUM_COUNTS), dtype=np.int64)
     edges, base, resid = _NO_MODEL if soft is None else (soft.edges, soft.base, soft.resid)
     conf = _NO_CONFIDENCE if inputs.confidence is None else inputs.confidence
+    rules = inputs.rules
+    want_surprise = inputs.want_surprise and concentrations is not None
+    surprise = np.full((height, width), np.nan, dtype=np.float32) if want_surprise else _NO_PLANE
+    e_pre = (_expectations(concentrations, proj.ids) if want_surprise and concentrations is not None
+             else _NO_PLANE)
+    transient = rules.transient if rules.transient.shape[0] == inputs.num_classes else _NO_TRANSIENT
+    gate = (_NO_PLANE if inputs.depth is None else inputs.depth, inputs.depth is not None, float(rules.tol_abs),
+            float(rules.tol_rel), float(rules.depth_scale), transient, want_surprise, e_pre, surprise)
     _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
                    inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
                    acc, soft is not None, edges, base, resid, acc_base, counts, store is not None,
-                   *(_NO_STORE if store is None else store.reserve(width * height, nchunks).arrays()))
-    return acc, acc_base, counts.sum(axis=0)
+                   *(_NO_STORE if store is None else store.reserve(width * height, nchunks).arrays()), gate)
+    return acc, acc_base, counts.sum(axis=0), surprise if want_surprise else None
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _expectations(concentrations, ids):  # pragma: no cover
+    """(M, C) float32 E[theta] = alpha / S of the projected Gaussians' rows ``ids`` (for the surprise)."""
+    m = ids.shape[0]
+    num_classes = concentrations.shape[1]
+    out = np.empty((m, num_classes), dtype=np.float32)
+    for j in prange(m):
+        row = ids[j]
+        total = 0.0
+        for c in range(num_classes):
+            total += concentrations[row, c]
+        inv = 1.0 / total
+        for c in range(num_classes):
+            out[j, c] = np.float32(concentrations[row, c] * inv)
+    return out
 
 
 @njit(parallel=True, cache=True)
-def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
+def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  # pragma: no cover
     """concentrations[ids[j], c] += sum over chunks of acc[chunk, c, j] (+ acc_base[chunk, j] for every class
-    when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`)."""
+    when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`).
+    With ``decay`` < 1 (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some
+    class is first set to prior + (alpha - prior) * decay."""
     num_classes, m = acc.shape[1], acc.shape[2]
     with_base = acc_base.shape[0] > 0
     for j in prange(m):
@@ -602,6 +699,14 @@ def add_increments(concentrations, ids, acc, acc_base):  # pragma: no cover
             for ch in range(acc_base.shape[0]):
                 common += acc_base[ch, j]
                 acc_base[ch, j] = 0.0
+        if decay != 1.0:
+            received = common != 0.0
+            for c in range(num_classes):
+                for ch in range(acc.shape[0]):
+                    received |= acc[ch, c, j] != 0.0
+            if received:
+                for c in range(num_classes):
+                    concentrations[row, c] = prior + (concentrations[row, c] - prior) * decay
         for c in range(num_classes):
             total = 0.0
             for ch in range(acc.shape[0]):
