@@ -24,7 +24,9 @@ DEFINITIONS = {
     "static_accuracy": "rendered label == static ground truth, over the pixels the static ground truth labels",
     "others_accuracy": "the same over the pixels that show no object whose class changes",
     "changed_accuracy": "share of the pixels of objects whose class changed that show their class at the end of "
-                        "the bag",
+                        "the bag (at every pose, also where the object was seen only before its change)",
+    "changed_accuracy_after": "the same at the poses that see the object after its change (where the ground "
+                              "truth already shows the new class)",
     "surprise_auroc": "AUROC of the surprise image of the first fused frame that shows a changed object's new class "
                       "(after it was seen with its old one): its changed pixels against every other pixel with a "
                       "surprise value (1 = every changed pixel more surprising than any other)",
@@ -65,9 +67,12 @@ class ChangeTally:
         self.rendered = np.zeros(self.num_classes, dtype=np.int64)
         #: (C,) pixels per class of the static ground truth (which classes the static world holds)
         self.gt_pixels = np.zeros(self.num_classes, dtype=np.int64)
+        #: (C,) pixels per class of the input segmentation (every frame of the bag)
+        self.input_pixels = np.zeros(self.num_classes, dtype=np.int64)
         self.static = np.zeros(2, dtype=np.int64)    # right, total
         self.others = np.zeros(2, dtype=np.int64)
         self.changed = np.zeros(2, dtype=np.int64)
+        self.changed_after = np.zeros(2, dtype=np.int64)
         self.have_gt = False
         self.have_changed = False
         self._seen_before = False                      # a changed object seen with its old class
@@ -84,7 +89,11 @@ class ChangeTally:
         if gt_changed is not None:
             self.have_changed = True
             changed = _valid(gt_changed, self.num_classes, self.ignore_label)
-            self.changed += (int(np.count_nonzero(lab[changed] == gt_changed[changed])), int(changed.sum()))
+            right = changed & (lab == gt_changed)
+            self.changed += (int(right.sum()), int(changed.sum()))
+            if gt is not None:
+                after = changed & (gt == gt_changed)
+                self.changed_after += (int((right & after).sum()), int(after.sum()))
         if gt is not None:
             self.have_gt = True
             ok = _valid(gt, self.num_classes, self.ignore_label)
@@ -92,6 +101,12 @@ class ChangeTally:
             self.gt_pixels += np.bincount(np.asarray(gt)[ok].astype(np.int64), minlength=self.num_classes)
             self.static += (int(right.sum()), int(ok.sum()))
             self.others += (int((right & ~changed).sum()), int((ok & ~changed).sum()))
+
+    def add_input(self, labels: np.ndarray) -> None:
+        """One frame's input segmentation (H, W) (which classes the segmentation sees)."""
+        lab = np.asarray(labels).astype(np.int64, copy=False)
+        self.input_pixels += np.bincount(lab[_valid(lab, self.num_classes, self.ignore_label)],
+                                         minlength=self.num_classes)
 
     def add_observation(self, index: int, gt: np.ndarray | None, gt_changed: np.ndarray | None,
                         surprise: np.ndarray | None) -> None:
@@ -119,11 +134,12 @@ class ChangeTally:
         if self.transient_ids:
             ids, basis = self.transient_ids, "the map's transient classes (--transient-classes)"
         elif self.have_gt:
-            ids = [c for c in range(self.num_classes) if self.gt_pixels[c] == 0]
-            basis = "the classes the static ground truth never holds (no --transient-classes given)"
+            ids = [c for c in range(self.num_classes) if self.gt_pixels[c] == 0 and self.input_pixels[c] > 0]
+            basis = ("no --transient-classes given: the classes the segmentation holds and the static ground truth "
+                     "never does")
             if not ids:
-                return _figure(None, "no --transient-classes given and every class occurs in the static ground "
-                                     "truth: no class to count", basis=basis, classes=[])
+                return _figure(None, "no --transient-classes given and no class of the segmentation is absent from "
+                                     "the static ground truth: no class to count", basis=basis, classes=[])
         else:
             return _figure(None, "no --transient-classes given and no static ground truth to tell which classes "
                                  "never occur", classes=[])
@@ -163,5 +179,6 @@ class ChangeTally:
             "static_accuracy": self._ratio(self.static, no_gt),
             "others_accuracy": self._ratio(self.others, no_gt or no_changed),
             "changed_accuracy": self._ratio(self.changed, no_changed),
+            "changed_accuracy_after": self._ratio(self.changed_after, no_changed or no_gt),
             "surprise_auroc": self._surprise(),
         }

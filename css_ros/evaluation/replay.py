@@ -192,6 +192,7 @@ def _fuse_pass(cfg: ReplayConfig, st: _Setup) -> _FusePass:
     bag_ctx = BagWriter(cfg.out / "bag") if cfg.output_bag else nullcontext()
     with bag_ctx as obag, _progress(st.expected, "fuse", cfg.quiet) as bar:
         for frame in st.source.frames() if st.expected > 0 else ():
+            st.evaluator.change.add_input(frame.labels)
             online = obag is not None or frame.gt is not None or frame.gt_changed is not None
             view: RenderedView | None
             if frame.index < st.train:

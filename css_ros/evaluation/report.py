@@ -469,7 +469,8 @@ def changing_world_lines(cw: dict[str, Any] | None) -> list[str]:
              + (f"; classes: {', '.join(ts['classes'])} ({ts['basis']})" if ts.get("classes") else "") + " |"]
     for key, name in (("static_accuracy", "accuracy vs the static ground truth"),
                       ("others_accuracy", "accuracy, pixels of unchanged objects"),
-                      ("changed_accuracy", "changed objects in their new class")):
+                      ("changed_accuracy", "changed objects in their new class"),
+                      ("changed_accuracy_after", "the same, poses after the change")):
         lines.append(f"| {name} | {_figure_text(cw[key])} | {d[key]} |")
     sa = cw["surprise_auroc"]
     where = f" (frame {sa['frame']})" if sa.get("frame") is not None else ""
