@@ -227,3 +227,37 @@ def test_help_names_the_changing_world_options():
     for opt in ("--depth-topic", "--transient-classes", "--evidence-half-life", "--depth-tolerance",
                 "--depth-tolerance-relative", "--gt-changed-topic", "16UC1 millimetres or 32FC1 metres"):
         assert opt in text, opt
+
+
+def test_in_front_of_map_is_the_engines_depth_gate():
+    """The calibration's vectorised test equals change_rules.depth_gate pixel by pixel (including no measurement,
+    no rendered depth and the relative tolerance)."""
+    from css_ros.calibration.learn import in_front_of_map
+    from css_ros.engine.change_rules import depth_gate
+
+    rng = np.random.default_rng(3)
+    measured = rng.uniform(-1, 6, 4000).astype(np.float32)
+    rendered = rng.uniform(0.2, 6, 4000).astype(np.float32)
+    measured[::7], measured[1::11], rendered[2::13] = np.nan, np.inf, np.nan
+    measured[3::17] = rendered[3::17] - 0.05          # on the tolerance's edge
+    got = in_front_of_map(measured, rendered, 0.05, 0.03)
+    want = [depth_gate(float(m), float(r), 0.05, 0.03)[0] for m, r in zip(measured, rendered)]
+    np.testing.assert_array_equal(got, want)
+    assert got.any() and not got.all()
+
+
+def test_calibrate_leaves_out_what_stands_in_front_of_the_map(bags, tmp_path, capsys):
+    """css_calibrate on the wall bag: with its /depth the person pixels (7 frames x 400, counted here) are left out
+    of the label statistics, and the confidence pass fuses with the depth; --depth-topic '' counts them."""
+    from css_ros.calibration.cli import main as calibrate
+    from css_ros.engine.sensor_model import SensorModel
+
+    common = ["--quiet", "--heldout-every", "0", "--bin-width", "1", "--max-depth", "4"]
+    assert calibrate([str(bags["depth"]), "--out", str(tmp_path / "d.yaml"), *common]) == 0
+    assert f"{PERSON_PIXELS} were in front of the map's surface" in capsys.readouterr().out
+    assert calibrate([str(bags["depth"]), "--out", str(tmp_path / "n.yaml"), "--depth-topic", "", *common]) == 0
+    with_depth = SensorModel.load(tmp_path / "d.yaml", NAMES).info
+    without = SensorModel.load(tmp_path / "n.yaml", NAMES).info
+    assert with_depth["pixels_in_front_of_the_map"] == PERSON_PIXELS and without["pixels_in_front_of_the_map"] == 0
+    assert without["pixels_fit"] - with_depth["pixels_fit"] == PERSON_PIXELS == 7 * 400
+    assert with_depth["pixels_fit"] == N * W * H - PERSON_PIXELS
