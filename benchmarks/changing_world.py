@@ -191,7 +191,7 @@ def table(results: dict[str, dict[str, Any]]) -> list[str]:
     for name, r in results.items():
         ref = results.get(f"person-free {name}") if not name.startswith("person-free") else None
         loss = "—" if ref is None or r["static_accuracy"] is None or ref["static_accuracy"] is None else \
-            f"{100 * (ref['static_accuracy'] - r['static_accuracy']):+.2f} pt"
+            f"{100 * (ref['static_accuracy'] - r['static_accuracy']) + 0.0:+.2f} pt".replace("-0.00", "0.00")
         auroc = "n/a" if r["surprise_auroc"] is None else f"{r['surprise_auroc']:.3f} ({r['surprise_frame']})"
         rows.append(f"| {name} | {_pct(r['person_share'], 3)} | {_pct(r['static_accuracy'])} | {loss} | "
                     f"{_pct(r['changed_accuracy'], 1)} / {_pct(r['changed_accuracy_after'], 1)} | "
@@ -215,7 +215,8 @@ def targets(results: dict[str, dict[str, Any]], half_life: float) -> list[tuple[
     check("depth: person share <= 0.05 %", d["person_share"], d["person_share"] <= TARGETS["depth_person_share"],
           _pct(d["person_share"], 3))
     check("depth: accuracy loss vs person-free <= 0.2 pt", loss,
-          loss is not None and loss <= TARGETS["depth_accuracy_loss"], "n/a" if loss is None else f"{100 * loss:.2f} pt")
+          loss is not None and loss <= TARGETS["depth_accuracy_loss"],
+          "n/a" if loss is None else f"{100 * loss:.2f} pt".replace("-0.00", "0.00"))
     check("transient classes without depth: person share 0 %", t["person_share"],
           t["person_share"] <= TARGETS["transient_person_share"], _pct(t["person_share"], 3))
     for key, where in (("changed_accuracy", "all poses"), ("changed_accuracy_after", "poses after the change")):

@@ -40,9 +40,10 @@ examples:
   css_replay bags/demo_range/bag --sensor-model out/calibration/sensor_model.yaml
                                               # css_calibrate's sensor model beside the paper's update (same frames)
   css_replay bags/demo --train-frames 60      # fuse the first 60 frames only, evaluate all 120
-  css_replay bags/people/bag --transient-classes person --evidence-half-life 5
-                                              # a changing world: people add no evidence, old evidence fades
-                                              # (the bag's /depth, when present, holds back what stands in front)
+  css_replay out/people --transient-classes person --evidence-half-life 10
+                                              # a changing world (css_make_demo --out out/people --people 2
+                                              # --change-class --depth): people add no evidence, old evidence
+                                              # fades, the bag's /depth holds back what stands in front
   css_replay BAG --model splat.ply --classes classes.yaml --pose-source tf --map-frame odom
                                               # another model and class file, camera poses from /tf
 A css_node parameter file (css_node.yaml) beside the bag folder gives poses, cameras and frames (or --params FILE).
