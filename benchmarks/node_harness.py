@@ -105,7 +105,7 @@ def stamp_of(msg: Any) -> int | None:
 
 
 def stub_observe(self: Any, camera: Any, labels: np.ndarray, confidence: np.ndarray | None = None,
-                 probabilities: bool = False, outputs: Any = None) -> Any:
+                 probabilities: bool = False, outputs: Any = None, depth: Any = None) -> Any:
     """Stand-in for ``SemanticMap.observe``: a RenderedView of ``camera``'s size with the requested images in their
     final dtypes (labels: the input labels as int32; float planes and colour: constant noise made once per size),
     at once. Counts the frame (``frames_observed``) and sets ``last_update`` as the engine does; the concentrations
@@ -137,7 +137,8 @@ def stub_observe(self: Any, camera: Any, labels: np.ndarray, confidence: np.ndar
                         probabilities=np.broadcast_to(plane[:, :, None], (h, w, self.num_classes))
                         if probabilities else None,
                         depth=img("depth", plane),
-                        confidence=plane if "confidence" in wanted and settings.confidence is not None else None)
+                        confidence=plane if "confidence" in wanted and settings.confidence is not None else None,
+                        surprise=img("surprise", plane))
 
 
 def install(probe: Probe, engine_stub: bool) -> None:

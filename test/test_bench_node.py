@@ -18,7 +18,8 @@ pytest.importorskip("rclpy")
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "bench_node.py"
 FRAMES = 8
-PER_FRAME_OUTPUTS = ["semantic", "semantic_color", "expectation", "variance", "rendered_image", "view_uncertainty"]
+PER_FRAME_OUTPUTS = ["semantic", "semantic_color", "expectation", "variance", "rendered_image", "surprise",
+                     "view_uncertainty"]
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +66,7 @@ def test_stage_times_nest_like_the_node_calls(result):
     parts = mean["images"] + mean["image_msgs"] + mean["view_msg"] + mean["publish"]
     assert mean["publish_frame"] >= parts
     assert mean["own"] == pytest.approx(mean["take"] + mean["callback"] + mean["worker"] - mean["observe"])
-    assert f"frames sent / received (all 6 per-frame outputs): {FRAMES} / {FRAMES}" in text
+    assert f"frames sent / received (all 7 per-frame outputs): {FRAMES} / {FRAMES}" in text
 
 
 def test_engine_stub_returns_the_requested_images_in_final_form():

@@ -79,10 +79,10 @@ def test_depth_encodings_read_back_with_the_replay_decoder():
     depth = np.array([[0.5, 1.2344, np.nan], [np.inf, 70.0, 2.0]])
     mm = encode_depth(depth, "16UC1")
     assert mm.dtype == np.uint16 and mm.tolist() == [[500, 1234, 0], [0, 65535, 2000]]
-    back = decode_depth(Msg(mm, "16UC1"))
+    back = decode_depth(Msg(mm, "16UC1")).metres()
     np.testing.assert_allclose(back[~np.isnan(back)], [0.5, 1.234, 65.535, 2.0], rtol=1e-6)
     assert np.isnan(back[0, 2]) and np.isnan(back[1, 0])
-    m = decode_depth(Msg(encode_depth(depth, "32FC1"), "32FC1"))
+    m = decode_depth(Msg(encode_depth(depth, "32FC1"), "32FC1")).metres()
     np.testing.assert_array_equal(np.isnan(m), [[False, False, True], [True, False, False]])
     np.testing.assert_allclose(m[0, :2], [0.5, 1.2344], rtol=1e-6)
     with pytest.raises(CssError, match="--depth-encoding"):
@@ -204,5 +204,5 @@ def test_cli_writes_16uc1_depth(tmp_path):
         msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
                 if c.topic == "/depth"]
     assert len(msgs) == 3 and {m.encoding for m in msgs} == {"16UC1"}
-    depth = decode_depth(msgs[0])
+    depth = decode_depth(msgs[0]).metres()
     assert np.nanmin(depth) > 0.1 and np.nanmax(depth) < 12.0

@@ -36,7 +36,7 @@ def test_every_parameter_has_a_description_and_seconds_for_times():
             assert unit == "s", name
     assert {f.name for f in fields(NodeParams) if f.name.startswith("publish_")} == {
         "publish_semantic", "publish_semantic_color", "publish_expectation", "publish_variance",
-        "publish_rendered_image", "publish_confidence", "publish_view_uncertainty", "publish_diagnostics",
+        "publish_rendered_image", "publish_confidence", "publish_surprise", "publish_view_uncertainty", "publish_diagnostics",
         "publish_evidence"}
 
 

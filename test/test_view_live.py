@@ -154,3 +154,39 @@ def test_live_view_draws_the_splat_in_the_nodes_map_frame(tmp_path, monkeypatch)
     finally:
         follower.close()
         node.stop()
+
+
+def test_live_view_shows_the_nodes_surprise_while_chosen(tmp_path, monkeypatch):
+    """The page's "Frame image" set to surprise: the viewer subscribes to the node's ~/surprise and shows the last
+    frame's. The first frame on a fresh map has surprise 1 - 1/C on every labelled pixel (every class has E = 1/C
+    under the prior) and NaN on the unlabelled rows; the viewer leaves the topic when the choice goes back to none."""
+    domain = rh.next_domain_id()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    model_path = rh.write_wall_model(tmp_path / "wall.ply")
+    node = rh.NodeProcess(dict(model_path=str(model_path), class_file="", num_classes=rh.NUM_CLASSES,
+                               checkpoint_path="", view_period=0.3), domain, tmp_path / "node.log")
+    client = rh.RosClient(domain)
+    follower = Follower(monkeypatch, 90.0)
+    try:
+        assert follower.ready.wait(60.0), node.log()[-3000:]
+        view = follower.views[0]
+        view.set_frame_image("surprise")
+        assert client.wait_until(lambda: client.node.count_subscribers("/css_node/surprise") > 0, 10.0)
+        assert client.wait_connected(60.0) and client.wait_outputs_heard(("surprise",)), node.log()[-3000:]
+        labels = rh.wall_labels()
+        labels[:4] = 255
+        assert client.send_frame_until_processed(10**9, labels) is not None, node.log()[-3000:]
+        assert client.wait_until(lambda: view.frame_image("surprise") is not None, UPDATE_BOUND_S), \
+            "no surprise image reached the page"
+        shown = view.frame_image("surprise")
+        np.testing.assert_array_equal(np.isnan(shown), labels == 255)
+        np.testing.assert_allclose(shown[labels != 255], 1.0 - 1.0 / rh.NUM_CLASSES, rtol=1e-6)
+        assert view.frame_img.visible and "mean surprise 0.750" in view.frame_md.content
+        view.set_frame_image("none")
+        assert client.wait_until(lambda: client.node.count_subscribers("/css_node/surprise") == 0, 10.0)
+        assert not view.frame_img.visible
+    finally:
+        follower.close()
+        client.close()
+        node.stop()
+    assert follower.result == [0]

@@ -62,14 +62,16 @@ class Frame:
     gt_changed: np.ndarray | None = None
 
 
-#: Optional image kinds matched to each segmentation by stamp and brought to its resolution (nearest neighbour).
-EXTRA_KINDS = ("gt", "depth", "gt_changed")
+#: Optional label images matched to each segmentation by stamp and brought to its resolution (nearest neighbour);
+#: the depth goes through the gate's own depth path (FrameGate.on_depth: waits, pairing and resizing as css_node's).
+EXTRA_KINDS = ("gt", "gt_changed")
 
 
 def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str, ...],
-                       wait_for: tuple[str, ...], pose_source: str = "topic") -> GateConfig:
+                       wait_for: tuple[str, ...], pose_source: str = "topic", depth_topic: str = "") -> GateConfig:
     """The node's gate configuration from css_replay's options (the same names as the node parameters);
-    ``pose_source``: "topic" or "tf" (the bag's, found by :meth:`FrameSource.check`)."""
+    ``pose_source``: "topic" or "tf" (the bag's, found by :meth:`FrameSource.check`); ``depth_topic``: the bag's
+    depth topic ("" when it has none or it is disabled)."""
     cams = tuple(c.strip("/") for c in cfg.cameras)
     return GateConfig(cameras=cams, pose_type=pose_type, pose_per_camera=cfg.pose_per_camera,
                       extrinsics=tuple(parse_extrinsics(cfg.camera_extrinsics, len(cams))),
@@ -78,7 +80,7 @@ def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str
                                              max_extrapolation=cfg.max_pose_extrapolation, max_gap=cfg.max_pose_gap),
                       sync_slop=cfg.sync_slop, queue_size=cfg.sync_queue, map_frame=cfg.map_frame,
                       max_image_pixels=cfg.max_image_pixels, extra_label_kinds=extra_kinds, wait_for=wait_for,
-                      pose_source=pose_source, tf_buffer=cfg.tf_buffer_s)
+                      pose_source=pose_source, tf_buffer=cfg.tf_buffer_s, depth_topic=depth_topic)
 
 
 class FrameSource:
@@ -174,8 +176,11 @@ class FrameSource:
                 self.pose_source = self._pose_source(bag, bag.topics(), {t["pose"] for t in self.topics})
         extra = tuple(k for k in EXTRA_KINDS if self.present.get(k))
         wait_for = tuple(k for k in ("image", *EXTRA_KINDS) if self.present.get(k))
-        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for, self.pose_source),
-                                     self._warn, self._count, lambda cam: bool(self.present.get("confidence")))
+        depth_topic = cfg.topics.get("depth", "") if self.present.get("depth") else ""
+        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for, self.pose_source,
+                                                        depth_topic),
+                                     self._warn, self._count, lambda cam: bool(self.present.get("confidence")),
+                                     depth_expected=lambda cam: bool(self.present.get("depth")))
         routes: dict[str, list[tuple[int, str]]] = {}
         for cam, cam_topics in enumerate(self.topics):
             for kind, topic in cam_topics.items():
@@ -226,6 +231,8 @@ class FrameSource:
                         out += gate.on_confidence(cam, m.msg, now)
                     elif kind == "image":
                         out += gate.on_image(cam, m.msg, now)
+                    elif kind == "depth":
+                        out += gate.on_depth(cam, m.msg, now)
                     elif kind in EXTRA_KINDS:
                         out += gate.on_extra(cam, kind, m.msg, now, m.topic)
                 out += gate.poll(now)
@@ -258,8 +265,8 @@ class FrameSource:
             self.skips[f"undecodable_{topic}"] += n
 
     def _frame(self, index: int, gf: GateFrame) -> Frame | None:
-        """A gate frame as css_replay's Frame (GT, depth and colour image brought to the segmentation's resolution;
-        label and depth images by nearest neighbour)."""
+        """A gate frame as css_replay's Frame (GT and colour image brought to the segmentation's resolution, label
+        images by nearest neighbour; the gate already did so for the depth)."""
         shape = gf.labels.shape
         extras: dict[str, np.ndarray | None] = {k: gf.extras.get(k) for k in EXTRA_KINDS}
         rgb = gf.image
@@ -284,7 +291,7 @@ class FrameSource:
         return Frame(index=index, stamp_ns=gf.stamp_ns, camera=gf.camera, labels=gf.labels,
                      confidence=gf.confidence, gt=gt, rgb=rgb, camera_frame=gf.frame_id, map_frame=gf.map_frame,
                      camera_index=gf.camera_index, position_map=gf.position_map, quat_map=gf.quat_map,
-                     depth=extras["depth"], gt_changed=extras["gt_changed"])
+                     depth=gf.depth, gt_changed=extras["gt_changed"])
 
 
 def _same_aspect(a: tuple[int, ...], b: tuple[int, ...]) -> bool:

@@ -12,6 +12,15 @@ the pose describes) and taken from the map into the splat frame by ``splat_to_ma
 pose is not yet bracketed (or whose confidence, or its camera's first camera_info, has not arrived) waits up to
 ``pose_wait`` s; frames of a camera are emitted in stamp order.
 
+With ``depth_topic`` set, a frame also takes the depth image of its camera nearest its stamp (within
+``sync_slop``). While ``depth_expected(camera)`` (the node: the depth topic has a publisher) it first waits, up to
+``pose_wait`` s like for its confidence, until a depth stamped at or after its own has arrived (a depth camera faster
+than the segmentation has one 33 ms before and one at the stamp: the one at the stamp must win even when it comes
+after the segmentation); then it takes the nearest, or goes on **without** depth (counted and warned, never dropped:
+the depth only refines the update). A depth message that cannot be used (bad encoding, truncated) is warned and
+dropped, and the frame with its stamp goes on without depth at once (it does not wait for another). The depth is
+brought to the segmentation's resolution by the nearest pixel (:func:`~css_ros.io.frames.depth_for`).
+
 With ``pose_source`` "tf" the pose stream is not used: the pose is the TF lookup ``map_frame <- frame_id`` of the
 segmentation's header at its stamp (:mod:`css_ros.io.tf_buffer`, fed by :meth:`FrameGate.on_tf`), with the same
 interpolation, wait and extrapolation rules; extrinsics, when given, then compose onto that frame's pose.
@@ -31,8 +40,8 @@ import numpy as np
 from ..engine.camera import Camera
 from ..engine.similarity import Similarity
 from ..errors import CameraError
-from .frames import (DEFAULT_MAX_IMAGE_PIXELS, FrameRejected, Intrinsics, decode_camera_info, decode_confidence,
-                     decode_depth, decode_image, decode_labels, decode_pose)
+from .frames import (DEFAULT_MAX_IMAGE_PIXELS, FrameRejected, Intrinsics, RawDepth, decode_camera_info,
+                     decode_confidence, decode_depth, decode_image, decode_labels, decode_pose, depth_for)
 from .messages import stamp_to_ns
 from .pose_history import LookupStatus, PoseHistory, PoseLookup, PosePolicy
 from .tf_buffer import DEFAULT_TF_BUFFER_S, TfBuffer
@@ -109,7 +118,7 @@ class GateConfig:
     map_frame: str = "map"
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
     max_stamp_future: float = 0.0
-    #: extra image kinds matched to frames, decoded as labels ("depth": as a depth image) (css_replay: "gt", ...)
+    #: extra image kinds matched to frames and decoded as labels (css_replay: "gt")
     extra_label_kinds: tuple[str, ...] = ()
     #: optional kinds ("image", extra kinds) a frame waits for (up to pose_wait) before it is emitted without
     #: them (css_replay: those its bag has, so that log-time order does not decide what a frame gets)
@@ -118,6 +127,8 @@ class GateConfig:
     pose_source: str = "topic"
     #: history [s] every dynamic TF edge keeps (pose_source "tf")
     tf_buffer: float = DEFAULT_TF_BUFFER_S
+    #: the depth image topic of each camera, relative to its namespace (absolute: as it is); "": no depth
+    depth_topic: str = ""
 
 
 @dataclass
@@ -129,7 +140,8 @@ class GateFrame:
     (what is published); ``pose_how``: "exact", "interpolated" or "extrapolated"; ``t_arrival``: the gate time
     [s] at which the segmentation arrived; ``extras[kind]``: matched extra label images (or absent);
     ``pose_missing``: samples of the pose stream missing between the two the pose was computed from (their
-    publication sequence numbers tell; 0 when consecutive or unknown).
+    publication sequence numbers tell; 0 when consecutive or unknown); ``depth``: (H, W) float32 measured depth [m]
+    at the segmentation's resolution (NaN: no measurement), None without one.
     """
 
     camera_index: int
@@ -146,6 +158,7 @@ class GateFrame:
     t_arrival: float
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     pose_missing: int = 0
+    depth: np.ndarray | None = None
 
     @property
     def pose_flags(self) -> int:
@@ -172,7 +185,7 @@ class _CameraState:
         self.info: Intrinsics | None = None
         self.pending: deque[_Pending] = deque()
         self.buffers: dict[str, deque[tuple[int, Any]]] = {
-            k: deque(maxlen=queue_size) for k in ("confidence", "image", *extra_kinds)}
+            k: deque(maxlen=queue_size) for k in ("confidence", "image", "depth", *extra_kinds)}
         self.last_frame_ns: int | None = None
         self.stale_run = 0
 
@@ -188,11 +201,14 @@ class FrameGate:
             confidence image (node: it has a publisher; replay: the bag has the topic).
         now_ns: the clock against which ``max_stamp_future`` is checked (0 or less: unknown, check skipped).
         log_warning: unconditional warnings (clock reset).
+        depth_expected: ``depth_expected(camera_index) -> bool``: with ``depth_topic``, frames of that camera wait
+            (up to pose_wait) for a depth image (node: it has a publisher); None: they never wait for one.
     """
 
     def __init__(self, config: GateConfig, warn: Warn, count: Callable[..., None],
                  confidence_expected: Callable[[int], bool], now_ns: Callable[[], int] = lambda: 0,
-                 log_warning: Callable[[str], None] = lambda s: None) -> None:
+                 log_warning: Callable[[str], None] = lambda s: None,
+                 depth_expected: Callable[[int], bool] | None = None) -> None:
         if config.pose_type not in POSE_TYPES:
             raise ValueError(f"unknown pose_type '{config.pose_type}' (expected one of {', '.join(POSE_TYPES)})")
         if len(config.extrinsics) != len(config.cameras):
@@ -203,6 +219,7 @@ class FrameGate:
         self.warn = warn
         self.count = count
         self.confidence_expected = confidence_expected
+        self.depth_expected = depth_expected if config.depth_topic else None
         self.now_ns = now_ns
         self.log_warning = log_warning
         self.cams = [_CameraState(i, ns, config.queue_size, config.extra_label_kinds)
@@ -228,6 +245,9 @@ class FrameGate:
         """Relative topic name of camera ``cam``'s input ``kind`` (pose: per camera only with pose_per_camera)."""
         if kind == "pose" and not self.cfg.pose_per_camera:
             return INPUT_TOPICS["pose"]
+        if kind == "depth":
+            name, ns = self.cfg.depth_topic, self.cfg.cameras[cam].strip("/")
+            return name if name.startswith("/") or not ns else f"{ns}/{name}"
         return camera_topic(self.cfg.cameras[cam], kind)
 
     def _history_index(self, cam: int) -> int:
@@ -326,12 +346,30 @@ class FrameGate:
             self.cams[cam].buffers["image"].append((stamp, rgb))
         return self._poll(cam, now)
 
-    def on_extra(self, cam: int, kind: str, msg: Any, now: float, topic: str) -> list[GateFrame]:
-        """An extra image matched to frames like the colour image: a label image (css_replay's GT), or with ``kind``
-        "depth" a depth image (:func:`~css_ros.io.frames.decode_depth`: metres, NaN = no measurement)."""
+    def on_depth(self, cam: int, msg: Any, now: float) -> list[GateFrame]:
+        """A depth image (``depth_topic``): kept for the frame with the nearest stamp. One that cannot be used is
+        warned and dropped, and stands for "no depth at this stamp": that frame goes on without depth at once."""
+        topic = self.topic(cam, "depth")
         try:
             stamp = stamp_to_ns(msg.header.stamp)
-            labels = decode_depth(msg) if kind == "depth" else decode_labels(msg, kind)
+        except (AttributeError, TypeError, ValueError) as exc:
+            self.warn(topic, "bad depth", f"no readable stamp ({exc}); dropped")
+            return []
+        depth: RawDepth | str
+        try:
+            depth = decode_depth(msg)
+        except FrameRejected as exc:
+            self.warn(topic, exc.reason, f"{exc}; dropped (the frame of its stamp is fused without depth)")
+            depth = exc.reason
+        if self.stamp_ok(topic, stamp):
+            self.cams[cam].buffers["depth"].append((stamp, depth))
+        return self._poll(cam, now)
+
+    def on_extra(self, cam: int, kind: str, msg: Any, now: float, topic: str) -> list[GateFrame]:
+        """An extra label image (css_replay's GT), matched to frames like the colour image."""
+        try:
+            stamp = stamp_to_ns(msg.header.stamp)
+            labels = decode_labels(msg, kind)
         except FrameRejected as exc:
             self.warn(topic, exc.reason, f"{exc}; ignored")
             return []
@@ -454,6 +492,9 @@ class FrameGate:
                 continue
             if not waited and any(self._nearest(st.buffers[k], fr.stamp_ns) is None for k in self.cfg.wait_for):
                 break
+            if not waited and self.depth_expected is not None and self.depth_expected(cam) and \
+                    not any(t >= fr.stamp_ns for t, _ in st.buffers["depth"]):
+                break   # a depth at or after the stamp may still come: nearer than one before it
             if st.info is None and not waited:
                 # the camera's first camera_info may arrive after its first segmentation: DDS orders no two topics
                 break
@@ -507,6 +548,7 @@ class FrameGate:
             self.warn(topic, "invalid camera", f"{exc}; frame dropped")
             return None
         image = self._nearest(st.buffers["image"], fr.stamp_ns)
+        depth = self._depth(st, fr) if self.cfg.depth_topic else None
         extras = {}
         for kind in self.cfg.extra_label_kinds:
             found = self._nearest(st.buffers[kind], fr.stamp_ns)
@@ -524,7 +566,24 @@ class FrameGate:
         self._flag_pose(topic, fr.stamp_ns, how, missing)
         return GateFrame(st.index, fr.stamp_ns, fr.frame_id, self.cfg.map_frame, fr.labels, confidence, image,
                          camera, np.asarray(position, dtype=np.float64), np.asarray(quat, dtype=np.float64), how,
-                         fr.t_arrival, extras, missing)
+                         fr.t_arrival, extras, missing, depth)
+
+    def _depth(self, st: _CameraState, fr: _Pending) -> np.ndarray | None:
+        """The frame's depth [m] at its resolution, or None (warned when none came; a bad one was at arrival)."""
+        topic = self.topic(st.index, "depth")
+        found = self._nearest(st.buffers["depth"], fr.stamp_ns)
+        if found is None:
+            self.warn(topic, "no matching depth", f"none within sync_slop={self.cfg.sync_slop:g} s of frame "
+                      f"{fr.stamp_ns * 1e-9:.9f} s (waited up to pose_wait={self.cfg.pose_policy.wait:g} s while "
+                      "the topic had a publisher): fused without depth", dropped=False)
+            return None
+        if isinstance(found, str):   # a bad depth message at this stamp, warned and counted at arrival
+            return None
+        try:
+            return depth_for(found, fr.labels.shape, RESOLUTION_TOLERANCE_PX)
+        except FrameRejected as exc:
+            self.warn(topic, exc.reason, f"{exc}; the frame is fused without depth", dropped=False)
+            return None
 
     def _flag_pose(self, topic: str, stamp_ns: int, how: str, missing: int) -> None:
         """Count and warn (frame kept) when a frame's pose is not the interpolation of the samples around its stamp."""

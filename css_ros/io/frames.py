@@ -18,8 +18,9 @@ Policies (documented in the README's reliability section):
   whose norm is outside ``QUATERNION_NORM_TOLERANCE`` are refused; others are normalised.
 - **Images** (segmentation, confidence, colour, GT, depth): unsupported encodings, truncated data and a
   size different from the camera_info's are refused.
-- **Depth** (REP 118): 16UC1 / mono16 in millimetres, 32FC1 in metres, along the optical axis; a pixel without a
-  measurement (0, NaN, +-inf, negative) becomes NaN (no measurement: that pixel is voted as without depth).
+- **Depth** (REP 118): 16UC1 in millimetres (0: no measurement) or 32FC1 in metres (NaN, inf, 0 or negative: no
+  measurement); every "no measurement" becomes NaN. A depth at another resolution than its segmentation (same
+  field of view) is brought to it by the nearest pixel, never interpolated across edges (:func:`depth_for`).
 """
 from __future__ import annotations
 
@@ -126,17 +127,34 @@ def decode_confidence(msg: Any) -> tuple[np.ndarray, int]:
     return np.clip(conf, 0.0, 1.0), bad
 
 
-#: metres per unit of the integer depth encodings (16UC1 / mono16: millimetres)
-DEPTH_MM = 0.001
+#: units per metre of each depth encoding (REP 118)
+DEPTH_UNITS_PER_METRE = {"16UC1": 1000.0, "32FC1": 1.0}
 
 
-def decode_depth(msg: Any) -> np.ndarray:
-    """Depth image (16UC1 / mono16 millimetres, 32FC1 metres) -> (H, W) float32 metres along the optical axis,
-    NaN where there is no measurement (0, NaN, +-inf or negative)."""
-    raw = _image(msg, DEPTH_ENCODINGS, "bad depth")
-    with np.errstate(invalid="ignore"):
-        depth = raw.astype(np.float32) * np.float32(DEPTH_MM) if raw.dtype == np.uint16 else raw.astype(np.float32)
-        return np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(np.nan)).astype(np.float32)
+@dataclass(frozen=True)
+class RawDepth:
+    """A depth image as received: ``values`` (H, W) uint16 or float32, ``per_metre`` of them a metre. Kept so until a
+    frame takes it (:meth:`metres`): most depth images of a camera faster than its segmentation are never used."""
+
+    values: np.ndarray
+    per_metre: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.values.shape[0], self.values.shape[1]
+
+    def metres(self) -> np.ndarray:
+        """(H, W) float32 depth [m] along the optical axis; NaN where there is no measurement (0, NaN, inf, < 0)."""
+        d = self.values.astype(np.float32)
+        if self.per_metre != 1.0:
+            d /= np.float32(self.per_metre)   # a division: 1500 mm is 1.5 m exactly (x 0.001 rounds it)
+        return np.where(np.isfinite(d) & (d > 0), d, np.float32(np.nan)).astype(np.float32, copy=False)
+
+
+def decode_depth(msg: Any) -> RawDepth:
+    """A depth image (16UC1 millimetres or 32FC1 metres) -> :class:`RawDepth`; FrameRejected ``bad depth``."""
+    values = _image(msg, DEPTH_ENCODINGS, "bad depth")
+    return RawDepth(values, DEPTH_UNITS_PER_METRE[str(msg.encoding)])
 
 
 def decode_image(msg: Any) -> np.ndarray:
@@ -164,6 +182,23 @@ def decode_pose(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     if not lo <= norm <= hi:
         raise FrameRejected("invalid pose", f"quaternion {quat.tolist()} has norm {norm:.4g} outside [{lo}, {hi}]")
     return position, quat / norm
+
+
+def depth_for(depth: RawDepth, labels_shape: tuple[int, int], tolerance_px: float) -> np.ndarray:
+    """The depth [m] (H, W) float32 at the segmentation's resolution ``labels_shape`` (NaN: no measurement).
+
+    Another resolution with the same field of view (one scale factor for x and y, within ``tolerance_px`` of
+    rounding) takes the nearest source pixel (:func:`resample_to` with ``labels``): depth is never interpolated
+    across an edge (a value between a person and the wall behind is neither). Raises FrameRejected ``depth size
+    mismatch`` for another aspect ratio."""
+    h, w = labels_shape
+    H, W = depth.shape
+    if (H, W) == (h, w):
+        return depth.metres()
+    if abs(H * w / W - h) > tolerance_px or abs(W * h / H - w) > tolerance_px:
+        raise FrameRejected("depth size mismatch", f"depth {W}x{H} is not the segmentation's {w}x{h} scaled by one "
+                            "factor in x and y (is it registered to the segmentation's camera?)")
+    return RawDepth(resample_to(depth.values, (h, w), labels=True), depth.per_metre).metres()
 
 
 def resample_to(image: np.ndarray, shape: tuple[int, int], labels: bool = False) -> np.ndarray:

@@ -29,8 +29,8 @@ IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
 COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8")
 LABEL_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1")
 CONFIDENCE_ENCODINGS = ("32FC1",)
-#: depth images (REP 118): 16UC1 / mono16 in millimetres (0 = no measurement), 32FC1 in metres
-DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
+#: depth images: 16UC1 in millimetres, 32FC1 in metres (REP 118)
+DEPTH_ENCODINGS = ("16UC1", "32FC1")
 
 #: PointCloud2 layout of ~/view_uncertainty and ~/candidate_scores (all float32).
 VIEW_DTYPE = np.dtype([(name, "<f4") for name in VIEW_FIELDS])

@@ -26,6 +26,7 @@ def mono_to_rgb(image: np.ndarray) -> np.ndarray:
 TOPIC_IMAGES: dict[str, tuple[str, ...]] = {
     "semantic": ("labels",), "semantic_color": ("labels",), "expectation": ("expectation",),
     "variance": ("variance",), "rendered_image": ("rgb",), "confidence": ("confidence",),
+    "surprise": ("surprise",),
 }
 
 
@@ -34,7 +35,9 @@ def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label:
     """Output name -> (array, encoding) of one rendered frame, in publishing order (SPEC §8):
     ``semantic`` (label ids), ``semantic_color`` (class colours, rgb8), ``expectation`` and ``variance``
     (32FC1, of the argmax class), ``rendered_image`` (rgb8) and, when the map's sensor model holds a calibrated
-    confidence map, ``confidence`` (32FC1: probability that ``semantic`` is right; 0 where it is the ignore label).
+    confidence map, ``confidence`` (32FC1: probability that ``semantic`` is right; 0 where it is the ignore label)
+    and, for a view of :meth:`~css_ros.engine.semantic_map.SemanticMap.observe` that made it, ``surprise`` (32FC1:
+    1 - E of each pixel's observed label under the map before the frame; NaN where the pixel had no label).
     Only the outputs in ``names`` (None: all) are made; images the view does not hold (not requested from the
     engine) give no entry."""
     def want(name: str) -> bool:
@@ -48,7 +51,8 @@ def frame_output_images(view: "RenderedView", classes: "ClassSet", ignore_label:
         if want("semantic_color"):
             out["semantic_color"] = (classes.colorize(labels, ignore_label=ignore_label), "rgb8")
     for name, field, encoding in (("expectation", "expectation", "32FC1"), ("variance", "variance", "32FC1"),
-                                  ("rendered_image", "rgb", "rgb8"), ("confidence", "confidence", "32FC1")):
+                                  ("rendered_image", "rgb", "rgb8"), ("confidence", "confidence", "32FC1"),
+                                  ("surprise", "surprise", "32FC1")):
         array = getattr(view, field)
         if array is not None and want(name):
             out[name] = (array, encoding)

@@ -84,6 +84,7 @@ OUTPUT_TOPICS: dict[str, str] = {
     "variance": IMAGE_TYPE,
     "rendered_image": IMAGE_TYPE,
     "confidence": IMAGE_TYPE,
+    "surprise": IMAGE_TYPE,
     "view_uncertainty": POINTCLOUD2_TYPE,
     "candidate_scores": POINTCLOUD2_TYPE,
     "semantic_cloud": POINTCLOUD2_TYPE,
@@ -91,9 +92,10 @@ OUTPUT_TOPICS: dict[str, str] = {
 }
 #: Outputs published for every observed frame (``candidate_scores`` and ``point_query_results`` answer
 #: requests; ``semantic_cloud`` is the 3D map, published periodically with transient-local durability).
-#: ``confidence`` only exists when the node's sensor model holds a calibrated confidence map.
+#: ``confidence`` only exists when the node's sensor model holds a calibrated confidence map; ``surprise`` only with
+#: output_scale 1 (the update at full resolution makes it).
 FRAME_OUTPUTS = ("semantic", "semantic_color", "expectation", "variance", "rendered_image", "confidence",
-                 "view_uncertainty")
+                 "surprise", "view_uncertainty")
 
 
 def output_topic(name: str, node_name: str = NODE_NAME) -> str:

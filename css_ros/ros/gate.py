@@ -42,7 +42,7 @@ def gate_config(p: NodeParams) -> GateConfig:
                       splat_to_map=Similarity.from_params(p.splat_to_map), pose_policy=pose_policy(p),
                       sync_slop=p.sync_slop, queue_size=p.queue_size, map_frame=p.map_frame,
                       max_image_pixels=p.max_image_pixels, max_stamp_future=p.max_stamp_future,
-                      pose_source=p.pose_source, tf_buffer=p.tf_buffer_s)
+                      pose_source=p.pose_source, tf_buffer=p.tf_buffer_s, depth_topic=p.depth_topic)
 
 
 @dataclass
@@ -81,11 +81,14 @@ class InputGate:
             segmentation_confidence has a publisher (a bare callable without argument is accepted for one camera).
         log_warning: unconditional warnings (clock reset).
         monotonic: the clock [s] on which frames wait for their pose (time.monotonic; tests pass their own).
+        depth_published: ``depth_published(camera_index)``: True while that camera's depth topic has a publisher
+            (frames then wait for their depth up to pose_wait); None: never waited for.
     """
 
     def __init__(self, params: NodeParams, warn: WarnLimiter, count: Callable[..., None],
                  now_ns: Callable[[], int], confidence_published: Callable[..., bool],
-                 log_warning: Callable[[str], None], monotonic: Callable[[], float] = time.monotonic) -> None:
+                 log_warning: Callable[[str], None], monotonic: Callable[[], float] = time.monotonic,
+                 depth_published: Callable[[int], bool] | None = None) -> None:
         self.p = params
         self.warn = warn
         self.count = count
@@ -95,7 +98,8 @@ class InputGate:
         else:
             published = confidence_published
         self.frames = FrameGate(gate_config(params), warn, count,
-                                lambda cam: params.use_confidence and bool(published(cam)), now_ns, log_warning)
+                                lambda cam: params.use_confidence and bool(published(cam)), now_ns, log_warning,
+                                depth_published)
 
     @property
     def camera_info(self) -> Any:
@@ -114,6 +118,9 @@ class InputGate:
 
     def on_confidence(self, msg: Any, cam: int = 0) -> list[FrameJob]:
         return self._jobs(self.frames.on_confidence(cam, msg, self.monotonic()))
+
+    def on_depth(self, msg: Any, cam: int = 0) -> list[FrameJob]:
+        return self._jobs(self.frames.on_depth(cam, msg, self.monotonic()))
 
     def on_segmentation(self, msg: Any, cam: int = 0) -> list[FrameJob]:
         return self._jobs(self.frames.on_segmentation(cam, msg, self.monotonic()))

@@ -44,6 +44,7 @@ _OUTPUT_HELP = {
     "variance": "Var of the argmax class (32FC1)",
     "rendered_image": "colour render of the splat (rgb8)",
     "confidence": "calibrated probability that the label is right (32FC1; with a sensor model)",
+    "surprise": "1 - E of each pixel's observed label before the frame's update (32FC1; NaN: no label)",
     "view_uncertainty": "U_var, U_exp of the frame's view (one point at the camera)",
     "candidate_scores": "U_var, U_exp, info_gain per candidate pose, request order",
     "semantic_cloud": "observed Gaussians with class and uncertainty (every cloud_period s)",
@@ -58,7 +59,9 @@ def topics_text() -> str:
     lines = ["topics in (relative: remap with -r NAME:=/your/topic; with cameras:=[ns...] each camera reads "
              "/ns/NAME):"]
     lines += [f"  {INPUT_TOPICS[k]} [{INPUT_TYPES[k]}]\n      {d}" for k, d in _INPUT_HELP.items()]
-    lines += ["  <evidence_in topics> [std_msgs/msg/UInt8MultiArray]\n      evidence of other nodes (parameter "
+    lines += ["  <depth_topic> [sensor_msgs/msg/Image]\n      optional measured depth registered to the "
+              "segmentation (16UC1 mm, 32FC1 m), matched by stamp (parameter depth_topic)",
+              "  <evidence_in topics> [std_msgs/msg/UInt8MultiArray]\n      evidence of other nodes (parameter "
               "evidence_in)", "", "topics out (private: /css_node/NAME; per camera namespace with several "
               "cameras):"]
     lines += [f"  ~/{k} [{OUTPUT_TOPICS[k]}]\n      {d}" for k, d in _OUTPUT_HELP.items()]

@@ -124,9 +124,11 @@ class ModelWatcher:
 
 
 def keep_sensor_model(old: Any, new: Any) -> None:
-    """The moved map keeps the node's sensor model and depth scale (transfer_map builds the new map with the
-    paper's update; the evidence it carries, and its fingerprint in map files, are the old map's)."""
+    """The moved map keeps the node's sensor model, depth scale and rules for a changing world (transfer_map builds
+    the new map with the paper's update and default rules; the evidence it carries, and its fingerprint in map files,
+    are the old map's)."""
     new.depth_scale = old.depth_scale
+    new.evidence_half_life, new.change_rules = old.evidence_half_life, old.change_rules
     if old.sensor_model is not None:
         new.sensor_model = old.sensor_model
     new.fused_sensor_model = old.fused_sensor_model

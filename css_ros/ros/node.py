@@ -35,7 +35,7 @@ from .gate import InputGate, NanAnswer
 from .intake import Intake
 from .outputs import OutputPublisher
 from .params import NodeParams, check_params, coerce
-from .startup import describe_sensor_model, load_engine, warm_up
+from .startup import describe_changing_world, describe_sensor_model, load_engine, warm_up
 from .transport import open_inputs_node
 from .work import WarnLimiter, WorkQueue
 from .worker import MapWorker
@@ -81,7 +81,8 @@ def declare_params(node: Node) -> NodeParams:
         desc = ParameterDescriptor(description=f.metadata["description"]
                                    + (f" [{f.metadata['unit']}]" if f.metadata["unit"] else ""),
                                    read_only=True, dynamic_typing=True)
-        values[f.name] = coerce(f.name, node.declare_parameter(f.name, default, desc).value, default)
+        values[f.name] = coerce(f.name, node.declare_parameter(f.name, default, desc).value, default,
+                                f.metadata["items"])
     p = NodeParams(**values)
     check_params(p)
     return p
@@ -136,10 +137,12 @@ class CssNode(Node):
                                                     p.view_max_changes, p.min_evidence,
                                                     Similarity.from_params(p.splat_to_map))
         self.gate = InputGate(p, self.warn, self.stats.count, lambda: self.get_clock().now().nanoseconds,
-                              self._confidence_published, log.warning)
+                              self._confidence_published, log.warning, depth_published=self._depth_published)
         frames = self.gate.frames
         self._confidence_topics = [self.resolve_topic_name(frames.topic(i, "confidence"))
                                    for i in range(len(p.cameras))]
+        self._depth_topics = [self.resolve_topic_name(frames.topic(i, "depth")) if p.depth_topic else ""
+                              for i in range(len(p.cameras))]
 
         if p.input_qos == "reliable":
             qos_in = QoSProfile(depth=p.queue_size, reliability=ReliabilityPolicy.RELIABLE,
@@ -185,6 +188,9 @@ class CssNode(Node):
                 lambda m, _s, i=i: self._put_frames(self.gate.on_image(m, i)), qos_in)
             sub(Image, frames.topic(i, "confidence"),
                 lambda m, _s, i=i: self._put_frames(self.gate.on_confidence(m, i)), qos_in)
+            if p.depth_topic:
+                sub(Image, frames.topic(i, "depth"), lambda m, _s, i=i: self._put_frames(self.gate.on_depth(m, i)),
+                    qos_in)
             sub(Image, frames.topic(i, "segmentation"),
                 lambda m, _s, i=i: self._put_frames(self.gate.on_segmentation(m, i)), qos_in)
         self.inputs.create_timer(min(POSE_POLL_PERIOD_S, max(p.pose_wait / 4, 0.005)), self._poll_frames)
@@ -236,9 +242,13 @@ class CssNode(Node):
             reporter.publish()
 
     def _diagnostics_info(self) -> dict[str, str]:
-        """Diagnostics entries beyond the counters: the update in use and ``subscribers[<output>]``."""
+        """Diagnostics entries beyond the counters: the update in use, ``subscribers[<output>]`` and the last fused
+        frame's ``last_pixels_transient``, ``last_pixels_occluded`` and ``last_surprise_mean``."""
         counts = {f"subscribers[{name}]": str(n) for name, n in self.outputs.subscriber_counts().items()}
-        return {**self._sensor_info(), **counts, "answers_waiting": str(self.outputs.held_answers())}
+        last = self.worker.last_frame
+        frame = {"last_pixels_transient": str(last.transient), "last_pixels_occluded": str(last.occluded),
+                 "last_surprise_mean": f"{last.surprise_mean:.6g}"}
+        return {**self._sensor_info(), **counts, **frame, "answers_waiting": str(self.outputs.held_answers())}
 
     def _sensor_info(self) -> dict[str, str]:
         """Diagnostics entries naming the update in use."""
@@ -248,6 +258,9 @@ class CssNode(Node):
 
     def _confidence_published(self, cam: int) -> bool:
         return self.count_publishers(self._confidence_topics[cam]) > 0
+
+    def _depth_published(self, cam: int) -> bool:
+        return self.count_publishers(self._depth_topics[cam]) > 0
 
     def _put_frames(self, jobs: list[Any]) -> None:
         """Frames released by the gate go to the worker's queue (newest wins: a dropped one is counted and said)."""
@@ -370,6 +383,7 @@ class CssNode(Node):
             in_names = [frames.topic(0, "pose")] if not p.pose_per_camera else []
         for i in range(len(p.cameras)):
             in_names += [frames.topic(i, k) for k in ("camera_info", "image", "segmentation", "confidence")]
+            in_names += [frames.topic(i, "depth")] if p.depth_topic else []
             in_names += [frames.topic(i, "pose")] if p.pose_per_camera and p.pose_source == "topic" else []
         in_names += [INPUT_TOPICS["candidates"], INPUT_TOPICS["point_queries"]]
         ins = ", ".join(self.resolve_topic_name(t) for t in in_names)
@@ -381,6 +395,7 @@ class CssNode(Node):
         sm = self.smap.sensor_model
         if sm is not None and p.publish_confidence and sm.confidence is None:
             log.info("~/confidence is not published: the sensor model holds no calibrated confidence map")
+        log.info(describe_changing_world(self.smap, self.classes.names, p))
         if sm is not None and self.evidence.enabled:
             log.warning("evidence exchange with a sensor model: every node of the exchange must use the same "
                         "sensor model (evidence packets do not carry its fingerprint)")

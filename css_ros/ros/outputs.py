@@ -51,7 +51,8 @@ class OutputPublisher:
     ``~/candidate_scores`` and ``~/point_query_results`` are always published (they answer requests);
     ``~/semantic_cloud`` unless ``cloud_period`` is 0. Everything 3D is in the map frame (``splat_to_map``).
     ``~/confidence`` exists only when ``confidence_available`` (the sensor model holds a calibrated confidence
-    map, so every rendered view carries a confidence image) and ``publish_confidence`` is set.
+    map, so every rendered view carries a confidence image) and ``publish_confidence`` is set; ``~/surprise``
+    only with ``output_scale`` 1 (the full-resolution update makes it) and ``publish_surprise``.
     """
 
     def __init__(self, node: Node, params: NodeParams, classes: ClassSet, depth: int = 10,
@@ -90,7 +91,8 @@ class OutputPublisher:
             ns = ns.strip("/")
             pubs = {}
             for name in FRAME_OUTPUTS:
-                if not getattr(params, f"publish_{name}") or (name == "confidence" and not confidence_available):
+                if not getattr(params, f"publish_{name}") or (name == "confidence" and not confidence_available) \
+                        or (name == "surprise" and params.output_scale != 1.0):
                     continue
                 typ = PointCloud2 if OUTPUT_TOPICS[name] == POINTCLOUD2_TYPE else Image
                 pubs[name] = node.create_publisher(typ, f"~/{ns}/{name}" if ns else f"~/{name}", depth,
@@ -132,7 +134,9 @@ class OutputPublisher:
         pubs = self.camera_pubs[frame.camera_index]
         header = rc.header_msg(frame.stamp_ns, frame.frame_id)
         wanted = [n for n in ("semantic", "semantic_color", "expectation", "variance", "rendered_image",
-                              "confidence") if n in pubs]
+                              "confidence", "surprise") if n in pubs]
+        if "surprise" in wanted and pubs["surprise"].get_subscription_count() == 0:
+            wanted.remove("surprise")   # made for the diagnostics' mean every frame: sent only to a subscriber
         if wanted:
             images = frame_output_images(view, self.classes, self.p.ignore_label, wanted)
             for name in wanted:

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, Callable
 
 from ..engine.spec import (DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_MIN_EVIDENCE, DEFAULT_PRIOR,
                            DEFAULT_QUERY_BACKGROUND_WEIGHT, DEFAULT_UNKNOWN_THRESHOLD)
 from ..engine.backends import BACKENDS
+from ..engine.change_rules import (DEFAULT_DEPTH_TOLERANCE, DEFAULT_DEPTH_TOLERANCE_RELATIVE, MAX_DEPTH_TOLERANCE,
+                                   MAX_DEPTH_TOLERANCE_RELATIVE, MAX_HALF_LIFE, MIN_HALF_LIFE)
 from ..engine.camera import MAX_CAMERA_PIXELS
 from ..engine.map_args import MAX_CONCENTRATION, MIN_CONCENTRATION
 from ..engine.map_file import MAX_RECEIVED_SOURCES
@@ -33,11 +35,13 @@ DEFAULT_CHECKPOINT = "~/.ros/css_ros/maps/{fingerprint}.npz"
 FINGERPRINT_DIGITS = 16
 
 
-def _p(default: Any, unit: str, description: str, **kw: Any) -> Any:
-    """A table entry: the dataclass field default plus its unit and description (dataclass metadata)."""
+def _p(default: Any, unit: str, description: str, items: type | None = None) -> Any:
+    """A table entry: the dataclass field default plus its unit and description (dataclass metadata); ``items``:
+    the element type of a list parameter whose default is empty (str; otherwise numbers)."""
+    meta = {"unit": unit, "description": description, "items": items}
     if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata={"unit": unit, "description": description})
-    return field(default=default, metadata={"unit": unit, "description": description})
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
 
 
 @dataclass
@@ -74,6 +78,12 @@ class NodeParams:
     max_image_pixels: int = _p(DEFAULT_MAX_IMAGE_PIXELS, "px", "largest camera_info width x height accepted; "
                                "larger ones are refused (the previous one stays)")
     use_confidence: bool = _p(True, "", "synchronise segmentation_confidence whenever it has a publisher")
+    depth_topic: str = _p("", "topic", "measured depth registered to the segmentation (sensor_msgs/Image 16UC1 in "
+                          "millimetres or 32FC1 in metres along the optical axis; 0, NaN, inf: no measurement), "
+                          "matched by stamp like the colour image (nearest within sync_slop); relative names are "
+                          "read under each camera's namespace (<ns>/<depth_topic>); while it has a publisher a frame "
+                          "waits up to pose_wait for a depth stamped at or after its own, else it is fused without "
+                          "depth (counted); empty: off")
     # --- poses, cameras and frames (docs/reliability.md "Poses by time"; README "On your robot")
     pose_source: str = _p("topic", "", "where camera poses come from: topic (the pose topic, pose_type, composed "
                           "with camera_extrinsics) or tf (/tf and /tf_static: the pose of each segmentation's "
@@ -122,9 +132,27 @@ class NodeParams:
     publish_rendered_image: bool = _p(True, "", "publish ~/rendered_image (rgb8 splat render)")
     publish_confidence: bool = _p(True, "", "publish ~/confidence (32FC1, probability that ~/semantic is right) "
                                   "when the sensor_model holds a calibrated confidence map")
+    publish_surprise: bool = _p(True, "", "publish ~/surprise (32FC1, 1 - E of each pixel's observed label under "
+                                "the map before the frame; NaN where the segmentation has no label; only with "
+                                "output_scale 1)")
     publish_view_uncertainty: bool = _p(True, "", "publish ~/view_uncertainty (PointCloud2, one point per "
                                         "observed frame)")
     publish_diagnostics: bool = _p(True, "", "publish counters on /diagnostics (diagnostic_msgs/DiagnosticArray)")
+    # --- a changing world (docs/changing_world.md)
+    transient_classes: list[str] = _p([], "class names or ids", "classes whose pixels never add evidence (people, "
+                                      "animals, vehicles in motion), by name in the class setup or by id; an "
+                                      "unknown name is a start-up error", items=str)
+    evidence_half_life: float = _p(0.0, "observations", "a Gaussian's accumulated evidence halves over this many "
+                                   "observations of it (the map follows a changing world); 0 or negative: not "
+                                   "set (a fresh map does not forget, a resumed one keeps the half-life its "
+                                   "checkpoint holds). A map that forgets refuses the evidence exchange "
+                                   "(publish_evidence, evidence_in): its evidence is no longer additive")
+    depth_tolerance: float = _p(DEFAULT_DEPTH_TOLERANCE, "m", "measured depth nearer than the map's rendered "
+                                "depth by more than max(depth_tolerance, depth_tolerance_relative x depth): the "
+                                "pixel is occluded (adds no evidence); Gaussians in front of the measured surface "
+                                "by more than that add none either")
+    depth_tolerance_relative: float = _p(DEFAULT_DEPTH_TOLERANCE_RELATIVE, "", "share of the measured depth in "
+                                         "the depth tolerance (see depth_tolerance)")
     # --- the map in 3D (SPEC §9)
     cloud_period: float = _p(5.0, "s", "time between ~/semantic_cloud messages, sent only when the map changed "
                              "(transient local: late subscribers get the last one; 0: off)")
@@ -220,8 +248,9 @@ def params_markdown() -> str:
     return "\n".join(lines) + "\n"
 
 
-def coerce(name: str, value: Any, default: Any) -> Any:
-    """Convert a parameter value to the type of its default (int -> float allowed); ConfigError otherwise."""
+def coerce(name: str, value: Any, default: Any, items: type | None = None) -> Any:
+    """Convert a parameter value to the type of its default (int -> float allowed); ConfigError otherwise.
+    ``items`` str: a list of strings, integers accepted as their decimal text (``transient_classes:=[11, 12]``)."""
     def bad() -> ConfigError:
         return ConfigError(f"parameter {name}={value!r}: expected {type(default).__name__}"
                            + (" of numbers" if isinstance(default, list) else ""))
@@ -252,6 +281,10 @@ def coerce(name: str, value: Any, default: Any) -> Any:
             values = list(value)
         except TypeError:
             raise bad() from None
+        if items is str:
+            if not all(isinstance(v, str) or (isinstance(v, int) and not isinstance(v, bool)) for v in values):
+                raise ConfigError(f"parameter {name}={value!r}: expected a list of names or integer ids")
+            return [str(v) for v in values]
         if default and all(isinstance(v, str) for v in default):
             if not all(isinstance(v, str) for v in values):
                 raise bad()
@@ -268,7 +301,8 @@ def params_from_values(values: dict[str, Any]) -> NodeParams:
     unknown = set(values) - {f.name for f in fields(NodeParams)}
     if unknown:
         raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
-    p = NodeParams(**{f.name: coerce(f.name, values[f.name], getattr(defaults, f.name)) if f.name in values
+    p = NodeParams(**{f.name: coerce(f.name, values[f.name], getattr(defaults, f.name), f.metadata["items"])
+                      if f.name in values
                       else getattr(defaults, f.name) for f in fields(NodeParams)})
     check_params(p)
     return p
@@ -358,7 +392,37 @@ def check_params(p: NodeParams) -> None:
     if bad_ns:
         raise bad("cameras", f"not a valid ROS namespace: {bad_ns[0]!r}")
     parse_extrinsics(p.camera_extrinsics, len(p.cameras))   # ConfigError naming camera_extrinsics
+    _check_changing_world(p, bad)
     Similarity.from_params(p.splat_to_map, "splat_to_map")  # ConfigError naming splat_to_map
+
+
+def _check_changing_world(p: NodeParams, bad: Callable[[str, str], ConfigError]) -> None:
+    """depth_topic, the depth tolerances, evidence_half_life (and its refusal of the evidence exchange)."""
+    topic = p.depth_topic.strip()
+    if topic != p.depth_topic or (topic and not all(part and part.isascii() and part.replace("_", "a").isalnum()
+                                                    and not part[0].isdigit()
+                                                    for part in topic.removeprefix("/").split("/"))):
+        raise bad("depth_topic", "not a valid ROS topic name (empty: off)")
+    if topic.startswith("/") and len(p.cameras) > 1:
+        raise bad("depth_topic", f"an absolute name would be one topic for all {len(p.cameras)} cameras: give a "
+                  "relative one (read as <ns>/<depth_topic> per camera)")
+    for name, upper in (("depth_tolerance", MAX_DEPTH_TOLERANCE),
+                        ("depth_tolerance_relative", MAX_DEPTH_TOLERANCE_RELATIVE)):
+        if not (math.isfinite(getattr(p, name)) and 0 <= getattr(p, name) <= upper):
+            raise bad(name, f"must be in [0, {upper:g}]")
+    h = p.evidence_half_life
+    if not math.isfinite(h) or (h > 0 and not MIN_HALF_LIFE <= h <= MAX_HALF_LIFE):
+        raise bad("evidence_half_life", f"must be in [{MIN_HALF_LIFE:g}, {MAX_HALF_LIFE:g}] observations, or 0 "
+                  "(off)")
+    if h > 0 and (p.publish_evidence or p.evidence_in.strip()):
+        raise bad("evidence_half_life", "with a half-life the map's evidence is no longer additive (it decays as "
+                  "it is observed), so it cannot be exchanged: set evidence_half_life:=0.0, or turn the evidence "
+                  "exchange off (publish_evidence:=false, evidence_in:='')")
+
+
+def half_life(p: NodeParams) -> float | None:
+    """The evidence half-life [observations] these parameters set (None: not set)."""
+    return p.evidence_half_life if p.evidence_half_life > 0 else None
 
 
 def pose_policy(p: NodeParams) -> PosePolicy:

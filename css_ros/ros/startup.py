@@ -23,7 +23,7 @@ from ..engine.similarity import Similarity
 from ..engine.warmup import warm_up_kernels
 from ..errors import ConfigError, CssError, MapError, ModelError, SensorModelError
 from ..io.paths import resolve_data_path
-from .params import DEFAULT_CLASSES, NodeParams, checkpoint_file
+from .params import DEFAULT_CLASSES, NodeParams, checkpoint_file, half_life
 
 
 @dataclass
@@ -112,6 +112,64 @@ def load_classes(params: NodeParams, log_warning: Callable[[str], None]) -> Clas
     if params.num_classes > 0:
         return ClassSet.default(params.num_classes)
     raise ConfigError("set class_file or num_classes > 0")
+
+
+def transient_class_ids(entries: list[str], classes: ClassSet) -> list[int]:
+    """The class ids of ``transient_classes``: each entry a class name of the class setup, or an id (decimal
+    integer in 0..C-1); a name wins over an id of the same text.
+
+    Raises:
+        ConfigError: an entry that is neither (naming it and the classes)."""
+    ids = []
+    for entry in entries:
+        text = entry.strip()
+        if text in classes.names:
+            ids.append(classes.names.index(text))
+        elif text.lstrip("-").isdigit() and 0 <= int(text) < classes.num_classes:
+            ids.append(int(text))
+        else:
+            known = ", ".join(f"{i}:{n}" for i, n in enumerate(classes.names))
+            raise ConfigError(f"parameter transient_classes: {entry!r} is no class name or id of the class setup "
+                              f"({shorten(known, 512)})")
+    return sorted(set(ids))
+
+
+def change_kwargs(params: NodeParams, classes: ClassSet) -> dict[str, Any]:
+    """The map's rules for a changing world (SemanticMap keyword arguments) from the parameters. evidence_half_life
+    only when set (> 0): a fresh map then forgets at that rate, a resumed one from now on; when not set a fresh map
+    does not forget and a resumed one keeps the half-life its file holds."""
+    out: dict[str, Any] = dict(transient_classes=transient_class_ids(params.transient_classes, classes),
+                               depth_tolerance=params.depth_tolerance,
+                               depth_tolerance_relative=params.depth_tolerance_relative)
+    if half_life(params) is not None:   # not given: a resumed map keeps its file's half-life (SemanticMap.load)
+        out["evidence_half_life"] = half_life(params)
+    return out
+
+
+def check_exchange(params: NodeParams, smap: SemanticMap) -> None:
+    """Refuse a map whose evidence decays (a half-life, from the parameter or its file) with the evidence exchange
+    on: exchanged evidence must add up.
+
+    Raises:
+        ConfigError: naming the half-life and the exchange parameters."""
+    exchange = params.publish_evidence or bool(params.evidence_in.strip())
+    if smap.evidence_half_life is not None and exchange:
+        raise ConfigError(f"the map has an evidence half-life ({smap.evidence_half_life:g} observations): its "
+                          "evidence is no longer additive and cannot be exchanged; turn the evidence exchange off "
+                          "(publish_evidence:=false, evidence_in:='') or start a map without a half-life")
+
+
+def describe_changing_world(smap: SemanticMap, names: tuple[str, ...], params: NodeParams) -> str:
+    """One start-up line: measured depth, transient classes, forgetting."""
+    transient = ", ".join(f"{i}:{names[i]}" for i in smap.transient_classes) or "none"
+    rules = smap.change_rules
+    depth = (f"depth from {params.depth_topic} (tolerance max({rules.tol_abs:g} m, {rules.tol_rel:g} x depth))"
+             if params.depth_topic else "no depth_topic")
+    forget = "no forgetting"
+    if smap.evidence_half_life is not None:
+        forget = (f"evidence half-life {smap.evidence_half_life:g} observations"
+                  + ("" if params.evidence_half_life > 0 else " (the checkpoint's)"))
+    return f"changing world: {depth}; transient classes {transient}; {forget}"
 
 
 def load_sensor_model(params: NodeParams, classes: ClassSet) -> SensorModel | None:
@@ -208,7 +266,8 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
     # update, and a prior-only checkpoint takes this node's sensor model
     kwargs: dict[str, Any] = dict(ignore_label=p.ignore_label, unknown_threshold=p.unknown_threshold,
                                   backend=p.backend, sensor_model=sensor_model,
-                                  depth_scale=Similarity.from_params(p.splat_to_map).scale)
+                                  depth_scale=Similarity.from_params(p.splat_to_map).scale,
+                                  **change_kwargs(p, classes))
     ckpt = checkpoint_path(p, model.fingerprint)
     smap = None
     status = "fresh map"
@@ -238,6 +297,7 @@ def load_engine(params: NodeParams, log_info: Callable[[str], None],
         status = f"fresh map (no checkpoint at {ckpt} yet)"
     if smap is None:
         smap = SemanticMap(model, num_classes=C, prior=p.prior, background=p.background, **kwargs)
+    check_exchange(p, smap)
     return Engine(smap, classes, model_path, ckpt, status)
 
 

@@ -14,8 +14,10 @@ Guarantees (docs/reliability.md):
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
@@ -26,7 +28,7 @@ from ..engine.semantic_map import SemanticMap
 from ..errors import CameraError, MapError
 from ..engine.photometric import psnr
 from ..io.frames import resample_to
-from .params import NodeParams
+from .params import NodeParams, half_life
 from .work import CandidateJob, FrameJob, PointQueryJob, RequestJob, WarnLimiter, WorkQueue
 
 
@@ -44,6 +46,40 @@ class OutputSink(Protocol):
 
     # optional: ``frame_outputs(camera_index) -> frozenset[str]``, the images a frame of that camera must render
     # (OutputPublisher: those of subscribed topics); a sink without it gets every image
+
+
+@dataclass(frozen=True)
+class LastFrame:
+    """What the last fused frame's update found (diagnostics ``last_*``): pixels that added no evidence because
+    their class is transient or their measured depth was nearer than the map (occluded), and the mean surprise
+    over its labelled pixels (NaN: no surprise image, or no labelled pixel)."""
+
+    transient: int = 0
+    occluded: int = 0
+    surprise_mean: float = math.nan
+
+
+def mean_surprise(surprise: np.ndarray | None) -> float:
+    """Mean of a surprise image over its labelled pixels (the finite ones); NaN when there is none."""
+    if surprise is None:
+        return math.nan
+    finite = np.isfinite(surprise)
+    n = int(np.count_nonzero(finite))
+    return float(np.sum(surprise, where=finite, dtype=np.float64) / n) if n else math.nan
+
+
+def check_half_life_of(loaded: SemanticMap, running: SemanticMap, path: Path, exchange: bool) -> None:
+    """Refuse (MapError) a map file for ``~/load_map`` whose evidence half-life is not the running map's (its
+    concentrations replace the running map's, whose rules stay), or that forgets while the node exchanges evidence."""
+    h, mine = loaded.evidence_half_life, running.evidence_half_life
+    if h is not None and exchange:
+        raise MapError(f"map file {path} has an evidence half-life ({h:g} observations): its evidence is not "
+                       "additive, and this node exchanges evidence")
+    if h != mine:
+        def name(v: float | None) -> str:
+            return "none" if v is None else f"{v:g} observations"
+        raise MapError(f"map file {path} has the evidence half-life {name(h)}, this node's map {name(mine)}: restart "
+                       "the node on it (it resumes with the file's half-life unless evidence_half_life is set)")
 
 
 class CheckpointPolicy:
@@ -111,6 +147,7 @@ class MapWorker:
         self._thread: threading.Thread | None = None
         self.last_u = (float("nan"), float("nan"))
         self.last_psnr = float("nan")
+        self.last_frame = LastFrame()
         self.map_version = 0            # +1 per map change (frame, reset, load): the cloud is sent on change
         self._cloud_version = -1        # map_version of the last ~/semantic_cloud (-1: none yet)
         self._cloud_next = 0.0          # time.monotonic() before which no cloud is sent
@@ -193,20 +230,19 @@ class MapWorker:
         outputs = None if needed is None else set(needed(frame.camera_index))
         if outputs is not None and frame.image is not None:
             outputs.add("rgb")  # the rendered colour's PSNR against the input image (diagnostics)
+        if outputs is not None and p.output_scale == 1.0:
+            outputs.add("surprise")  # its mean is in the diagnostics (the update makes it: no render)
         with self.map_lock:
             smap = self.smap
             if p.output_scale == 1.0:
-                view = smap.observe(cam, labels, confidence=frame.confidence, outputs=outputs)
+                view = smap.observe(cam, labels, confidence=frame.confidence, outputs=outputs, depth=frame.depth)
                 stats = smap.last_update   # observe returns the view; the update's pixel counts stay here
-            else:
-                stats = smap.update(cam, labels, confidence=frame.confidence)
+            else:   # the update at full resolution makes no surprise image (update() returns none)
+                stats = smap.update(cam, labels, confidence=frame.confidence, depth=frame.depth)
                 view = smap.render(cam.scaled(p.output_scale), outputs=outputs)
             self.policy.changed()
             self.map_version += 1
-        self.stats.count("label_pixels_used", stats.used)
-        self.stats.count("label_pixels_ignored", stats.ignored)
-        if smap.sensor_model is not None:  # measured only with a sensor model (the paper's update needs no depth)
-            self.stats.count("label_pixels_no_depth", stats.no_depth)
+        self._count_update(stats, frame.depth is not None, view)
         self.sink.publish_frame(job, view)
         image = frame.image
         if image is not None and view.rgb is not None and image.shape[:2] != view.rgb.shape[:2]:
@@ -217,6 +253,18 @@ class MapWorker:
         self.stats.count("frames_processed")
         self.stats.count(f"camera[{p.cameras[frame.camera_index].strip('/') or '/'}].frames_processed")
         self.stats.frame_latency((time.monotonic() - frame.t_arrival) * 1e3)
+
+    def _count_update(self, stats: Any, with_depth: bool, view: Any) -> None:
+        """The update's pixel counts into the counters and :attr:`last_frame`."""
+        self.stats.count("label_pixels_used", stats.used)
+        self.stats.count("label_pixels_ignored", stats.ignored)
+        if self.smap.sensor_model is not None:  # measured only with a sensor model (the paper's update needs no depth)
+            self.stats.count("label_pixels_no_depth", stats.no_depth)
+        self.stats.count("label_pixels_transient", stats.transient)
+        self.stats.count("label_pixels_occluded", stats.occluded)
+        if self.p.depth_topic:
+            self.stats.count("frames_with_depth" if with_depth else "frames_without_depth")
+        self.last_frame = LastFrame(stats.transient, stats.occluded, mean_surprise(view.surprise))
 
     # ------------------------------------------------------------------ candidate requests
     def process_slice(self, job: CandidateJob) -> None:
@@ -305,7 +353,11 @@ class MapWorker:
         Returns a status line; raises MapError (the current map is then kept unchanged).
         """
         # sensor_model passed (None included): a checkpoint fused with another sensor model is refused
-        loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C, sensor_model=self.smap.sensor_model)
+        # the node's evidence_half_life when set, else the file's (as at start)
+        given = {"evidence_half_life": half_life(self.p)} if half_life(self.p) is not None else {}
+        loaded = SemanticMap.load(path, self.smap.model, expected_classes=self.C, sensor_model=self.smap.sensor_model,
+                                  **given)
+        check_half_life_of(loaded, self.smap, path, self.p.publish_evidence or bool(self.p.evidence_in.strip()))
         with self.map_lock:
             self.smap.concentrations[...] = loaded.concentrations
             self.smap.frames_observed = loaded.frames_observed

@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--live", action="store_true", help="follow a running css_node over DDS (shows the node's "
                    "map frame)")
     p.add_argument("--node", default="/css_node", help="node name to follow with --live (default /css_node)")
+    p.add_argument("--camera", default="", metavar="NS", help="with --live: the camera namespace of the node whose "
+                   "frame images (surprise) the page shows (default: the un-namespaced camera)")
     p.add_argument("--exit-after", type=float, default=None, help=argparse.SUPPRESS)  # tests and benchmarks
     return p
 

@@ -7,7 +7,9 @@ css_nbv_client, css_ctl, a planner) the chosen view, the candidate with the larg
 is drawn as a large highlighted frustum (``/candidates/best``) and the others as small faint ones; from a node
 that publishes no info gain the most uncertain candidate (largest U_var) is chosen instead. The answer echoes
 the request's poses in request order, so the request (``candidates``) itself need not be followed. A click
-queries the node (``point_queries``).
+queries the node (``point_queries``). The page's "Frame image" control shows the node's ``~/surprise`` of its last
+fused frame (of camera ``--camera``); the viewer subscribes to it only while it is chosen (an image a frame is much
+more than the semantics stream), best effort and one deep (only the newest matters).
 """
 from __future__ import annotations
 
@@ -23,9 +25,10 @@ from ..engine.classes import ClassSet
 from ..engine.field3d import GaussianSemantics
 from ..errors import CssError
 from ..io.clouds import unpack_cloud, unpack_rgb, unpack_scored_views
-from ..io.messages import stamp_to_ns
+from ..io.messages import image_to_array, stamp_to_ns
 from ..io.view_stream import parse_info
 from .data import ViewData
+from .frame_images import surprise_caption
 
 REDRAW_PERIOD_S = 0.5      # at most two redraws a second while updates arrive
 NODE_GONE_S = 3.0          # no publisher of ~/view/semantics for this long: the page says the node is gone
@@ -50,7 +53,8 @@ def semantics_from(label: np.ndarray, e_q: np.ndarray, evidence: np.ndarray, num
 class LiveFollower:
     """Subscribes to a node's view stream and keeps the page up to date."""
 
-    def __init__(self, node_name: str, on_status) -> None:
+    def __init__(self, node_name: str, on_status, camera: str = "") -> None:
+        """``camera``: the namespace of the node's camera whose frame images are shown ("" = the default camera)."""
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
         from std_msgs.msg import String
@@ -68,6 +72,10 @@ class LiveFollower:
         self.candidates: Any = None    # (request stamp [ns], SCORED_VIEW_DTYPE rows) of the last answer
         self.last_update = 0.0
         self.updates = 0
+        cam = camera.strip("/")
+        self.surprise_topic = f"{self.node_name}/{cam}/surprise" if cam else f"{self.node_name}/surprise"
+        self._surprise_sub: Any = None
+        self._surprise: tuple[int, np.ndarray] | None = None   # (stamp [ns], (H, W) float32) not yet shown
         latched = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -116,6 +124,33 @@ class LiveFollower:
             return
         with self.lock:
             self.candidates = (stamp_to_ns(msg.header.stamp), rows)
+
+    def follow_surprise(self, on: bool) -> None:
+        """Subscribe to the node's ``~/surprise`` (``on``) or leave it (the node then stops sending it)."""
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image
+
+        if on and self._surprise_sub is None:
+            qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+            self._surprise_sub = self.node.create_subscription(Image, self.surprise_topic, self._on_surprise, qos)
+        elif not on and self._surprise_sub is not None:
+            self.node.destroy_subscription(self._surprise_sub)
+            self._surprise_sub = None
+
+    def _on_surprise(self, msg: Any) -> None:
+        try:
+            image = image_to_array(msg, allowed=("32FC1",))
+        except CssError as exc:
+            self.on_status(f"unreadable {self.surprise_topic}: {exc}")
+            return
+        with self.lock:
+            self._surprise = (stamp_to_ns(msg.header.stamp), image)
+
+    def take_surprise(self) -> tuple[int, np.ndarray] | None:
+        """The newest surprise image received since the last call (stamp [ns], (H, W) float32), or None."""
+        with self.lock:
+            latest, self._surprise = self._surprise, None
+        return latest
 
     def model_complete(self) -> bool:
         with self.lock:
@@ -189,7 +224,7 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
 
     check_port_free(args.host, args.port)
     notes: list[str] = []
-    follower = LiveFollower(args.node, notes.append)
+    follower = LiveFollower(args.node, notes.append, getattr(args, "camera", ""))
     deadline = None if args.exit_after is None else time.monotonic() + args.exit_after
     view = None
     try:
@@ -204,7 +239,7 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
         data = follower.build_data()
         follower.resync(10.0)
         view = MapView(data, args.host, args.port, query=None, title=f"live: {follower.node_name}",
-                       up=up_vector(getattr(args, "up", None)))
+                       up=up_vector(getattr(args, "up", None)), frame_images=True)
         view.query = _node_query(follower)
         print(f"css_view: following {follower.node_name} ({data.num_gaussians:,} Gaussians)", flush=True)
         print(f"css_view: open {view.url}  (Ctrl+C to stop)", flush=True)
@@ -231,6 +266,7 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
             if cands is not None and cands is not drawn_candidates:
                 chosen_note = _draw_candidates(view, cands[1])
                 drawn_candidates = cands
+            _follow_frame_image(view, follower)
             view.status_note = state + ("; " + notes[-1] if notes else "") + (f"\n\n{chosen_note}" if chosen_note else "")
             view.show_status()
     except KeyboardInterrupt:
@@ -240,6 +276,15 @@ def serve_live(args: argparse.Namespace, ready: threading.Event | None = None,
             view.stop()
         follower.close()
     return 0
+
+
+def _follow_frame_image(view, follower: LiveFollower) -> None:
+    """Subscribe to the node's surprise while the page shows it, and hand the newest one to the page."""
+    follower.follow_surprise(view.frame_choice == "surprise")
+    latest = follower.take_surprise()
+    if latest is not None:
+        stamp, image = latest
+        view.show_frame_image("surprise", image, surprise_caption(image, stamp, follower.surprise_topic))
 
 
 def _draw_views(view, prefix: str, rows: np.ndarray, cmap: str) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import CssError
 from .coloring import MODE_LABELS, MODES, ColorBar, mode_colors, visible_mask
 from .data import ViewData
+from .frame_images import FRAME_IMAGE_LABELS, FRAME_IMAGES, SURPRISE_BAR, surprise_rgb
 from .opening import OpeningView, axis_label, opening_view
 
 SPLAT_NAME = "/map"
@@ -53,16 +54,16 @@ def pick_gaussian(data: ViewData, keep: np.ndarray, origin: np.ndarray, directio
     return int(rows[np.argmin(t[rows])])
 
 
-def colorbar_html(bar: ColorBar) -> str:
-    """A horizontal CSS gradient with the two ends of the scale and its label."""
+def colorbar_html(bar: ColorBar, grey: str = "unobserved", element_id: str = "css-colorbar") -> str:
+    """A horizontal CSS gradient with the two ends of the scale and its label; ``grey``: what grey means."""
     stops = ", ".join(f"rgb{c}" for c in bar.stops())
     fmt = (lambda v: f"{v:.2e}") if bar.log else (lambda v: f"{v:.3g}")
     scale = "log scale" if bar.log else "linear"
-    return (f'<div id="css-colorbar" data-vmin="{bar.vmin:.6g}" data-vmax="{bar.vmax:.6g}">'
+    return (f'<div id="{element_id}" data-vmin="{bar.vmin:.6g}" data-vmax="{bar.vmax:.6g}">'
             f'<div style="height:14px;background:linear-gradient(to right, {stops});border:1px solid #888"></div>'
             f'<div style="display:flex;justify-content:space-between;font-size:11px">'
             f'<span class="vmin">{fmt(bar.vmin)}</span><span>{scale}</span><span class="vmax">{fmt(bar.vmax)}</span>'
-            f'</div><div style="font-size:11px">{html.escape(bar.label)}; grey = unobserved</div></div>')
+            f'</div><div style="font-size:11px">{html.escape(bar.label)}; grey = {html.escape(grey)}</div></div>')
 
 
 def frustum_scale(positions: np.ndarray) -> float:
@@ -92,11 +93,13 @@ class MapView:
         query: optional SPEC §9 point query, (M, 3) map-frame points -> (labels (M,), E (M, C), Var (M, C)).
         title: shown on the page.
         up: (3,) up axis of the map frame (``--up``); None: estimated (:mod:`css_ros.view.opening`).
+        frame_images: add the "Frame image" control (live pages: a frame image of the node, such as its surprise,
+            shown beside the splat; :meth:`show_frame_image` hands them over).
     """
 
     def __init__(self, data: ViewData, host: str = "127.0.0.1", port: int = 8080,
                  query: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
-                 title: str = "css_ros map", up: np.ndarray | None = None) -> None:
+                 title: str = "css_ros map", up: np.ndarray | None = None, frame_images: bool = False) -> None:
         import viser
 
         check_port_free(host, port)
@@ -114,6 +117,9 @@ class MapView:
         self.uncertain_only = False
         self.var_threshold = DEFAULT_VAR_THRESHOLD
         self.redraws = 0
+        self.frame_choice = "none"     # the frame image shown (FRAME_IMAGES)
+        self.frame_draws = 0           # frame images sent to the page (the caption ends with this number)
+        self._frames: dict[str, tuple[np.ndarray, str]] = {}   # kind -> (latest image, caption)
         self.status_note = ""          # extra status text (live mode: node state, age of the last update)
         self.keep = np.zeros(0, dtype=bool)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -123,6 +129,8 @@ class MapView:
         # the port the server really took (--port 0 asks the system for a free one)
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.server.get_port()}"
         self._build_gui(title)
+        if frame_images:
+            self._build_frame_gui()
         self._draw_trajectory()
         self.frame_camera()
         self.redraw()
@@ -192,6 +200,60 @@ class MapView:
         self.uncertain_cb.on_update(lambda ev: self._set_filter(uncertain_only=ev.target.value))
         self.threshold.on_update(lambda ev: self._set_filter(var_threshold=ev.target.value))
         self.server.scene.on_click()(self._on_click)
+
+    def _build_frame_gui(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("Frame image"):
+            self.frame_dd = gui.add_dropdown("Show", options=[FRAME_IMAGE_LABELS[k] for k in FRAME_IMAGES],
+                                             initial_value=FRAME_IMAGE_LABELS[self.frame_choice],
+                                             hint="an image of the node's last fused frame")
+            self.frame_img = gui.add_image(np.zeros((1, 1, 3), np.uint8), format="png", visible=False)
+            self.frame_bar = gui.add_html("")
+            self.frame_md = gui.add_markdown("")
+        labels = [FRAME_IMAGE_LABELS[k] for k in FRAME_IMAGES]
+        self.frame_dd.on_update(lambda ev: self.set_frame_image(FRAME_IMAGES[labels.index(ev.target.value)]))
+
+    def set_frame_image(self, kind: str) -> None:
+        """Choose the frame image shown (one of :data:`~css_ros.view.frame_images.FRAME_IMAGES`; "none": none)."""
+        if kind not in FRAME_IMAGES:
+            raise ValueError(f"unknown frame image {kind!r} (one of {', '.join(FRAME_IMAGES)})")
+        with self.lock:
+            if kind == self.frame_choice:
+                return   # no change (the dropdown echoing a programmatic change)
+            self.frame_choice = kind
+            if self.frame_dd.value != FRAME_IMAGE_LABELS[kind]:
+                self.frame_dd.value = FRAME_IMAGE_LABELS[kind]
+        self._draw_frame_image()
+
+    def show_frame_image(self, kind: str, image: np.ndarray, caption: str) -> None:
+        """The latest ``kind`` image ((H, W) float32 surprise) with its caption (markdown); drawn when chosen."""
+        with self.lock:
+            self._frames[kind] = (image, caption)
+            chosen = kind == self.frame_choice
+        if chosen:
+            self._draw_frame_image()
+
+    def frame_image(self, kind: str) -> np.ndarray | None:
+        """The latest ``kind`` image handed over (None: none yet)."""
+        with self.lock:
+            latest = self._frames.get(kind)
+        return None if latest is None else latest[0]
+
+    def _draw_frame_image(self) -> None:
+        with self.lock:
+            kind = self.frame_choice
+            latest = self._frames.get(kind)
+            if kind == "none" or latest is None:
+                self.frame_img.visible = False
+                self.frame_bar.content = ""
+                self.frame_md.content = "" if kind == "none" else f"waiting for the node's {kind} image…"
+                return
+            image, caption = latest
+            self.frame_img.image = surprise_rgb(image)
+            self.frame_img.visible = True
+            self.frame_bar.content = colorbar_html(SURPRISE_BAR, "no label", "css-frame-colorbar")
+            self.frame_draws += 1
+            self.frame_md.content = f"{caption} · frame {self.frame_draws}"
 
     def _toggle_class(self, c: int, visible: bool) -> None:
         with self.lock:

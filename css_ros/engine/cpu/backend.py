@@ -10,8 +10,8 @@ import numpy as np
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments, bin_tiles,
-                     dirichlet_attributes, render_semantic)
+from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments,
+                     add_increments_and_attributes, bin_tiles, dirichlet_attributes, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -32,6 +32,7 @@ class NumbaBackend(RasterBackend):
         self._scratch = ProjectionScratch()
         self._workspace = UpdateWorkspace()
         self._store = ContributionStore()
+        self._attrs: "tuple[Any, np.ndarray] | None" = None  # (frame, attribute rows) made by observe's update
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
@@ -40,19 +41,40 @@ class NumbaBackend(RasterBackend):
 
     def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> UpdateCounts:
+        return self._update(frame, inputs, concentrations, soft, False)
+
+    def _update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray, soft: "SoftLabels | None",
+                with_attributes: bool) -> UpdateCounts:
+        """The update; ``with_attributes``: also the render's attribute rows of the updated map, made in the same
+        pass over the visible rows (kept for :meth:`render` of this frame)."""
         proj, bins, _ = frame
         self._store.owner = None
+        self._attrs = None
         acc, acc_base, counts, surprise = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store,
                                                             concentrations)
         self._store.owner = frame
-        add_increments(concentrations, proj.ids, acc, acc_base, inputs.rules.decay, inputs.rules.prior)
+        rules = inputs.rules
+        if with_attributes:
+            self._attrs = (frame, add_increments_and_attributes(concentrations, proj.ids, acc, acc_base, rules.decay,
+                                                                rules.prior, proj.colors, proj.packed))
+        else:
+            add_increments(concentrations, proj.ids, acc, acc_base, rules.decay, rules.prior)
         self._workspace.done()
         return UpdateCounts(counts, surprise)
+
+    def observe_view(self, camera: "Camera", inputs: "FrameLabels", concentrations: np.ndarray,
+                     soft: "SoftLabels | None", settings: "RenderSettings") -> "tuple[FrameImages, UpdateCounts]":
+        """Prepare, update (with the render's attribute rows in the same pass) and render the same frame."""
+        frame = self.prepare(camera)
+        counts = self._update(frame, inputs, concentrations, soft, True)
+        return self.render_view(frame, concentrations, settings), counts
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
         proj, bins, camera = frame
-        attrs = dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
+        kept, self._attrs = self._attrs, None
+        attrs = kept[1] if kept is not None and kept[0] is frame else \
+            dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
         store = self._store if self._store.owner is frame else None
         buffers = render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb,
                                   want_probs, store=store)

@@ -150,12 +150,25 @@ def _row_votes(row_labels, row_conf, has_confidence, num_classes, ignore_label, 
 
 
 @njit(inline="always", fastmath=FAST)
-def _pixel_surprise(kidx, kval, c, t, tile_list, e_pre, label, inv_c):  # pragma: no cover
-    """1 - E^y of one pixel before the update: sum kappa E_n^y (``e_pre`` rows of the tile list) + kappa_b / C."""
+def _pixel_surprise(kidx, kval, c, t, ecol, inv_c):  # pragma: no cover
+    """1 - E^y of one pixel before the update: sum kappa E_n^y + kappa_b / C, with ``ecol`` the tile list's E^y
+    (:func:`_tile_expectations`)."""
     e = t * inv_c
     for i in range(c):
-        e += kval[i] * e_pre[tile_list[kidx[i]], label]
+        e += kval[i] * ecol[kidx[i]]
     return np.float32(1.0 - e)
+
+
+@njit(inline="always")
+def _tile_expectations(e_pre, tile_list, label, ecache, eloaded):  # pragma: no cover
+    """The tile list's pre-update E of class ``label`` as one contiguous row of ``ecache`` (gathered from ``e_pre``
+    once per tile and class: a tile has few classes, a pixel's walk many contributions)."""
+    row = ecache[label]
+    if not eloaded[label]:
+        for k in range(tile_list.shape[0]):
+            row[k] = e_pre[tile_list[k], label]
+        eloaded[label] = True
+    return row
 
 
 @njit(inline="always", fastmath=FAST)
@@ -253,6 +266,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
         lbase = np.empty(256)
         ldepth = np.empty(256)
         present = np.empty(num_rows, dtype=np.bool_)
+        ecache = np.empty((num_classes if want_surprise else 0, 256), dtype=np.float32)
+        eloaded = np.zeros(num_classes, dtype=np.bool_)
         used = 0
         ignored = 0
         out_of_range = 0
@@ -289,7 +304,9 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         lacc = np.empty((num_rows, scratch[0].shape[1]))
                         lbase = np.empty(scratch[0].shape[1])
                         ldepth = np.empty(scratch[0].shape[1])
+                        ecache = np.empty((ecache.shape[0], scratch[0].shape[1]), dtype=np.float32)
                     present[:] = False
+                    eloaded[:] = False
                     loaded = True
                 cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                 r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
@@ -314,7 +331,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         pix_t[q] = trans[p]
                         pos += c
                     if want_surprise:
-                        surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], tile_list, e_pre, vote[p], inv_c)
+                        ecol = _tile_expectations(e_pre, tile_list, vote[p], ecache, eloaded)
+                        surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], ecol, inv_c)
                     if kind[p] != USED:
                         continue  # a transient class: no evidence
                     row = vote[p]
@@ -667,7 +685,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     return acc, acc_base, counts.sum(axis=0), surprise if want_surprise else None
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _expectations(concentrations, ids):  # pragma: no cover
     """(M, C) float32 E[theta] = alpha / S of the projected Gaussians' rows ``ids`` (for the surprise)."""
     m = ids.shape[0]
@@ -684,60 +702,86 @@ def _expectations(concentrations, ids):  # pragma: no cover
     return out
 
 
+@njit(inline="always")
+def _add_row(concentrations, row, j, acc, acc_base, decay, prior):  # pragma: no cover
+    """Row ``row`` of the concentrations += the chunks' increments of projected Gaussian j (:func:`add_increments`)."""
+    num_classes = acc.shape[1]
+    common = 0.0
+    if acc_base.shape[0] > 0:
+        for ch in range(acc_base.shape[0]):
+            common += acc_base[ch, j]
+            acc_base[ch, j] = 0.0
+    if decay != 1.0:
+        received = common != 0.0
+        for c in range(num_classes):
+            for ch in range(acc.shape[0]):
+                received |= acc[ch, c, j] != 0.0
+        if received:
+            for c in range(num_classes):
+                concentrations[row, c] = prior + (concentrations[row, c] - prior) * decay
+    for c in range(num_classes):
+        total = common
+        for ch in range(acc.shape[0]):
+            total += acc[ch, c, j]
+            acc[ch, c, j] = 0.0
+        concentrations[row, c] += total
+
+
 @njit(parallel=True, cache=True)
 def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  # pragma: no cover
     """concentrations[ids[j], c] += sum over chunks of acc[chunk, c, j] (+ acc_base[chunk, j] for every class
     when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`).
     With ``decay`` < 1 (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some
     class is first set to prior + (alpha - prior) * decay."""
-    num_classes, m = acc.shape[1], acc.shape[2]
-    with_base = acc_base.shape[0] > 0
-    for j in prange(m):
-        row = ids[j]
-        common = 0.0
-        if with_base:
-            for ch in range(acc_base.shape[0]):
-                common += acc_base[ch, j]
-                acc_base[ch, j] = 0.0
-        if decay != 1.0:
-            received = common != 0.0
-            for c in range(num_classes):
-                for ch in range(acc.shape[0]):
-                    received |= acc[ch, c, j] != 0.0
-            if received:
-                for c in range(num_classes):
-                    concentrations[row, c] = prior + (concentrations[row, c] - prior) * decay
-        for c in range(num_classes):
-            total = 0.0
-            for ch in range(acc.shape[0]):
-                total += acc[ch, c, j]
-                acc[ch, c, j] = 0.0
-            if with_base:
-                total += common
-            concentrations[row, c] += total
+    for j in prange(acc.shape[2]):
+        _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no cover
-    """attrs[j] of :func:`dirichlet_attributes` for every projected Gaussian j (the padding columns untouched)."""
-    m = ids.shape[0]
+@njit(inline="always", fastmath=FAST)
+def _attribute_row(concentrations, row, j, colors, packed, attrs):  # pragma: no cover
+    """attrs[j] of :func:`dirichlet_attributes` from row ``row`` of the concentrations (padding untouched)."""
     num_classes = concentrations.shape[1]
     lin = _linear_width(num_classes)
-    for j in prange(m):
-        row = ids[j]
-        total = 0.0
-        for c in range(num_classes):
-            total += concentrations[row, c]
-        inv = 1.0 / total
-        denom = 1.0 / (1.0 + total)
-        for c in range(3):
-            attrs[j, num_classes + c] = np.float32(colors[j, c]) if colors.shape[0] else np.float32(0.0)
-        attrs[j, num_classes + 3] = np.float32(total)
-        attrs[j, num_classes + 4] = np.float32(packed[j, 7])
-        for c in range(num_classes):
-            e = concentrations[row, c] * inv
-            attrs[j, c] = np.float32(e)
-            attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
+    total = 0.0
+    for c in range(num_classes):
+        total += concentrations[row, c]
+    inv = 1.0 / total
+    denom = 1.0 / (1.0 + total)
+    for c in range(3):
+        attrs[j, num_classes + c] = np.float32(colors[j, c]) if colors.shape[0] else np.float32(0.0)
+    attrs[j, num_classes + 3] = np.float32(total)
+    attrs[j, num_classes + 4] = np.float32(packed[j, 7])
+    for c in range(num_classes):
+        e = concentrations[row, c] * inv
+        attrs[j, c] = np.float32(e)
+        attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
+
+
+@njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
+def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no cover
+    """attrs[j] of :func:`dirichlet_attributes` for every projected Gaussian j (the padding columns untouched)."""
+    for j in prange(ids.shape[0]):
+        _attribute_row(concentrations, ids[j], j, colors, packed, attrs)
+
+
+@njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
+def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, decay, prior, colors, packed,
+                              attrs):  # pragma: no cover
+    """:func:`add_increments` and then :func:`_dirichlet_kernel` of each row while it is in cache (one gather of the
+    visible Gaussians' concentration rows instead of two)."""
+    for j in prange(ids.shape[0]):
+        _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
+        _attribute_row(concentrations, ids[j], j, colors, packed, attrs)
+
+
+def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, acc: np.ndarray,
+                                  acc_base: np.ndarray, decay: float, prior: float, colors: np.ndarray,
+                                  packed: np.ndarray) -> np.ndarray:
+    """:func:`add_increments` then :func:`dirichlet_attributes` of the updated rows, in one pass (``observe``)."""
+    num_classes = concentrations.shape[1]
+    attrs = np.zeros((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
+    _add_and_attribute_kernel(concentrations, ids, acc, acc_base, float(decay), float(prior), colors, packed, attrs)
+    return attrs
 
 
 def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray,

@@ -17,6 +17,7 @@ from ..sh import eval_sh
 
 if TYPE_CHECKING:
     from ..camera import Camera
+    from ..change_rules import ChangeRules
     from ..gaussians import GaussianModel
     from ..label_input import FrameLabels
     from ..sensor_model import SoftLabels
@@ -156,37 +157,106 @@ class TorchBackend(RasterBackend):
 
     def update(self, frame: TorchFrame, inputs: "FrameLabels", concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> UpdateCounts:
-        num_classes = concentrations.shape[1]
+        """The paper's update with the changing-world rules (:mod:`css_ros.engine.change_rules`), per tile:
+        a pixel's vote (:func:`~css_ros.engine.label_input.pixel_vote`, vectorised by ``count_votes``), then its
+        transient class, then the measured-depth gate; forgetting when the increments are added."""
+        rules, num_classes = inputs.rules, concentrations.shape[1]
         labels, weights, counts = count_votes(inputs.labels, inputs.confidence, inputs.num_classes,
                                               inputs.ignore_label)
         lab = torch.as_tensor(labels, device=self.device).long()
         wts = torch.as_tensor(weights, device=self.device, dtype=self.dtype)
+        transient = self._transient_pixels(lab, rules, num_classes)   # [H, W] voted pixels of a transient class
+        depth = None if inputs.depth is None else torch.as_tensor(inputs.depth, dtype=self.dtype, device=self.device)
+        surprise = None
+        if inputs.want_surprise:
+            alpha = torch.as_tensor(concentrations[frame.ids], dtype=self.dtype, device=self.device)
+            expect = alpha / alpha.sum(dim=1, keepdim=True)          # [M, C] E[theta] before the update
+            surprise = torch.full(lab.shape, float("nan"), dtype=self.dtype, device=self.device)
         acc = torch.zeros((len(frame.ids), num_classes), dtype=self.dtype, device=self.device)
         if soft is not None:
             edges = torch.as_tensor(soft.edges, dtype=self.dtype, device=self.device)
             table = torch.as_tensor(soft.table, dtype=self.dtype, device=self.device)
-        no_depth = 0
-        for vv, uu, lst, kappa, _ in self._tiles(frame):
+        no_depth = occluded = 0
+        for vv, uu, lst, kappa, final_t in self._tiles(frame):
             pl = lab[vv, uu]
-            valid = (pl >= 0) & (wts[vv, uu] > 0)
+            if surprise is not None:
+                surprise[vv, uu] = self._surprise(pl, lst, kappa, final_t, expect, num_classes)
+            gets = (pl >= 0) & ~transient[vv, uu]   # pixels that add evidence unless the depth gate stops them
             if lst is None:
-                no_depth += int(valid.sum())
+                no_depth += int(gets.sum())
                 continue
-            if not bool(valid.any()):
+            if not bool(gets.any()):
                 continue
-            y = torch.zeros((len(vv), num_classes), dtype=self.dtype, device=self.device)
+            ksum = kappa.sum(dim=1)
+            mean_z = (kappa @ frame.depths[lst]) / ksum.clamp(min=1e-300)   # splat units (0 where ksum = 0)
+            if depth is not None:
+                blocked, kappa = self._depth_gate(depth[vv, uu], kappa, frame.depths[lst], ksum, mean_z, rules)
+                occluded += int((gets & blocked).sum())
+                gets &= ~blocked
+            w = torch.where(gets, wts[vv, uu], torch.zeros_like(ksum))
             if soft is None:
-                y[valid, pl[valid]] = wts[vv, uu][valid]
-            else:  # soft label of (label, depth bin of the expected depth sum kappa z / sum kappa)
-                ksum = kappa.sum(dim=1)
-                depth = (kappa @ frame.depths[lst]) / ksum.clamp(min=1e-300)
-                b = (torch.searchsorted(edges[1:-1].contiguous(), depth, right=True)).clamp(max=soft.num_bins - 1)
-                rows = pl.clamp(min=0) * soft.num_bins + b
-                y = table[rows] * torch.where(valid, wts[vv, uu], torch.zeros_like(ksum))[:, None]
-                no_depth += int((valid & (ksum <= 0)).sum())
+                y = torch.zeros((len(vv), num_classes), dtype=self.dtype, device=self.device)
+                y[gets, pl[gets]] = w[gets]
+            else:  # soft label of (label, depth bin of the expected depth over all contributions)
+                b = (torch.searchsorted(edges[1:-1].contiguous(), mean_z, right=True)).clamp(max=soft.num_bins - 1)
+                y = table[pl.clamp(min=0) * soft.num_bins + b] * w[:, None]
+                no_depth += int((gets & (ksum <= 0)).sum())
             acc.index_add_(0, lst, kappa.T @ y)
-        concentrations[frame.ids] += acc.cpu().numpy()
-        return UpdateCounts(np.append(counts, no_depth if soft is not None else 0))
+        self._add_evidence(concentrations, frame.ids, acc.cpu().numpy(), rules)
+        n_transient = int(transient.sum())
+        used = int(counts[0]) - n_transient - occluded
+        out = np.array([used, counts[1], counts[2], no_depth if soft is not None else 0, n_transient, occluded],
+                       dtype=np.int64)
+        return UpdateCounts(out, None if surprise is None else surprise.cpu().numpy().astype(np.float32))
+
+    def _transient_pixels(self, lab: torch.Tensor, rules: "ChangeRules", num_classes: int) -> torch.Tensor:
+        """[H, W] bool: voted pixels (class >= 0) whose class is marked transient (``rules.transient`` may be
+        shorter than C, or empty: the classes beyond it are not transient)."""
+        mask = np.zeros(num_classes, dtype=np.bool_)
+        k = min(num_classes, rules.transient.shape[0])
+        mask[:k] = rules.transient[:k]
+        marked = torch.as_tensor(mask, device=self.device)
+        return (lab >= 0) & marked[lab.clamp(min=0)]
+
+    @staticmethod
+    def _depth_gate(measured: torch.Tensor, kappa: torch.Tensor, z: torch.Tensor, ksum: torch.Tensor,
+                    mean_z: torch.Tensor, rules: "ChangeRules") -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`~css_ros.engine.change_rules.depth_gate` over a tile's pixels.
+
+        Args:
+            measured: [P] measured depth (metres; not finite or <= 0: none).
+            kappa: [P, L] the pixels' contributions; z: [L] the Gaussians' camera z (splat units).
+            ksum: [P] sum of kappa; mean_z: [P] sum kappa z / sum kappa (splat units; meaningless where ksum = 0).
+        Returns:
+            (occluded [P] bool, kappa with the contributions in front of the measured surface zeroed)."""
+        has = (measured > 0.0) & (measured < float("inf"))           # NaN compares False
+        tol = torch.clamp(rules.tol_rel * measured, min=rules.tol_abs)
+        rendered = mean_z * rules.depth_scale                          # metres
+        occluded = has & (ksum > 0) & (measured < rendered - tol)
+        front = torch.where(has & ~occluded, measured - tol, torch.full_like(measured, float("-inf")))
+        in_front = (z * rules.depth_scale)[None, :] < front[:, None]
+        return occluded, torch.where(in_front, torch.zeros_like(kappa), kappa)
+
+    @staticmethod
+    def _surprise(pl: torch.Tensor, lst: torch.Tensor | None, kappa: torch.Tensor | None, final_t: torch.Tensor,
+                  expect: torch.Tensor, num_classes: int) -> torch.Tensor:
+        """[P] 1 - E^y of the pixels' labels y under the map before the update, E^y = sum kappa E[theta^y] +
+        kappa_b / C; NaN where the pixel has no vote (``pl`` < 0)."""
+        e_y = final_t / num_classes
+        if lst is not None and kappa is not None:
+            e_y = e_y + (kappa @ expect[lst]).gather(1, pl.clamp(min=0)[:, None])[:, 0]
+        return torch.where(pl >= 0, 1.0 - e_y, torch.full_like(e_y, float("nan")))
+
+    @staticmethod
+    def _add_evidence(concentrations: np.ndarray, ids: np.ndarray, increment: np.ndarray, rules: "ChangeRules") -> None:
+        """concentrations[ids] += increment (M, C); with forgetting (decay < 1) the Gaussians whose increment is
+        non-zero first have alpha - alpha_0 multiplied by the decay, the others are untouched."""
+        if rules.decay == 1.0:
+            concentrations[ids] += increment
+            return
+        touched = (increment != 0.0).any(axis=1)
+        rows = ids[touched]
+        concentrations[rows] = rules.prior + (concentrations[rows] - rules.prior) * rules.decay + increment[touched]
 
     def render(self, frame: TorchFrame, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
