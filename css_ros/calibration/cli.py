@@ -31,8 +31,8 @@ from ..evaluation.source import FrameSource
 from ..io.params_file import PARAMS_FILE_NAME
 from .learn import (DEFAULT_VOTES, VOTE_KINDS, DEFAULT_BIN_WIDTH, DEFAULT_HELDOUT_EVERY, DEFAULT_MAX_DEPTH, DEFAULT_PSEUDO_COUNT,
                     DEFAULT_WEIGHT_FLOOR, MIN_LABELLED_PIXELS, ConfidenceSamples, LabelDepthCounts, fit_confidence,
-                    extrapolated_bins, fit_sensor_model, fused_frames, is_heldout, label_reliability, label_samples,
-                    right_rates)
+                    extrapolated_bins, fit_sensor_model, fused_frames, in_front_of_map, is_heldout, label_reliability,
+                    label_samples, right_rates)
 
 PROG = "css_calibrate"
 #: Largest --max-depth and --bin-width [m] (a segmenter's labels are not judged beyond a kilometre).
@@ -89,6 +89,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt-topic", default=None, metavar="TOPIC", help="ground-truth topic (default /segmentation_gt)")
     p.add_argument("--segmentation-topic", default=None, metavar="TOPIC",
                    help="segmentation topic (default /segmentation)")
+    p.add_argument("--depth-topic", default=None, metavar="TOPIC",
+                   help="measured depth (sensor_msgs/Image 16UC1 millimetres or 32FC1 metres, registered to the "
+                        "segmentation, paired with it by stamp, resampled by nearest neighbour; default /depth when "
+                        "the bag has it, '' = do not use): labelled pixels nearer than the splat's surface (a "
+                        "passer-by the ground truth does not show) are left out of the statistics, and the "
+                        "confidence pass fuses with it as css_replay does")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -104,6 +110,8 @@ def bag_config(args: argparse.Namespace, bag: Path) -> ReplayConfig:
         argv += ["--gt-topic", args.gt_topic]
     if args.segmentation_topic is not None:
         argv += ["--segmentation-topic", args.segmentation_topic]
+    if args.depth_topic is not None:
+        argv += ["--depth-topic", args.depth_topic]
     cfg = replay_cli.resolve_paths(replay_cli.build_parser().parse_args(argv))
     if cfg.classes is None:
         raise ConfigError(f"{bag}: no class file (pass --classes)")
@@ -313,7 +321,8 @@ def collect(configs: list[ReplayConfig], edges: np.ndarray, num_classes: int, he
             why = unusable(frame.labels, frame.gt, depth, num_classes)
             if why is not None:
                 skipped[f"frames: {why}"] += 1
-            counts.add(frame.labels, frame.gt, depth, is_heldout(frame.index, heldout_every))
+            front = None if frame.depth is None else in_front_of_map(frame.depth, depth)
+            counts.add(frame.labels, frame.gt, depth, is_heldout(frame.index, heldout_every), front)
     return counts
 
 
@@ -366,6 +375,7 @@ def calibrate(args: argparse.Namespace) -> int:
         "bags": [str(c.bag) for c in configs], "frames_fit": counts.frames_fit,
         "frames_heldout": counts.frames_heldout, "heldout_every": args.heldout_every, "pixels_fit": fit_pixels,
         "pixels_heldout": int(counts.heldout.sum()), "pixels_without_depth": counts.no_depth,
+        "pixels_in_front_of_the_map": counts.in_front,
         "pseudo_count": args.pseudo_count, "weight_floor": args.weight_floor,
         "weight_rule": "w = max(weight_floor, 2 p - 1), p = fraction of right labels "
                        + ("per label and depth bin" if args.per_class else "per depth bin (all labels)"),
@@ -390,7 +400,8 @@ def calibrate(args: argparse.Namespace) -> int:
                          info)
     figures = write_outputs(args.out, sensor, counts, classes, panels)
     print(f"{PROG}: {fit_pixels} labelled pixels in {counts.frames_fit} frames ({counts.frames_heldout} held out); "
-          f"{counts.no_depth} labelled pixels had no rendered depth")
+          f"{counts.no_depth} labelled pixels had no rendered depth"
+          + (f", {counts.in_front} were in front of the map's surface (measured depth)" if counts.in_front else ""))
     print(f"input labels, held out: paper (p = 1): {_fmt(labels_report['before'])}; fitted p(right | label, depth): "
           f"{_fmt(labels_report['after'])}")
     if "confidence_calibration" in info:

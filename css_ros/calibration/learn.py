@@ -5,9 +5,13 @@ Two passes over the labelled frames of one or more bags (each bag on its own spl
 1. **Label statistics.** Each frame is rendered at its pose (an empty map: only the expected depth image
    ``RenderedView.depth`` is used), and every pixel with an input label y < C, a ground-truth label c < C and a
    rendered depth d adds one to ``counts[y, bin(d), c]``. Pixels without a rendered depth are counted apart
-   (the update adds nothing for them either). Every ``heldout_every``-th frame goes into held-out counts instead.
-2. **Confidence map.** The frames are fused again in order with the new sensor model (as css_node / css_replay
-   would); each online render's pixels give (E of the argmax, evidence, label right?) samples, from which the
+   (the update adds nothing for them either). With a measured depth, pixels nearer than the rendered surface by
+   more than the map's depth tolerance (:func:`in_front_of_map`: a passer-by, which the static ground truth does not
+   show) are counted apart too: the update adds nothing for them. Every ``heldout_every``-th frame goes into
+   held-out counts instead.
+2. **Confidence map.** The frames are fused again in order with the new sensor model and the measured depth (as
+   css_node / css_replay would); each online render's pixels give (E of the argmax, evidence, label right?) samples,
+   from which the
    :class:`~css_ros.engine.sensor_model.ConfidenceMap` is fitted on the fitting frames and judged on the held-out ones.
 """
 from __future__ import annotations
@@ -17,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 
+from ..engine.change_rules import DEFAULT_DEPTH_TOLERANCE, DEFAULT_DEPTH_TOLERANCE_RELATIVE
 from ..engine.sensor_model import ConfidenceMap, SensorModel, depth_bins
 from ..evaluation.calibration_metrics import calibration_summary
 from ..evaluation.metrics import PixelSampler
@@ -46,6 +51,19 @@ def is_heldout(index: int, every: int) -> bool:
     return every > 0 and index % every == every - 1
 
 
+def in_front_of_map(measured: np.ndarray, rendered: np.ndarray, tol_abs: float = DEFAULT_DEPTH_TOLERANCE,
+                    tol_rel: float = DEFAULT_DEPTH_TOLERANCE_RELATIVE) -> np.ndarray:
+    """(H, W) bool: the pixels whose measured depth is nearer than the map's rendered depth by more than
+    max(tol_abs, tol_rel x measured) (both (H, W) metres): the pixels
+    :func:`css_ros.engine.change_rules.depth_gate` calls occluded. Without a measurement (not finite or <= 0) or a
+    rendered depth (NaN): False."""
+    m = np.asarray(measured, dtype=np.float64)
+    r = np.asarray(rendered, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        has = (m > 0) & (m != np.inf) & ~np.isnan(r)
+        return has & (m < r - np.maximum(tol_abs, tol_rel * m))
+
+
 @dataclass
 class LabelDepthCounts:
     """Pixel counts of (input label y, depth bin b, ground truth c) for fitting and held-out frames.
@@ -53,6 +71,7 @@ class LabelDepthCounts:
     Attributes:
         fit, heldout: (C, B, C) int64.
         no_depth: labelled pixels without rendered depth (not counted above).
+        in_front: labelled pixels whose measured depth is nearer than the map's surface (not counted above).
         frames_fit, frames_heldout: frames that added to each.
     """
 
@@ -61,6 +80,7 @@ class LabelDepthCounts:
     fit: np.ndarray = field(init=False)
     heldout: np.ndarray = field(init=False)
     no_depth: int = 0
+    in_front: int = 0
     frames_fit: int = 0
     frames_heldout: int = 0
 
@@ -69,13 +89,19 @@ class LabelDepthCounts:
         self.fit = np.zeros((self.num_classes, b, self.num_classes), dtype=np.int64)
         self.heldout = np.zeros_like(self.fit)
 
-    def add(self, labels: np.ndarray, gt: np.ndarray, depth: np.ndarray, heldout: bool) -> None:
-        """Count one frame: labels, gt (H, W) ints; depth (H, W) metres (NaN = none)."""
+    def add(self, labels: np.ndarray, gt: np.ndarray, depth: np.ndarray, heldout: bool,
+            in_front: np.ndarray | None = None) -> None:
+        """Count one frame: labels, gt (H, W) ints; depth (H, W) rendered metres (NaN = none); ``in_front`` (H, W)
+        bool, the pixels to leave out as in front of the map's surface (:func:`in_front_of_map`), or None."""
         c, b = self.num_classes, self.edges.size - 1
         lab = labels.astype(np.int64).ravel()
         tru = gt.astype(np.int64).ravel()
         d = depth.astype(np.float64).ravel()
         valid = (lab >= 0) & (lab < c) & (tru >= 0) & (tru < c)
+        if in_front is not None:
+            front = np.asarray(in_front, dtype=bool).ravel()
+            self.in_front += int(np.count_nonzero(valid & front))
+            valid &= ~front
         has_depth = np.isfinite(d)
         self.no_depth += int(np.count_nonzero(valid & ~has_depth))
         keep = valid & has_depth
@@ -233,7 +259,7 @@ def fused_frames(smap: "SemanticMap", frames: Iterable[Any], samples: Confidence
     """Observe every frame in order (online renders feed ``samples``); returns the frames fused."""
     n = 0
     for frame in frames:
-        view = smap.observe(frame.camera, frame.labels, frame.confidence)
+        view = smap.observe(frame.camera, frame.labels, frame.confidence, depth=frame.depth)
         if frame.gt is not None:
             samples.add(view, frame.gt, smap.num_classes, smap.ignore_label, is_heldout(frame.index, heldout_every))
         n += 1

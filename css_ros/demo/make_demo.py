@@ -25,7 +25,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, Sequence
 
@@ -34,6 +34,7 @@ import numpy as np
 from ..errors import CssError
 from ..io.topics import BAG_CAMERA_FRAME, BAG_MAP_FRAME, BAG_START_NS, BAG_TOPICS
 from .renderer import FOV_X_DEG, DemoRenderer, bag_in_place, camera_k, systematic_rule_masks
+from .changes import DEFAULT_CHANGE, DEPTH_ENCODINGS
 from .robot_demo import ROBOT_DEFAULTS, make_robot_demo
 
 __all__ = ["DemoStats", "main", "make_demo"]
@@ -63,18 +64,39 @@ class DemoStats:
     scene: str = "room"             # scene layout (SCENES)
     #: (B, 2) (correct, labelled) pixel counts per depth band of range_noise.DEPTH_BANDS_M (None: not measured)
     band_counts: np.ndarray | None = None
+    world: "WorldOptions | None" = None  # people, class change, depth topic (None: none)
+    change_frame: int | None = None      # first frame of the class change
+    person_frames: int = 0               # frames that show a person
+    person_share: float = 0.0            # share of all pixels that show a person
 
 
 def _dir_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
+@dataclass
+class _DemoFrame:
+    """One frame's images before they are written (all (H, W); ``rgb`` (H, W, 3)).
+
+    ``band_depth``: surface depth [m] for the depth-band table (None: not wanted); ``depth``: the splat's rendered
+    depth [m] (NaN: none); ``changed``: the changed-class ground truth (None without a class change)."""
+
+    rgb: np.ndarray
+    gt: np.ndarray
+    seg: np.ndarray
+    conf: np.ndarray
+    band_depth: np.ndarray | None
+    depth: np.ndarray
+    changed: np.ndarray | None
+
+
 class _FrameErrors:
-    """The per-frame corruption of one error model: ``labels(camera, frame) -> (rgb, gt, seg, conf, depth)``
-    (depth (H, W) [m] only where a depth-band table is wanted, else None)."""
+    """The per-frame corruption of one error model: ``labels(camera, frame) -> _DemoFrame``, with the class change
+    (:class:`~css_ros.demo.changes.ClassChange`) as one more rule of the renderer, on in the biased labels and in
+    the ground truth from its frame on."""
 
     def __init__(self, errors: str, model: Any, scene: Any, num_classes: int, seed: int, backend: str,
-                 want_depth: bool) -> None:
+                 want_depth: bool, change: Any = None) -> None:
         from .range_noise import RangeNoise, SurfaceDepth
         from .scene import CLASS_NAMES
         from .segmentation_noise import DEFAULT_SYSTEMATIC, SegmentationNoise
@@ -82,42 +104,119 @@ class _FrameErrors:
         self.errors = errors
         self.rules = DEFAULT_SYSTEMATIC if errors == "frame" else ()
         masks, targets = systematic_rule_masks(scene, CLASS_NAMES, self.rules)
+        self.change = change
+        if change is not None:
+            selected = scene.class_ids == change.source
+            if any(np.any(m & selected) for m in masks):
+                raise CssError(f"--change-class: the class {CLASS_NAMES[change.source]} is relabelled by a systematic "
+                               "rule of the frame error model; choose another class or --errors range")
+            masks, targets = [*masks, selected], [*targets, change.target]
         self.renderer = DemoRenderer(model, scene.class_ids, num_classes, masks, targets, backend=backend)
         self.noise = SegmentationNoise(CLASS_NAMES, seed=seed) if errors == "frame" else None
         self.range = RangeNoise(model, scene.class_ids, CLASS_NAMES, seed=seed) if errors == "range" else None
         self.surface = SurfaceDepth(model) if want_depth and self.range is None else None
 
-    def labels(self, camera: Any, frame: int
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    def labels(self, camera: Any, frame: int) -> _DemoFrame:
+        off = [False] * len(self.rules)
+        extra = [] if self.change is None else [frame >= self.change.frame]
+        final = () if self.change is None else (*off, True)
         if self.range is not None:
-            rgb, gt, _ = self.renderer.render(camera)
-            fr = self.range.apply(gt, camera, frame)
-            return rgb, gt, fr.labels, fr.confidence, fr.depth
+            view = self.renderer.render_view(camera, truth=(*off, *extra), final=final)
+            fr = self.range.apply(view.gt, camera, frame)
+            return _DemoFrame(view.rgb, view.gt, fr.labels, fr.confidence, fr.depth, view.depth, view.changed)
         assert self.noise is not None
         active = [self.noise.systematic_active(frame, r, rule.probability) for r, rule in enumerate(self.rules)]
-        rgb, gt, biased = self.renderer.render(camera, active)
-        seg, conf = self.noise.apply(biased, frame)
-        depth = self.surface.depth(camera) if self.surface is not None else None
-        return rgb, gt, seg, conf, depth
+        view = self.renderer.render_view(camera, (*active, *extra), (*off, *extra), final)
+        seg, conf = self.noise.apply(view.biased, frame)
+        band = self.surface.depth(camera) if self.surface is not None else None
+        return _DemoFrame(view.rgb, view.gt, seg, conf, band, view.depth, view.changed)
+
+
+@dataclass(frozen=True)
+class WorldOptions:
+    """The changing world of a demo (:mod:`css_ros.demo.changes`): ``people`` walkers, a class change ``change``
+    ("FROM:TO" or None) from ``change_frame`` (None: half way), and a ``/depth`` topic in ``depth`` encoding (None:
+    none)."""
+
+    people: int = 0
+    change: str | None = None
+    change_frame: int | None = None
+    depth: str | None = None
+
+    @property
+    def any(self) -> bool:
+        return bool(self.people or self.change or self.depth)
 
 
 def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], frames: int = DEFAULTS["frames"],
               width: int = DEFAULTS["width"], height: int = DEFAULTS["height"], seed: int = 0,
               storage: Literal["mcap", "sqlite3"] = "mcap", overwrite: bool = False, progress: bool = True,
-              backend: str = "numba", errors: str = "frame", scene: str = "room") -> DemoStats:
+              backend: str = "numba", errors: str = "frame", scene: str = "room",
+              world: WorldOptions = WorldOptions()) -> DemoStats:
     """Generate the demo data set into ``out`` (see module docstring). Returns its :class:`DemoStats`.
 
     ``errors`` (:data:`ERROR_MODELS`) picks the error model of ``/segmentation``, ``scene`` (:data:`SCENES`) the
-    layout; the defaults write the shipped demo.
+    layout, ``world`` the people, class change and depth topic; the defaults write the shipped demo.
 
     Raises:
         CssError: ``out/bag`` exists and ``overwrite`` is False, or invalid arguments.
     """
-    from ..engine.camera import Camera
+    from .changes import ClassChange, demo_class_set_with_people, walkers
     from .scene import build_scene_arrays, demo_class_set
     from ..engine.gaussians import GaussianModel
-    from .range_noise import DEPTH_BANDS_M, depth_band_counts
     from .trajectory import late_phase_start, robot_trajectory
+
+    _check_args(errors, scene, frames, width, height, storage, world)
+    t_start = time.perf_counter()
+    out = Path(out)
+    bag_dir = out / "bag"
+    if bag_dir.exists() and not overwrite:
+        raise CssError(f"{bag_dir} exists; pass --overwrite to regenerate it")
+    room = demo_class_set()
+    change = None if world.change is None else ClassChange.parse(world.change, room.names, world.change_frame, frames)
+    out.mkdir(parents=True, exist_ok=True)
+
+    arrays = build_scene_arrays(num_gaussians, seed, layout=scene)
+    model = GaussianModel.from_activated(arrays.means, arrays.scales, arrays.quats_wxyz, arrays.opacities,
+                                         arrays.colors)
+    model = replace(model, normals=arrays.normals)  # the PLY's nx ny nz: true surface normals
+    classes = demo_class_set_with_people(room) if world.people else room
+    traj = robot_trajectory(frames, seed=seed, layout=scene)
+    default_run = errors == ERROR_MODELS[0] and scene == SCENES[0] and not world.any
+    corrupt = _FrameErrors(errors, model, arrays, room.num_classes, seed, backend, want_depth=not default_run,
+                           change=change)
+    info: dict[str, Any] = {"generator": "css_make_demo", "num_gaussians": num_gaussians, "frames": frames,
+                            "width": width, "height": height, "seed": seed}
+    if not default_run:  # the shipped demo's metadata stays byte-identical
+        info.update(errors=errors, scene=scene)
+    if world.any:
+        info.update(people=world.people, change=None if change is None else world.change,
+                    change_frame=None if change is None else change.frame, depth=world.depth)
+    tally = _write_frames(out, storage, info, traj, corrupt, walkers(scene, world.people), classes, world,
+                          (width, height), progress)
+    model.to_ply(out / "model.ply", extra_fields={"class_id": arrays.class_ids.astype(np.uint8)})
+    classes.to_yaml(out / "classes.yaml")
+    late = int(np.argmax(traj.phase == 3)) if np.any(traj.phase == 3) else frames
+    err = np.asarray(tally.error_rates)
+    stats = DemoStats(
+        frames=frames, width=width, height=height, num_gaussians=num_gaussians, num_classes=classes.num_classes,
+        duration_s=float(traj.times[-1]), noisy_pixel_error=float(err.mean()),
+        noisy_error_p10_p90=(float(np.percentile(err, 10)), float(np.percentile(err, 90))),
+        unlabelled_fraction=tally.unlabelled / (frames * width * height), late_first_frame=late,
+        errors=errors, scene=scene, band_counts=None if default_run else tally.bands,
+        world=world, change_frame=None if change is None else change.frame,
+        person_frames=tally.person_frames, person_share=tally.person_pixels / (frames * width * height),
+    )
+    (out / "README.md").write_text(_readme(stats, out, storage, seed, late_phase_start(scene)))
+    stats.bytes_total = _dir_bytes(out)
+    stats.seconds = time.perf_counter() - t_start
+    return stats
+
+
+def _check_args(errors: str, scene: str, frames: int, width: int, height: int, storage: str,
+                world: WorldOptions) -> None:
+    """Refuse invalid arguments (CssError naming the option)."""
+    from .changes import DEPTH_ENCODINGS
 
     if errors not in ERROR_MODELS:
         raise CssError(f"--errors must be one of {', '.join(ERROR_MODELS)}, got {errors!r}")
@@ -129,69 +228,73 @@ def make_demo(out: str | Path, num_gaussians: int = DEFAULTS["num_gaussians"], f
         raise CssError(f"image size must be at least 16x16, got {width}x{height}")
     if storage not in ("mcap", "sqlite3"):
         raise CssError(f"--storage must be mcap or sqlite3, got {storage!r}")
-    t_start = time.perf_counter()
-    out = Path(out)
-    bag_dir = out / "bag"
-    if bag_dir.exists() and not overwrite:
-        raise CssError(f"{bag_dir} exists; pass --overwrite to regenerate it")
-    out.mkdir(parents=True, exist_ok=True)
+    if world.people < 0:
+        raise CssError(f"--people must be >= 0, got {world.people}")
+    if world.depth is not None and world.depth not in DEPTH_ENCODINGS:
+        raise CssError(f"--depth-encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got {world.depth!r}")
+    if world.change_frame is not None and world.change is None:
+        raise CssError("--change-frame needs --change-class")
 
-    arrays = build_scene_arrays(num_gaussians, seed, layout=scene)
-    model = GaussianModel.from_activated(arrays.means, arrays.scales, arrays.quats_wxyz, arrays.opacities,
-                                         arrays.colors)
-    model = replace(model, normals=arrays.normals)  # the PLY's nx ny nz: true surface normals
-    classes = demo_class_set()
-    traj = robot_trajectory(frames, seed=seed, layout=scene)
+
+@dataclass
+class _Tally:
+    """What the frame loop counts for DemoStats."""
+
+    bands: np.ndarray
+    error_rates: list = field(default_factory=list)
+    unlabelled: int = 0
+    person_frames: int = 0
+    person_pixels: int = 0
+
+
+def _write_frames(out: Path, storage: str, info: dict[str, Any], traj: Any, corrupt: _FrameErrors,
+                  people: list, classes: Any, world: WorldOptions, size: tuple[int, int], progress: bool) -> _Tally:
+    """Render, corrupt and write every frame of the bag (OUT/bag, written in place at the end)."""
+    from ..engine.camera import Camera
+    from .changes import encode_depth, overlay_people, people_depth
+    from .range_noise import DEPTH_BANDS_M, depth_band_counts
+
+    width, height = size
     stamps = BAG_START_NS + np.rint(traj.times * 1e3).astype(np.int64) * 1_000_000  # millisecond-aligned
     K = camera_k(width, height)
-    default_run = errors == ERROR_MODELS[0] and scene == SCENES[0]
-    corrupt = _FrameErrors(errors, model, arrays, classes.num_classes, seed, backend, want_depth=not default_run)
-    bands = np.zeros((len(DEPTH_BANDS_M) - 1, 2), dtype=np.int64)
-    error_rates: list[float] = []
-    unlabelled = 0
-    info: dict[str, Any] = {"generator": "css_make_demo", "num_gaussians": num_gaussians, "frames": frames,
-                            "width": width, "height": height, "seed": seed}
-    if not default_run:  # the shipped demo's metadata stays byte-identical
-        info.update(errors=errors, scene=scene)
+    tally = _Tally(np.zeros((len(DEPTH_BANDS_M) - 1, 2), dtype=np.int64))
     with bag_in_place(out, storage) as writer:
         writer.set_custom_data("css_ros.demo", json.dumps(info, sort_keys=True))
         with writer:
-            frame_iter: Any = range(frames)
+            frame_iter: Any = range(len(stamps))
             if progress:
                 from tqdm import tqdm
 
                 frame_iter = tqdm(frame_iter, desc="css_make_demo", unit="frame", file=sys.stderr)
             for i in frame_iter:
                 cam = Camera(K, width, height, traj.T_map_cam[i])
-                rgb, gt, seg, conf, depth = corrupt.labels(cam, i)
+                fr = corrupt.labels(cam, i)
+                depth = fr.depth.astype(np.float64)
+                if people:
+                    person = people_depth(cam, people, float(traj.times[i]))
+                    mask = overlay_people(person, depth, fr.seg, fr.conf, fr.rgb, classes.num_classes - 1)
+                    depth = np.where(mask, person, depth)
+                    tally.person_frames += bool(mask.any())
+                    tally.person_pixels += int(mask.sum())
                 stamp = int(stamps[i])
                 writer.write_camera_info(BAG_TOPICS["camera_info"], K, width, height, stamp, BAG_CAMERA_FRAME)
                 writer.write_pose(BAG_TOPICS["pose"], traj.positions[i], traj.quaternions_xyzw[i], stamp, BAG_MAP_FRAME)
-                writer.write_image(BAG_TOPICS["image"], rgb, "rgb8", stamp, BAG_CAMERA_FRAME)
-                writer.write_image(BAG_TOPICS["segmentation"], seg, "mono8", stamp, BAG_CAMERA_FRAME)
-                writer.write_image(BAG_TOPICS["confidence"], conf, "32FC1", stamp, BAG_CAMERA_FRAME)
-                writer.write_image(BAG_TOPICS["gt"], gt, "mono8", stamp, BAG_CAMERA_FRAME)
-                valid = gt != 255
-                unlabelled += int(np.count_nonzero(~valid))
-                error_rates.append(float(np.count_nonzero((seg != gt) & valid)) / max(1, int(np.count_nonzero(valid))))
-                if depth is not None:
-                    bands += depth_band_counts(seg, gt, depth)
-
-    model.to_ply(out / "model.ply", extra_fields={"class_id": arrays.class_ids.astype(np.uint8)})
-    classes.to_yaml(out / "classes.yaml")
-    late = int(np.argmax(traj.phase == 3)) if np.any(traj.phase == 3) else frames
-    err = np.asarray(error_rates)
-    stats = DemoStats(
-        frames=frames, width=width, height=height, num_gaussians=num_gaussians, num_classes=classes.num_classes,
-        duration_s=float(traj.times[-1]), noisy_pixel_error=float(err.mean()),
-        noisy_error_p10_p90=(float(np.percentile(err, 10)), float(np.percentile(err, 90))),
-        unlabelled_fraction=unlabelled / (frames * width * height), late_first_frame=late,
-        errors=errors, scene=scene, band_counts=None if default_run else bands,
-    )
-    (out / "README.md").write_text(_readme(stats, out, storage, seed, late_phase_start(scene)))
-    stats.bytes_total = _dir_bytes(out)
-    stats.seconds = time.perf_counter() - t_start
-    return stats
+                writer.write_image(BAG_TOPICS["image"], fr.rgb, "rgb8", stamp, BAG_CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["segmentation"], fr.seg, "mono8", stamp, BAG_CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["confidence"], fr.conf, "32FC1", stamp, BAG_CAMERA_FRAME)
+                writer.write_image(BAG_TOPICS["gt"], fr.gt, "mono8", stamp, BAG_CAMERA_FRAME)
+                if world.depth is not None:
+                    writer.write_image(BAG_TOPICS["depth"], encode_depth(depth, world.depth), world.depth, stamp,
+                                       BAG_CAMERA_FRAME)
+                if fr.changed is not None:
+                    writer.write_image(BAG_TOPICS["gt_changed"], fr.changed, "mono8", stamp, BAG_CAMERA_FRAME)
+                valid = fr.gt != 255
+                tally.unlabelled += int(np.count_nonzero(~valid))
+                tally.error_rates.append(float(np.count_nonzero((fr.seg != fr.gt) & valid))
+                                         / max(1, int(np.count_nonzero(valid))))
+                if fr.band_depth is not None:
+                    tally.bands += depth_band_counts(fr.seg, fr.gt, fr.band_depth)
+    return tally
 
 
 def _regen_command(s: DemoStats, out: Path, storage: str, seed: int) -> str:
@@ -208,9 +311,62 @@ def _regen_command(s: DemoStats, out: Path, storage: str, seed: int) -> str:
         cmd += f" --scene {s.scene}"
     if s.errors != ERROR_MODELS[0]:
         cmd += f" --errors {s.errors}"
+    w = s.world
+    if w is not None and w.people:
+        cmd += f" --people {w.people}"
+    if w is not None and w.change is not None:
+        cmd += f" --change-class {w.change}"
+        if w.change_frame is not None:
+            cmd += f" --change-frame {w.change_frame}"
+    if w is not None and w.depth is not None:
+        cmd += " --depth" + (f" --depth-encoding {w.depth}" if w.depth != "32FC1" else "")
     if storage != "mcap":
         cmd += f" --storage {storage}"
     return cmd + " --overwrite"
+
+
+def _world_topics_md(s: DemoStats) -> str:
+    """The topic rows of the changing world (after the table's last row) and the frame-id line."""
+    from .changes import PERSON_CLASS
+
+    w = s.world
+    rows = ""
+    if w is not None and w.depth is not None:
+        unit = "metres (NaN = none)" if w.depth == "32FC1" else "millimetres (0 = none)"
+        rows += (f"| `/depth` | sensor_msgs/Image {w.depth} | depth along the optical axis in {unit}: the splat's "
+                 "rendered depth" + (", the people in front" if w.people else "") + " |\n")
+    if w is not None and w.change is not None:
+        rows += ("| `/segmentation_gt_changed` | sensor_msgs/Image mono8 | the changing object's pixels with its class "
+                 "at the end of the bag (255 elsewhere), in every frame |\n")
+    note = ""
+    if w is not None and w.people:
+        note = (f"\nThe people are in `/segmentation` (class `{PERSON_CLASS}`), `/image` and `/depth`, never in "
+                "`model.ply` nor in `/segmentation_gt` (the static ground truth: the room behind them).\n")
+    return rows + "\nImage headers use frame id `camera_optical`.\n" + note + "\n"
+
+
+def _world_md(s: DemoStats) -> str:
+    """README section on the people and the class change (empty without them)."""
+    from .changes import PERSON_RADII, WALKING_SPEED
+
+    w = s.world
+    if w is None or not (w.people or w.change):
+        return ""
+    lines = ["", "## A changing world", ""]
+    if w.people:
+        lines.append(f"- {w.people} people (upright ellipsoids {2 * PERSON_RADII[2]:.2f} m tall, "
+                     f"{2 * PERSON_RADII[0]:.2f} m wide) walk to and fro along straight paths at {WALKING_SPEED:g} "
+                     f"m/s; they show in {s.person_frames} of {s.frames} frames and on "
+                     f"{100 * s.person_share:.2f} % of all pixels (counted as wrong in the accuracy above: the "
+                     "ground truth is the room behind them).")
+    if w.change is not None:
+        src, dst = w.change.split(":")
+        lines.append(f"- from frame {s.change_frame} on, every Gaussian of class `{src}` has class `{dst}` (same "
+                     "geometry and colour) in `/segmentation` and `/segmentation_gt`; "
+                     "`/segmentation_gt_changed` marks its pixels with the new class in every frame.")
+    lines += ["", "Replay with `css_replay` (`--transient-classes person`, `--evidence-half-life H`): its report's "
+              "section \"A changing world\" measures both."]
+    return "\n".join(lines) + "\n"
 
 
 def _choices_line(s: DemoStats) -> str:
@@ -254,10 +410,7 @@ Topics (one message per frame each, all with the frame's stamp):
 | `/segmentation_gt` | sensor_msgs/Image mono8 | ground-truth labels (255 = no surface) |
 | `/camera_info` | sensor_msgs/CameraInfo | pinhole K, {FOV_X_DEG:.0f} deg horizontal FoV, no distortion |
 | `/pose` | geometry_msgs/PoseStamped | T_map_cam of the optical frame (z forward, x right, y down), frame `map` |
-
-Image headers use frame id `camera_optical`.
-
-""" + scene + traj + noise + _stats_md(s) + _bands_md(s)
+""" + _world_topics_md(s) + scene + traj + noise + _stats_md(s) + _bands_md(s) + _world_md(s)
 
 
 _ROOM_SCENE_MD = """## Scene
@@ -409,6 +562,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--errors", choices=ERROR_MODELS, default=ERROR_MODELS[0],
                    help="error model of /segmentation: frame (per-frame drifting errors plus a few view-consistent "
                         "rules) or range (errors growing with depth, consistent across views of a surface) (frame)")
+    g = p.add_argument_group("a changing world (not with --robot)")
+    g.add_argument("--people", type=int, default=0, metavar="N",
+                   help="N people walking through the room (class 'person', appended to the class file): in the "
+                        "segmentation, colour and depth images, never in the splat nor in /segmentation_gt (0)")
+    g.add_argument("--change-class", nargs="?", const=DEFAULT_CHANGE, default=None, metavar="FROM:TO",
+                   help=f"every Gaussian of class FROM has class TO from --change-frame on (same geometry), in "
+                        f"/segmentation and /segmentation_gt; /segmentation_gt_changed marks its pixels "
+                        f"(without a value: {DEFAULT_CHANGE})")
+    g.add_argument("--change-frame", type=int, default=None, metavar="K",
+                   help="first frame of the class change (default: half way, frames // 2)")
+    g.add_argument("--depth", action="store_true",
+                   help="write /depth: the splat's rendered depth along the optical axis, people in front")
+    g.add_argument("--depth-encoding", choices=DEPTH_ENCODINGS, default=DEPTH_ENCODINGS[0],
+                   help="32FC1 metres or 16UC1 millimetres (32FC1)")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (mcap)")
     p.add_argument("--backend", choices=("numba", "torch"), default="numba", help="rasteriser backend (numba)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT/bag")
@@ -444,8 +611,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.tf and not args.robot:
         print("css_make_demo: error: --tf needs --robot", file=sys.stderr)
         return 2
-    if args.robot and (args.scene != SCENES[0] or args.errors != ERROR_MODELS[0]):
-        print("css_make_demo: error: --robot supports only --scene room --errors frame", file=sys.stderr)
+    world = WorldOptions(args.people, args.change_class, args.change_frame,
+                         args.depth_encoding if args.depth else None)
+    if args.robot and (args.scene != SCENES[0] or args.errors != ERROR_MODELS[0] or world.any
+                       or args.change_frame is not None):
+        print("css_make_demo: error: --robot supports only --scene room --errors frame (no people, class change "
+              "or depth)", file=sys.stderr)
         return 2
     if args.robot:
         try:
@@ -465,7 +636,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         stats = make_demo(args.out, num_gaussians=args.num_gaussians, frames=args.frames, width=args.width,
                           height=args.height, seed=args.seed, storage=args.storage, overwrite=args.overwrite,
-                          progress=not args.quiet, backend=args.backend, errors=args.errors, scene=args.scene)
+                          progress=not args.quiet, backend=args.backend, errors=args.errors, scene=args.scene,
+                          world=world)
     except (CssError, ValueError) as exc:
         print(f"css_make_demo: error: {exc}", file=sys.stderr)
         return 2

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -43,6 +44,27 @@ def bag_in_place(out: Path, storage: str = "mcap") -> Iterator[BagWriter]:
         shutil.rmtree(bag_dir)
     (scratch / bag_dir.name).rename(bag_dir)
     scratch.rmdir()
+
+
+@dataclass
+class DemoView:
+    """One view of the demo splat (all (H, W), ``rgb`` (H, W, 3) uint8).
+
+    Attributes:
+        rgb: colour.
+        gt: uint8 ground-truth labels (255 = no surface).
+        biased: uint8 labels with the active systematic rules.
+        depth: float32 expected depth [m] of the splat along the optical axis (the engine's ``RenderedView.depth``,
+            NaN where nothing is rendered).
+        changed: uint8, where a rule on at the end of the bag relabels the surface: the label there at the end
+            (255 elsewhere); None when no such rule was given.
+    """
+
+    rgb: np.ndarray
+    gt: np.ndarray
+    biased: np.ndarray
+    depth: np.ndarray
+    changed: np.ndarray | None = None
 
 
 class DemoRenderer:
@@ -99,19 +121,34 @@ class DemoRenderer:
 
     def render(self, camera: Any, active: Sequence[bool] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb (H,W,3) uint8, gt (H,W) uint8, biased (H,W) uint8) at ``camera``; ``active[r]`` turns rule r on."""
-        view = self.smap.render(camera, probabilities=True)
+        view = self.render_view(camera, active)
+        return view.rgb, view.gt, view.biased
+
+    def render_view(self, camera: Any, active: Sequence[bool] = (), truth: Sequence[bool] = (),
+                    final: Sequence[bool] = ()) -> "DemoView":
+        """The :class:`DemoView` at ``camera``: ``active[r]`` turns rule r on in the biased labels, ``truth[r]`` in
+        the ground truth (a class that really changed); ``final[r]``: the rules on at the end of the bag (the
+        pixels they relabel make ``changed``, None when no rule is on there)."""
+        view = self.smap.render(camera, probabilities=True, outputs=("labels", "background", "rgb", "depth"))
+        assert view.probabilities is not None and view.background is not None and view.depth is not None
         P = view.probabilities.astype(np.float64)
         bg = view.background.astype(np.float64)
         P -= bg[..., None] / self.num_groups  # drop the background Dirichlet's uniform share
         empty = bg > 0.5
-        gt = np.argmax(P @ self._merge(()), axis=-1).astype(np.uint8)
-        gt[empty] = 255
-        if any(active):
-            biased = np.argmax(P @ self._merge(active), axis=-1).astype(np.uint8)
-            biased[empty] = 255
-        else:
-            biased = gt.copy()
-        return view.rgb, gt, biased
+
+        def labels(on: Sequence[bool]) -> np.ndarray:
+            out = np.argmax(P @ self._merge(on), axis=-1).astype(np.uint8)
+            out[empty] = 255
+            return out
+
+        plain = labels(())
+        gt = labels(truth) if any(truth) else plain
+        biased = labels(active) if any(active) else gt.copy()
+        changed = None
+        if any(final):
+            at_end = labels(final)
+            changed = np.where(at_end != plain, at_end, np.uint8(255)).astype(np.uint8)
+        return DemoView(view.rgb, gt, biased, view.depth, changed)
 
 
 def systematic_rule_masks(scene: Any, class_names: Sequence[str], rules: Sequence[Any]

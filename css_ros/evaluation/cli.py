@@ -10,10 +10,13 @@ from typing import Sequence
 
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR, DEFAULT_UNKNOWN_THRESHOLD
 from ..engine.backends import BACKENDS
+from ..engine.change_rules import (DEFAULT_DEPTH_TOLERANCE, DEFAULT_DEPTH_TOLERANCE_RELATIVE, MAX_DEPTH_TOLERANCE,
+                                   MAX_DEPTH_TOLERANCE_RELATIVE, MAX_HALF_LIFE, MIN_HALF_LIFE, check_half_life,
+                                   check_tolerance)
 from ..engine.map_args import MAX_CONCENTRATION, MIN_CONCENTRATION
 from ..engine.warmup import warm_up_kernels
 from ..console import run_console
-from ..errors import ConfigError
+from ..errors import ConfigError, MapError
 from ..io.paths import find_demo_bag
 from ..engine.similarity import Similarity, parse_extrinsics
 from ..io.params_file import PARAMS_FILE_NAME, read_params_file
@@ -37,6 +40,10 @@ examples:
   css_replay bags/demo_range/bag --sensor-model out/calibration/sensor_model.yaml
                                               # css_calibrate's sensor model beside the paper's update (same frames)
   css_replay bags/demo --train-frames 60      # fuse the first 60 frames only, evaluate all 120
+  css_replay out/people --transient-classes person --evidence-half-life 10
+                                              # a changing world (css_make_demo --out out/people --people 2
+                                              # --change-class --depth): people add no evidence, old evidence
+                                              # fades, the bag's /depth holds back what stands in front
   css_replay BAG --model splat.ply --classes classes.yaml --pose-source tf --map-frame odom
                                               # another model and class file, camera poses from /tf
 A css_node parameter file (css_node.yaml) beside the bag folder gives poses, cameras and frames (or --params FILE).
@@ -68,8 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     for kind, topic in BAG_TOPICS.items():
         opt = "--confidence-topic" if kind == "confidence" else f"--{kind.replace('_', '-')}-topic"
         p.add_argument(opt, dest=f"topic_{kind}", default=None, metavar="TOPIC",
-                       help=f"{kind} topic (default {topic})" + ("" if kind in ("segmentation", "pose", "camera_info")
-                                                              else "; '' = do not use"))
+                       help=TOPIC_HELP.get(kind, f"{kind} topic") + f" (default {topic})"
+                       + ("" if kind in REQUIRED_BAG_KINDS else "; '' = do not use"))
     p.add_argument("--train-frames", type=int, default=None, metavar="K",
                    help="update the map with the first K frames only; all frames are evaluated (default: all)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after this many usable frames")
@@ -136,9 +143,81 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-paper-baseline", action="store_true",
                    help="with --sensor-model, do not also fuse a map with the paper's update for comparison "
                         "(saves its time)")
+    _change_options(p)
     p.add_argument("--no-output-bag", action="store_true", help="do not write the output bag")
     p.add_argument("--quiet", action="store_true", help="no progress bar, only errors and the final line")
     return p
+
+
+#: help of the topic options whose kind name alone does not say enough
+TOPIC_HELP = {
+    "gt": "static ground-truth labels (what the map should show: no passers-by)",
+    "depth": "measured depth (sensor_msgs/Image 16UC1 millimetres or 32FC1 metres along the optical axis, registered "
+             "to the segmentation and paired with it by stamp; another resolution is resampled by nearest "
+             "neighbour; 0 / NaN / inf = no measurement): a labelled pixel nearer than the map's surface adds no "
+             "evidence, Gaussians in front of the measured surface get none from it",
+    "gt_changed": "evaluation only: for the pixels of objects whose class changes during the bag, their class at "
+                  "the end (ignore label elsewhere); the report measures how much of them the final map shows in "
+                  "that class and the surprise when the change is first seen",
+}
+
+
+def _change_options(p: argparse.ArgumentParser) -> None:
+    """The options of a changing world (README "A changing world"; css_ros/engine/change_rules.py)."""
+    g = p.add_argument_group("a changing world (README 'A changing world'; the measured depth: --depth-topic)")
+    g.add_argument("--transient-classes", nargs="+", default=None, metavar="CLASS",
+                   help="classes whose pixels never add evidence (people, animals, vehicles): names of the class file "
+                        "or ids; the report gives the share of the final map's pixels in these classes")
+    g.add_argument("--evidence-half-life", type=float, default=None, metavar="H",
+                   help="forget old evidence: a Gaussian's accumulated evidence halves every H observations of it "
+                        f"(in [{MIN_HALF_LIFE:g}, {MAX_HALF_LIFE:g}]; default: never, the paper's update)")
+    g.add_argument("--depth-tolerance", type=float, default=DEFAULT_DEPTH_TOLERANCE, metavar="M",
+                   help="measured-depth tolerance in metres: a pixel counts as in front of the map's surface when "
+                        "nearer by more than max(M, R x depth) (default "
+                        f"{DEFAULT_DEPTH_TOLERANCE:g}, in [0, {MAX_DEPTH_TOLERANCE:g}])")
+    g.add_argument("--depth-tolerance-relative", type=float, default=DEFAULT_DEPTH_TOLERANCE_RELATIVE, metavar="R",
+                   help="the tolerance's share of the measured depth (default "
+                        f"{DEFAULT_DEPTH_TOLERANCE_RELATIVE:g}, in [0, {MAX_DEPTH_TOLERANCE_RELATIVE:g}])")
+
+
+def resolve_class_ids(given: Sequence[str], names: Sequence[str], option: str) -> list[int]:
+    """Class ids of ``given`` (class names, else integer ids in 0..C-1), sorted and without repeats.
+
+    Raises:
+        ConfigError: a name that is no class and no id in range (the message lists the classes).
+    """
+    out = set()
+    for item in given:
+        if item in names:
+            out.add(list(names).index(item))
+            continue
+        try:
+            cid = int(item)
+        except ValueError:
+            cid = -1
+        if not 0 <= cid < len(names):
+            listed = ", ".join(f"{i} {n}" for i, n in enumerate(names))
+            raise ConfigError(f"{option}: {item!r} is no class name nor id in 0..{len(names) - 1} (classes: {listed})")
+        out.add(cid)
+    return sorted(out)
+
+
+def resolve_change_options(args: argparse.Namespace, classes: Path | None, num_classes: int) -> dict:
+    """ReplayConfig's changing-world fields from the options, checked with the engine's rules (ConfigError naming
+    the option)."""
+    names = ClassSet.from_yaml(classes).names if classes is not None else ClassSet.default(num_classes).names
+    out: dict = {"transient_classes": resolve_class_ids(args.transient_classes or [], names, "--transient-classes")}
+    try:
+        out["evidence_half_life"] = check_half_life(args.evidence_half_life)
+    except MapError as exc:
+        raise ConfigError(f"--evidence-half-life: {exc}") from None
+    for name, upper in (("depth_tolerance", MAX_DEPTH_TOLERANCE),
+                        ("depth_tolerance_relative", MAX_DEPTH_TOLERANCE_RELATIVE)):
+        try:
+            out[name] = check_tolerance(getattr(args, name), f"--{name.replace('_', '-')}", upper)
+        except MapError as exc:
+            raise ConfigError(str(exc)) from None
+    return out
 
 
 def is_bag_dir(path: Path) -> bool:
@@ -229,6 +308,7 @@ def resolve_paths(args: argparse.Namespace) -> ReplayConfig:
         sync_queue=max(1, args.sync_queue), namespace=args.namespace, max_pixels=max(1000, args.max_pixels),
         seed=args.seed, examples=max(0, args.examples), allow_out_of_range=args.allow_out_of_range,
         explicit_topics=frozenset(k for k, v in given.items() if v is not None),
+        **resolve_change_options(args, classes, num_classes),
     )
 
 

@@ -5,6 +5,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..engine.change_rules import DEFAULT_DEPTH_TOLERANCE, DEFAULT_DEPTH_TOLERANCE_RELATIVE
 from ..engine.similarity import IDENTITY_SIMILARITY
 from ..engine.spec import DEFAULT_BACKGROUND, DEFAULT_IGNORE_LABEL, DEFAULT_PRIOR
 from ..io.frames import DEFAULT_MAX_IMAGE_PIXELS
@@ -46,6 +47,13 @@ class ReplayConfig:
     sensor_model: Path | None = None
     #: with a sensor model, also fuse a second map with the paper's update for the report's comparison
     paper_baseline: bool = True
+    # --- a changing world (engine/change_rules.py; the bag's depth topic is topics["depth"])
+    #: class ids whose pixels add no evidence (people, ...): --transient-classes, resolved through the class names
+    transient_classes: list[int] = field(default_factory=list)
+    #: evidence half-life in observations (None: the paper's update, evidence adds up forever)
+    evidence_half_life: float | None = None
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE  # m
+    depth_tolerance_relative: float = DEFAULT_DEPTH_TOLERANCE_RELATIVE  # fraction of the measured depth
     output_bag: bool = True
     quiet: bool = False
     sync_slop: float = DEFAULT_SYNC_SLOP_S  # s

@@ -7,6 +7,7 @@ import numpy as np
 
 from ..engine.classes import ClassSet
 from .calibration_metrics import calibration_summary
+from .change_metrics import ChangeTally
 from .metrics import ConfusionMatrix, PixelSampler, finite_or_none, psnr, sparsification_report, spearman
 
 if TYPE_CHECKING:
@@ -57,12 +58,15 @@ class Evaluator:
         self.images: list[dict[str, Any]] = []
         self.example_indices = set(example_indices)
         self.examples: list[dict[str, Any]] = []
+        #: the changing-world figures of the same renders (transient share, static / changed accuracy)
+        self.change = ChangeTally(C, cfg.ignore_label, cfg.transient_classes, classes.names)
 
     def add(self, frame: Frame, view: RenderedView, trained: bool) -> None:
         rec: dict[str, Any] = {
             "index": frame.index, "stamp_ns": frame.stamp_ns, "trained": trained,
             "u_var": float(view.u_var), "u_exp": float(view.u_exp), "error": None, "psnr": None,
         }
+        self.change.add_render(view.labels, frame.gt, frame.gt_changed)
         if frame.rgb is not None:
             p = psnr(view.rgb, frame.rgb)
             rec["psnr"] = p if np.isfinite(p) else None

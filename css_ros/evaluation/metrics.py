@@ -1,4 +1,5 @@
-"""Evaluation metrics (pure numpy): confusion matrix, IoU / mIoU / accuracy, sparsification + AUSE, Spearman rho."""
+"""Evaluation metrics (pure numpy): confusion matrix, IoU / mIoU / accuracy, sparsification + AUSE, Spearman rho,
+AUROC."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -336,6 +337,21 @@ def rankdata(x: np.ndarray) -> np.ndarray:
     ranks = np.empty(x.size)
     ranks[order] = np.repeat(avg, ends - starts)
     return ranks
+
+
+def auroc(positives: np.ndarray, negatives: np.ndarray) -> float:
+    """Area under the ROC curve of a score that should be higher on ``positives`` than on ``negatives`` (1-D
+    arrays of scores): the probability that a random positive scores above a random negative, ties counting one
+    half (Mann-Whitney U / (n1 n0), from average ranks). NaN / inf scores are left out; NaN when either side is
+    then empty."""
+    pos = np.asarray(positives, dtype=np.float64).ravel()
+    neg = np.asarray(negatives, dtype=np.float64).ravel()
+    pos, neg = pos[np.isfinite(pos)], neg[np.isfinite(neg)]
+    if pos.size == 0 or neg.size == 0:
+        return float("nan")
+    ranks = rankdata(np.concatenate([pos, neg]))
+    u = ranks[: pos.size].sum() - pos.size * (pos.size + 1) / 2.0
+    return float(u / (pos.size * neg.size))
 
 
 def spearman(x: np.ndarray, y: np.ndarray) -> float:

@@ -89,9 +89,10 @@ class PaperBaseline:
     def fuse(self, frame: Frame) -> None:
         """A training frame: update (and, with ground truth, render online at the same pose)."""
         if frame.gt is None:
-            self.smap.update(frame.camera, frame.labels, frame.confidence)
+            self.smap.update(frame.camera, frame.labels, frame.confidence, depth=frame.depth)
         else:
-            self._online(frame, self.smap.observe(frame.camera, frame.labels, frame.confidence, outputs=EVALUATED_IMAGES))
+            self._online(frame, self.smap.observe(frame.camera, frame.labels, frame.confidence,
+                                                  outputs=EVALUATED_IMAGES, depth=frame.depth))
 
     def heldout(self, frame: Frame) -> None:
         """A held-out frame (the map is final): its render is both online and fused."""
@@ -141,6 +142,8 @@ class _FusePass:
     processed: int = 0
     trained: int = 0
     no_depth: int = 0  # labelled pixels without a rendered depth (sensor model only)
+    transient: int = 0  # labelled pixels of a transient class (no evidence)
+    occluded: int = 0  # labelled pixels whose measured depth is nearer than the map's (no evidence)
     #: (camera, U_var or None) of the fused frames, for css_view
     trajectory: list = field(default_factory=list)
 
@@ -157,7 +160,9 @@ def _setup(cfg: ReplayConfig) -> _Setup:
     def new_map(sensor_model: SensorModel | None) -> SemanticMap:
         return SemanticMap(model, num_classes=C, prior=cfg.prior, background=cfg.background,
                            ignore_label=cfg.ignore_label, backend=cfg.backend, sensor_model=sensor_model,
-                           depth_scale=depth_scale, **extra)
+                           depth_scale=depth_scale, transient_classes=cfg.transient_classes,
+                           evidence_half_life=cfg.evidence_half_life, depth_tolerance=cfg.depth_tolerance,
+                           depth_tolerance_relative=cfg.depth_tolerance_relative, **extra)
 
     smap = new_map(sensor)
     cfg.unknown_threshold = smap.unknown_threshold
@@ -182,19 +187,28 @@ def _fuse_pass(cfg: ReplayConfig, st: _Setup) -> _FusePass:
     write the online outputs. Raises CssError when no frame was usable."""
     res = _FusePass()
     smap, C = st.smap, st.classes.num_classes
+    # the surprise image is made only where the report measures it (a bag with the changed-class ground truth)
+    outputs = EVALUATED_IMAGES + (("surprise",) if st.source.present.get("gt_changed") else ())
     bag_ctx = BagWriter(cfg.out / "bag") if cfg.output_bag else nullcontext()
     with bag_ctx as obag, _progress(st.expected, "fuse", cfg.quiet) as bar:
         for frame in st.source.frames() if st.expected > 0 else ():
-            online = obag is not None or frame.gt is not None
+            st.evaluator.change.add_input(frame.labels)
+            online = obag is not None or frame.gt is not None or frame.gt_changed is not None
             view: RenderedView | None
             if frame.index < st.train:
                 res.trajectory.append((frame.camera, None))
                 if online:
-                    view = smap.observe(frame.camera, frame.labels, frame.confidence, outputs=EVALUATED_IMAGES)
+                    view = smap.observe(frame.camera, frame.labels, frame.confidence, outputs=outputs,
+                                        depth=frame.depth)
+                    st.evaluator.change.add_observation(frame.index, frame.gt, frame.gt_changed, view.surprise)
                 else:  # no online outputs wanted: skip the render (the evaluation renders in pass 2)
-                    smap.update(frame.camera, frame.labels, frame.confidence)
+                    smap.update(frame.camera, frame.labels, frame.confidence, depth=frame.depth)
                     view = None
-                res.no_depth += smap.last_update.no_depth if smap.last_update is not None else 0
+                last = smap.last_update
+                if last is not None:
+                    res.no_depth, res.transient, res.occluded = (res.no_depth + last.no_depth,
+                                                                 res.transient + last.transient,
+                                                                 res.occluded + last.occluded)
                 res.trained += 1
                 if st.paper is not None:
                     st.paper.fuse(frame)
@@ -300,7 +314,21 @@ def _metrics(cfg: ReplayConfig, st: _Setup, fused: _FusePass, skips_pass1: Count
     if has_gt and 0 < fused.trained < fused.processed:
         metrics["segmentation"]["css_trained_frames"] = evaluator.css_train.summary(names)
         metrics["segmentation"]["css_heldout_frames"] = evaluator.css_heldout.summary(names)
+    metrics["changing_world"] = _changing_world(cfg, st, fused)
     return metrics
+
+
+def _changing_world(cfg: ReplayConfig, st: _Setup, fused: _FusePass) -> dict[str, Any]:
+    """metrics.json's ``changing_world``: the map's rules, what they held back, and the figures of
+    :class:`~css_ros.evaluation.change_metrics.ChangeTally`."""
+    depth_topic = cfg.topics.get("depth") if st.source.present.get("depth") else None
+    return {
+        "rules": {"transient_classes": [st.classes.names[c] for c in cfg.transient_classes],
+                  "evidence_half_life": cfg.evidence_half_life, "depth_topic": depth_topic,
+                  "depth_tolerance": cfg.depth_tolerance, "depth_tolerance_relative": cfg.depth_tolerance_relative},
+        "fused_pixels_without_evidence": {"transient": fused.transient, "occluded": fused.occluded},
+        **st.evaluator.change.summary(),
+    }
 
 
 def run(cfg: ReplayConfig) -> dict[str, Any]:
@@ -374,6 +402,17 @@ def _ece_text(summary: dict[str, Any]) -> str:
     return text + (f" ({dropped} pixels with a NaN / inf value left out)" if dropped else "")
 
 
+def change_headline(cw: dict[str, Any]) -> str:
+    """The headline's line on a changing world (report.md's section has the definitions and the reasons)."""
+    def pct(rec: dict[str, Any]) -> str:
+        return "n/a" if rec["value"] is None else f"{100 * rec['value']:.2f}%"
+
+    sa = cw["surprise_auroc"]["value"]
+    return (f"changing world: transient share {pct(cw['transient_share'])}, static accuracy "
+            f"{pct(cw['static_accuracy'])}, changed objects in their new class {pct(cw['changed_accuracy'])}, "
+            f"surprise AUROC {'n/a' if sa is None else f'{sa:.3f}'}")
+
+
 def headline(metrics: dict[str, Any]) -> str:
     """One-paragraph summary printed at the end of a run."""
     lines = []
@@ -403,6 +442,10 @@ def headline(metrics: dict[str, Any]) -> str:
     if im:
         lines.append("image-level Spearman rho vs error: " + "  ".join(
             f"{k} {v:+.3f}" for k, v in im.items() if v is not None))
+    cw = metrics.get("changing_world")
+    if cw and (cw["rules"]["transient_classes"] or cw["rules"]["depth_topic"] or cw["rules"]["evidence_half_life"]
+               or cw["changed_accuracy"]["value"] is not None):
+        lines.append(change_headline(cw))
     f = metrics["frames"]
     skipped = sum(f["skipped"].values())
     lines.append(f"frames: {f['processed']} processed ({f['trained']} fused), {skipped} skipped; "

@@ -441,6 +441,43 @@ def iou_table(input_seg: dict[str, Any], css: dict[str, Any], class_names: Seque
     return rows
 
 
+def _figure_text(rec: dict[str, Any], pct: bool = True) -> str:
+    """A changing-world figure: its value, or "n/a" and why not."""
+    if rec.get("value") is None:
+        return f"n/a ({rec.get('reason', 'not measured')})"
+    return f"{100 * rec['value']:.2f} %" if pct else f"{rec['value']:.3f}"
+
+
+def changing_world_lines(cw: dict[str, Any] | None) -> list[str]:
+    """report.md's "A changing world" section from metrics.json's ``changing_world`` (none without it)."""
+    if not cw:
+        return []
+    rules = cw["rules"]
+    d = cw["definitions"]
+    held = cw["fused_pixels_without_evidence"]
+    ts = cw["transient_share"]
+    half = rules["evidence_half_life"]
+    lines = ["", "## A changing world", "",
+             f"- rules: transient classes {', '.join(rules['transient_classes']) or 'none'}; measured depth "
+             + (f"`{rules['depth_topic']}` (tolerance max({rules['depth_tolerance']:g} m, "
+                f"{rules['depth_tolerance_relative']:g} x depth))" if rules["depth_topic"] else "none")
+             + f"; evidence half-life {'none (the paper update)' if half is None else f'{half:g} observations'}",
+             f"- fused labelled pixels that added no evidence: {held['transient']} of a transient class, "
+             f"{held['occluded']} in front of the map's surface (measured depth)", "",
+             f"Renders: {d['renders']}.", "", "| figure | value | definition |", "|---|---|---|",
+             f"| transient share | {_figure_text(ts)} | {d['transient_share']}"
+             + (f"; classes: {', '.join(ts['classes'])} ({ts['basis']})" if ts.get("classes") else "") + " |"]
+    for key, name in (("static_accuracy", "accuracy vs the static ground truth"),
+                      ("others_accuracy", "accuracy, pixels of unchanged objects"),
+                      ("changed_accuracy", "changed objects in their new class"),
+                      ("changed_accuracy_after", "the same, poses after the change")):
+        lines.append(f"| {name} | {_figure_text(cw[key])} | {d[key]} |")
+    sa = cw["surprise_auroc"]
+    where = f" (frame {sa['frame']})" if sa.get("frame") is not None else ""
+    lines.append(f"| surprise AUROC{where} | {_figure_text(sa, pct=False)} | {d['surprise_auroc']} |")
+    return lines
+
+
 def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str, str]]) -> Path:
     """Write ``report.md`` (tables from ``metrics`` + the given plots) into ``out``; return its path."""
     out = Path(out)
@@ -486,6 +523,7 @@ def write_markdown(out: Path, metrics: dict[str, Any], plots: Sequence[tuple[str
                   *iou_table(seg["input"], seg["css"], metrics.get("classes"))]
     else:
         lines.append(no_ground_truth_notice(metrics))
+    lines += changing_world_lines(metrics.get("changing_world"))
     unc = []
     px = metrics.get("pixel_sparsification")
     if px:

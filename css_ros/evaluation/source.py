@@ -40,6 +40,10 @@ class Frame:
         map_frame: the map frame (frame_id of the pose stream's poses).
         camera_index: which camera (index into the configured namespaces).
         position_map, quat_map: the optical frame's pose in the map frame [m], xyzw.
+        depth: (H, W) float32 measured depth [m] along the optical axis at the segmentation's resolution (nearest
+            neighbour), NaN = no measurement; None without a depth topic.
+        gt_changed: (H, W) int32 class at the end of the bag of the pixels whose class changes during it
+            (ignore_label elsewhere), at the segmentation's resolution, or None.
     """
 
     index: int
@@ -54,12 +58,20 @@ class Frame:
     camera_index: int = 0
     position_map: np.ndarray | None = None
     quat_map: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    gt_changed: np.ndarray | None = None
+
+
+#: Optional label images matched to each segmentation by stamp and brought to its resolution (nearest neighbour);
+#: the depth goes through the gate's own depth path (FrameGate.on_depth: waits, pairing and resizing as css_node's).
+EXTRA_KINDS = ("gt", "gt_changed")
 
 
 def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str, ...],
-                       wait_for: tuple[str, ...], pose_source: str = "topic") -> GateConfig:
+                       wait_for: tuple[str, ...], pose_source: str = "topic", depth_topic: str = "") -> GateConfig:
     """The node's gate configuration from css_replay's options (the same names as the node parameters);
-    ``pose_source``: "topic" or "tf" (the bag's, found by :meth:`FrameSource.check`)."""
+    ``pose_source``: "topic" or "tf" (the bag's, found by :meth:`FrameSource.check`); ``depth_topic``: the bag's
+    depth topic ("" when it has none or it is disabled)."""
     cams = tuple(c.strip("/") for c in cfg.cameras)
     return GateConfig(cameras=cams, pose_type=pose_type, pose_per_camera=cfg.pose_per_camera,
                       extrinsics=tuple(parse_extrinsics(cfg.camera_extrinsics, len(cams))),
@@ -68,7 +80,7 @@ def replay_gate_config(cfg: ReplayConfig, pose_type: str, extra_kinds: tuple[str
                                              max_extrapolation=cfg.max_pose_extrapolation, max_gap=cfg.max_pose_gap),
                       sync_slop=cfg.sync_slop, queue_size=cfg.sync_queue, map_frame=cfg.map_frame,
                       max_image_pixels=cfg.max_image_pixels, extra_label_kinds=extra_kinds, wait_for=wait_for,
-                      pose_source=pose_source, tf_buffer=cfg.tf_buffer_s)
+                      pose_source=pose_source, tf_buffer=cfg.tf_buffer_s, depth_topic=depth_topic)
 
 
 class FrameSource:
@@ -80,7 +92,8 @@ class FrameSource:
     """
 
     #: CLI option of each optional topic kind (for error messages).
-    TOPIC_OPTIONS = {"image": "--image-topic", "confidence": "--confidence-topic", "gt": "--gt-topic"}
+    TOPIC_OPTIONS = {"image": "--image-topic", "confidence": "--confidence-topic", "gt": "--gt-topic",
+                     "depth": "--depth-topic", "gt_changed": "--gt-changed-topic"}
 
     def __init__(self, cfg: ReplayConfig) -> None:
         self.cfg = cfg
@@ -161,10 +174,13 @@ class FrameSource:
         if self.pose_source is None:  # a second pass that copied check()'s results without calling it
             with InputBag(cfg.bag) as bag:
                 self.pose_source = self._pose_source(bag, bag.topics(), {t["pose"] for t in self.topics})
-        extra = ("gt",) if self.present.get("gt") else ()
-        wait_for = tuple(k for k in ("image", "gt") if self.present.get(k))
-        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for, self.pose_source),
-                                     self._warn, self._count, lambda cam: bool(self.present.get("confidence")))
+        extra = tuple(k for k in EXTRA_KINDS if self.present.get(k))
+        wait_for = tuple(k for k in ("image", *EXTRA_KINDS) if self.present.get(k))
+        depth_topic = cfg.topics.get("depth", "") if self.present.get("depth") else ""
+        self.gate = gate = FrameGate(replay_gate_config(cfg, self.pose_type, extra, wait_for, self.pose_source,
+                                                        depth_topic),
+                                     self._warn, self._count, lambda cam: bool(self.present.get("confidence")),
+                                     depth_expected=lambda cam: bool(self.present.get("depth")))
         routes: dict[str, list[tuple[int, str]]] = {}
         for cam, cam_topics in enumerate(self.topics):
             for kind, topic in cam_topics.items():
@@ -215,8 +231,10 @@ class FrameSource:
                         out += gate.on_confidence(cam, m.msg, now)
                     elif kind == "image":
                         out += gate.on_image(cam, m.msg, now)
-                    elif kind == "gt":
-                        out += gate.on_extra(cam, "gt", m.msg, now, m.topic)
+                    elif kind == "depth":
+                        out += gate.on_depth(cam, m.msg, now)
+                    elif kind in EXTRA_KINDS:
+                        out += gate.on_extra(cam, kind, m.msg, now, m.topic)
                 out += gate.poll(now)
                 for gf in out:
                     frame = self._frame(index, gf)
@@ -247,15 +265,17 @@ class FrameSource:
             self.skips[f"undecodable_{topic}"] += n
 
     def _frame(self, index: int, gf: GateFrame) -> Frame | None:
-        """A gate frame as css_replay's Frame (GT and colour image brought to the segmentation's resolution)."""
+        """A gate frame as css_replay's Frame (GT and colour image brought to the segmentation's resolution, label
+        images by nearest neighbour; the gate already did so for the depth)."""
         shape = gf.labels.shape
-        gt = gf.extras.get("gt")
+        extras: dict[str, np.ndarray | None] = {k: gf.extras.get(k) for k in EXTRA_KINDS}
         rgb = gf.image
         try:
-            if gt is not None and gt.shape != shape:
-                if not _same_aspect(gt.shape, shape):
-                    raise FrameRejected("size mismatch with camera_info", "gt")
-                gt = resample_to(gt, shape, labels=True)
+            for kind, image in extras.items():
+                if image is not None and image.shape != shape:
+                    if not _same_aspect(image.shape, shape):
+                        raise FrameRejected("size mismatch with camera_info", kind)
+                    extras[kind] = resample_to(image, shape, labels=True)
             if rgb is not None and rgb.shape[:2] != shape:
                 if not _same_aspect(rgb.shape[:2], shape):
                     raise FrameRejected("size mismatch with camera_info", "image")
@@ -263,13 +283,15 @@ class FrameSource:
         except FrameRejected as exc:
             self.skips[exc.reason.replace(" ", "_")] += 1
             return None
+        gt = extras["gt"]
         if self.label_range.num_classes:
             self.label_range.update("segmentation", gf.labels)
             if gt is not None:
                 self.label_range.update("gt", gt)
         return Frame(index=index, stamp_ns=gf.stamp_ns, camera=gf.camera, labels=gf.labels,
                      confidence=gf.confidence, gt=gt, rgb=rgb, camera_frame=gf.frame_id, map_frame=gf.map_frame,
-                     camera_index=gf.camera_index, position_map=gf.position_map, quat_map=gf.quat_map)
+                     camera_index=gf.camera_index, position_map=gf.position_map, quat_map=gf.quat_map,
+                     depth=gf.depth, gt_changed=extras["gt_changed"])
 
 
 def _same_aspect(a: tuple[int, ...], b: tuple[int, ...]) -> bool:

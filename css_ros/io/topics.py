@@ -50,8 +50,13 @@ INPUT_TYPES: dict[str, str] = {
     "candidates": POSE_ARRAY_TYPE,
     "point_queries": POINTCLOUD2_TYPE,
     "gt": IMAGE_TYPE,
+    "depth": IMAGE_TYPE,
+    "gt_changed": IMAGE_TYPE,
 }
-#: The frame kinds a bag holds (absolute names): the node's inputs plus the evaluation-only GT labels.
+#: The frame kinds a bag holds (absolute names): the node's inputs, the measured depth (sensor_msgs/Image, REP 118:
+#: 16UC1 millimetres or 32FC1 metres, registered to the segmentation) and the evaluation-only labels: the static
+#: ground truth and, for a world that changes, the class at the end of the bag of the pixels whose class changes
+#: (ignore label elsewhere).
 BAG_TOPICS: dict[str, str] = {
     "image": "/image",
     "segmentation": "/segmentation",
@@ -59,6 +64,8 @@ BAG_TOPICS: dict[str, str] = {
     "camera_info": "/camera_info",
     "pose": "/pose",
     "gt": "/segmentation_gt",
+    "depth": "/depth",
+    "gt_changed": "/segmentation_gt_changed",
 }
 #: Kinds every usable bag must have; the others are optional.
 REQUIRED_BAG_KINDS = ("segmentation", "pose", "camera_info")
