@@ -31,7 +31,7 @@ def test_transient_classes_are_names_or_ids_of_the_class_setup():
     assert transient_class_ids(["person", "3", " dog "], CLASSES) == [2, 3]
     assert transient_class_ids([], CLASSES) == []
     for bad in ("persn", "4", "-1", "2.0", ""):
-        with pytest.raises(ConfigError, match=r"transient_classes: .* is no class name or id .*2:person"):
+        with pytest.raises(ConfigError, match=r"transient_classes: .* is no class name nor id .*2 person"):
             transient_class_ids([bad], CLASSES)
 
 

@@ -245,8 +245,8 @@ def bad_encoding_is_warned_once_and_dropped(client: rh.RosClient, robot: DepthRo
 
 
 @pytest.mark.parametrize("params, message", [
-    (dict(transient_classes="[persn]"), "cannot start: parameter transient_classes: 'persn' is no class name or id "
-                                        "of the class setup (0:floor, 1:wall_left, 2:wall_right, 3:person)"),
+    (dict(transient_classes="[persn]"), "cannot start: parameter transient_classes: 'persn' is no class name nor id "
+                                        "in 0..3 (classes: 0 floor, 1 wall_left, 2 wall_right, 3 person)"),
     (dict(evidence_half_life=10.0, publish_evidence=True), "cannot start: parameter evidence_half_life=10.0: with a "
                                                            "half-life the map's evidence is no longer additive")])
 def test_start_up_errors_name_the_parameter(tmp_path, params, message):

@@ -89,7 +89,7 @@ class ChangeRules:
 
 def check_transient_classes(classes: object, num_classes: int) -> np.ndarray:
     """(C,) bool mask of the transient class ids ``classes`` (an iterable of ints in 0..C-1; names are resolved to
-    ids by the caller: :func:`css_ros.engine.classes.class_ids`).
+    ids by :func:`css_ros.engine.classes.class_ids`).
 
     Raises:
         MapError: not an iterable of integers, or an id outside 0..C-1.

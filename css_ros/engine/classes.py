@@ -3,11 +3,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import yaml
 
-from ..errors import CssError
+from ..errors import ConfigError, CssError
 
 
 @dataclass(frozen=True)
@@ -84,3 +85,25 @@ class ClassSet:
         colorize_into(labels.reshape(-1), np.ascontiguousarray(self.palette, dtype=np.uint8), int(ignore_label),
                       out.reshape(-1, 3))
         return out
+
+
+def class_ids(entries: Sequence[str], names: Sequence[str], what: str) -> list[int]:
+    """The class ids of ``entries`` (each a class name of ``names``, else a decimal id in 0..C-1; a name wins over an
+    id of the same text), sorted and without repeats: how css_node's ``transient_classes`` and css_replay's
+    ``--transient-classes`` name classes.
+
+    Raises:
+        ConfigError: an entry that is neither, the message starting with ``what`` and listing the classes.
+    """
+    ids = set()
+    for entry in entries:
+        text = str(entry).strip()
+        if text in names:
+            ids.add(list(names).index(text))
+        elif text.isdigit() and int(text) < len(names):
+            ids.add(int(text))
+        else:
+            known = ", ".join(f"{i} {n}" for i, n in enumerate(names))
+            known = known if len(known) <= 512 else known[:509] + "..."
+            raise ConfigError(f"{what}: {entry!r} is no class name nor id in 0..{len(names) - 1} (classes: {known})")
+    return sorted(ids)

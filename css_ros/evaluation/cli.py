@@ -24,7 +24,7 @@ from ..io.pose_history import (DEFAULT_MAX_POSE_EXTRAPOLATION_S, DEFAULT_MAX_POS
                                DEFAULT_POSE_WAIT_S, PosePolicy)
 from ..io.tf_buffer import DEFAULT_TF_BUFFER_S
 from ..io.topics import BAG_TOPICS, POSE_SOURCES, POSE_TYPES, REQUIRED_BAG_KINDS
-from ..engine.classes import ClassSet
+from ..engine.classes import ClassSet, class_ids
 from .config import DEFAULT_SYNC_QUEUE, DEFAULT_SYNC_SLOP_S, OUT_OF_RANGE_MAX_SHARE, ReplayConfig
 from .replay import default_out_dir, headline, run
 
@@ -180,33 +180,11 @@ def _change_options(p: argparse.ArgumentParser) -> None:
                         f"{DEFAULT_DEPTH_TOLERANCE_RELATIVE:g}, in [0, {MAX_DEPTH_TOLERANCE_RELATIVE:g}])")
 
 
-def resolve_class_ids(given: Sequence[str], names: Sequence[str], option: str) -> list[int]:
-    """Class ids of ``given`` (class names, else integer ids in 0..C-1), sorted and without repeats.
-
-    Raises:
-        ConfigError: a name that is no class and no id in range (the message lists the classes).
-    """
-    out = set()
-    for item in given:
-        if item in names:
-            out.add(list(names).index(item))
-            continue
-        try:
-            cid = int(item)
-        except ValueError:
-            cid = -1
-        if not 0 <= cid < len(names):
-            listed = ", ".join(f"{i} {n}" for i, n in enumerate(names))
-            raise ConfigError(f"{option}: {item!r} is no class name nor id in 0..{len(names) - 1} (classes: {listed})")
-        out.add(cid)
-    return sorted(out)
-
-
 def resolve_change_options(args: argparse.Namespace, classes: Path | None, num_classes: int) -> dict:
     """ReplayConfig's changing-world fields from the options, checked with the engine's rules (ConfigError naming
     the option)."""
     names = ClassSet.from_yaml(classes).names if classes is not None else ClassSet.default(num_classes).names
-    out: dict = {"transient_classes": resolve_class_ids(args.transient_classes or [], names, "--transient-classes")}
+    out: dict = {"transient_classes": class_ids(args.transient_classes or [], names, "--transient-classes")}
     try:
         out["evidence_half_life"] = check_half_life(args.evidence_half_life)
     except MapError as exc:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from ..engine.classes import ClassSet
+from ..engine.classes import ClassSet, class_ids
 from ..engine.gaussians import GaussianModel
 from ..engine.semantic_map import SemanticMap
 from ..engine.map_file import check_map_headers, read_map_info
@@ -115,23 +115,11 @@ def load_classes(params: NodeParams, log_warning: Callable[[str], None]) -> Clas
 
 
 def transient_class_ids(entries: list[str], classes: ClassSet) -> list[int]:
-    """The class ids of ``transient_classes``: each entry a class name of the class setup, or an id (decimal
-    integer in 0..C-1); a name wins over an id of the same text.
+    """The class ids of ``transient_classes`` (:func:`css_ros.engine.classes.class_ids`).
 
     Raises:
-        ConfigError: an entry that is neither (naming it and the classes)."""
-    ids = []
-    for entry in entries:
-        text = entry.strip()
-        if text in classes.names:
-            ids.append(classes.names.index(text))
-        elif text.lstrip("-").isdigit() and 0 <= int(text) < classes.num_classes:
-            ids.append(int(text))
-        else:
-            known = ", ".join(f"{i}:{n}" for i, n in enumerate(classes.names))
-            raise ConfigError(f"parameter transient_classes: {entry!r} is no class name or id of the class setup "
-                              f"({shorten(known, 512)})")
-    return sorted(set(ids))
+        ConfigError: an entry that is no class name or id (naming it and the classes)."""
+    return class_ids(entries, classes.names, "parameter transient_classes")
 
 
 def change_kwargs(params: NodeParams, classes: ClassSet) -> dict[str, Any]:
