@@ -153,7 +153,8 @@ def change_update_reference(kappa, background, alpha, labels, num_classes, z_m, 
             if d < rendered - tol:
                 counts["occluded"] += 1
                 continue
-            keep &= z_m >= d - tol
+            if rendered < d - tol:   # the splat's surface in front of the measured one: what is in front is gone
+                keep &= z_m >= d - tol
         counts["used"] += 1
         inc[:, y] += np.where(keep, k, 0.0) * w
     out = alpha.copy()

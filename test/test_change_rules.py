@@ -57,10 +57,12 @@ def test_measured_depth_blocks_nearer_pixels_and_drops_gaussians_in_front(depth_
     z_m = camera_depths(model.means, cam.T_map_cam) * depth_scale
     has = kap.sum(axis=1) > 0
     rendered = np.where(has, (kap @ z_m) / np.maximum(kap.sum(axis=1), 1e-300), np.nan)
-    # a third of the pixels see something 1 m nearer than the splat, a third the splat's surface 0.5 m farther
-    # (what the splat holds in front is gone), the rest no measurement (NaN, 0, inf)
-    pick = rng.integers(0, 3, rendered.size)
-    depth = np.where(pick == 0, rendered - 1.0, np.where(pick == 1, rendered + 0.5, np.nan))
+    # a quarter of the pixels see something 1 m nearer than the splat, a quarter a surface 0.5 m behind the splat's
+    # (what the splat holds in front of it is gone), a quarter the splat's own surface (all its Gaussians vote), the
+    # rest no measurement (NaN, 0, inf)
+    pick = rng.integers(0, 4, rendered.size)
+    depth = np.where(pick == 0, rendered - 1.0, np.where(pick == 1, rendered + 0.5,
+                                                         np.where(pick == 2, rendered, np.nan)))
     depth[rng.random(depth.size) < 0.05] = 0.0
     depth[rng.random(depth.size) < 0.05] = np.inf
     labels = _labels(rng, cam)
@@ -69,7 +71,7 @@ def test_measured_depth_blocks_nearer_pixels_and_drops_gaussians_in_front(depth_
                                                depth=depth.astype(np.float32))
     np.testing.assert_allclose(smap.concentrations, alpha, rtol=1e-9, atol=1e-12)
     assert _counts(smap.last_update) == counts
-    assert counts["occluded"] > 0.2 * labels.size * (has.mean())
+    assert counts["occluded"] > 0.15 * labels.size * (has.mean())
     # the gate took effect: without depth the map gets more evidence
     plain = SemanticMap(model, C, prior=PRIOR, depth_scale=depth_scale)
     plain.observe(cam, labels)

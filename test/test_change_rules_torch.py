@@ -75,7 +75,8 @@ def change_reference(kappa, background, z, alpha, labels, *, confidence=None, de
             if ksum > 0 and d < rendered - tau:
                 counts["occluded"] += 1
                 continue
-            keep = z_m >= d - tau
+            if ksum > 0 and rendered < d - tau:    # the splat's surface in front of the measured one
+                keep = z_m >= d - tau
         counts["used"] += 1
         if sensor is None:
             vote = np.eye(C)[y] * w
@@ -220,8 +221,16 @@ def test_nearer_depth_blocks_the_pixel_and_farther_depth_drops_the_gaussians_in_
     stats = smap.update(cam, labels, depth=depth)
     assert (stats.occluded, stats.used) == (int(left.sum()), int((~left).sum()))
     alpha = smap.concentrations
-    np.testing.assert_array_equal(alpha[near], PRIOR)           # no evidence for what is no longer there
-    expected = PRIOR + kap[(~left).ravel()][:, ~near].sum(axis=0)   # the wall: the right half's kappa, unchanged
+    # on the right, where the near layer pulls the rendered depth in front of the wall by more than the tolerance,
+    # it is no longer there: it gets nothing from those pixels (only the faint edges, where the rendered depth
+    # agrees with the wall, still vote for it); the wall gets the right half's kappa unchanged
+    z = camera_z(model, cam)
+    rendered = (kap @ z) / kap.sum(axis=1)
+    gone = (~left).ravel() & (rendered < 3.0 - 0.09)
+    assert kap[gone][:, near].sum() > 0.5 * kap[(~left).ravel()][:, near].sum()
+    expected_near = PRIOR + kap[(~left).ravel() & ~gone][:, near].sum(axis=0)
+    np.testing.assert_allclose(alpha[near, 3], expected_near, rtol=1e-9)
+    expected = PRIOR + kap[(~left).ravel()][:, ~near].sum(axis=0)
     np.testing.assert_allclose(alpha[~near, 3], expected, rtol=1e-9)
     np.testing.assert_array_equal(np.delete(alpha, 3, axis=1), PRIOR)
     # without the depth image the near layer does get evidence (the check above is not empty)

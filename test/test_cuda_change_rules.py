@@ -91,7 +91,7 @@ def world_reference(pixels, alpha, labels, conf, *, ignore=255, transient=(), de
             if d < (k @ z) / k.sum() * scale - tau:
                 counts[5] += 1
                 continue
-            if front:
+            if front and (k @ z) / k.sum() * scale < d - tau:
                 keep &= z * scale >= d - tau
         counts[0] += 1
         vote = np.zeros(C)

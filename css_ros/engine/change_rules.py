@@ -1,6 +1,8 @@
 """What a changing world changes in the update (docs/changing_world.md): measured depth, transient classes,
 forgetting and surprise. One definition of each rule; the backends compile the scalar ones (numba on the CPU,
-numba-cuda on the GPU) or vectorise them (the torch twin).
+numba-cuda on the GPU) or vectorise them (the torch twin). numba's on-disk cache of the CPU kernels is keyed on
+their own module (engine/cpu/raster.py), not on this one: after editing a rule here, delete that folder's
+``__pycache__`` (a fresh install has none).
 
 The rules, per labelled pixel i that :func:`~css_ros.engine.label_input.pixel_vote` makes a vote of class y:
 
@@ -11,8 +13,10 @@ The rules, per labelled pixel i that :func:`~css_ros.engine.label_input.pixel_vo
   (metres, the same as ``RenderedView.depth``):
   - d_i < r_i - tau_i (something nearer than the splat's surface, which the splat does not hold: a person, a new
     object): the pixel adds no evidence and is counted OCCLUDED;
-  - otherwise a contribution of Gaussian n with z_n < d_i - tau_i (the splat holds something in front of the measured
-    surface that is no longer there) adds no evidence; the others add theirs as usual.
+  - r_i < d_i - tau_i (the splat's surface is in front of the measured one: the splat holds something there that is
+    no longer there): a contribution of Gaussian n with z_n < d_i - tau_i adds no evidence, the others add theirs;
+  - otherwise (the measurement agrees with the splat's surface) the pixel votes as usual. Gaussians' centres are not
+    compared where the surfaces agree: a broad Gaussian seen at a grazing angle has its centre well off the ray.
   A pixel without a measurement, or that no Gaussian covers, is voted as without depth.
 - **Forgetting** (``evidence_half_life`` h, in observations): a Gaussian whose increment from a frame is non-zero
   in some class first has its accumulated evidence multiplied by 2^(-1/h): alpha <- alpha_0 + (alpha - alpha_0)
@@ -44,15 +48,18 @@ MAX_HALF_LIFE = 1e9
 
 def depth_gate(measured, rendered, tol_abs, tol_rel):  # type: ignore[no-untyped-def]
     """(occluded, front) of one pixel, metres: ``occluded`` when the measured depth is nearer than the rendered one
-    by more than the tolerance; ``front``: contributions of Gaussians nearer than it (camera z in metres) add no
-    evidence. Without a measurement (not finite, or <= 0) or without a rendered depth (NaN): (False, -inf).
+    by more than the tolerance; ``front``: when the rendered depth is nearer than the measured one by more than the
+    tolerance, contributions of Gaussians nearer than it (camera z in metres) add no evidence (else -inf: all add).
+    Without a measurement (not finite, or <= 0) or without a rendered depth (NaN): (False, -inf).
     Plain scalar code for numba / numba-cuda (see the module docstring)."""
-    if not (measured > 0.0) or measured == math.inf:
+    if not (measured > 0.0) or measured == math.inf or not (rendered == rendered):
         return False, -math.inf
     tol = max(tol_abs, tol_rel * measured)
-    if rendered == rendered and measured < rendered - tol:
+    if measured < rendered - tol:
         return True, -math.inf
-    return False, measured - tol
+    if rendered < measured - tol:
+        return False, measured - tol
+    return False, -math.inf
 
 
 def decay_factor(half_life: float | None) -> float:

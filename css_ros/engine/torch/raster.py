@@ -233,7 +233,8 @@ class TorchBackend(RasterBackend):
         tol = torch.clamp(rules.tol_rel * measured, min=rules.tol_abs)
         rendered = mean_z * rules.depth_scale                          # metres
         occluded = has & (ksum > 0) & (measured < rendered - tol)
-        front = torch.where(has & ~occluded, measured - tol, torch.full_like(measured, float("-inf")))
+        gone = has & (ksum > 0) & (rendered < measured - tol)          # the splat's surface in front of the measured
+        front = torch.where(gone, measured - tol, torch.full_like(measured, float("-inf")))
         in_front = (z * rules.depth_scale)[None, :] < front[:, None]
         return occluded, torch.where(in_front, torch.zeros_like(kappa), kappa)
 
