@@ -2,7 +2,7 @@
 
     OUT/model.ply      the splat model (copied, or a symbolic link with ``link_model``)
     OUT/classes.yaml   the class file (copied after validation, or anonymous classes)
-    OUT/bag/           rosbag2 MCAP with the BAG_TOPICS topics of the demo bag
+    OUT/bag/           rosbag2 MCAP with the demo bag's topics (BAG_TOPICS but depth and gt_changed)
 
 OUT is complete or untouched: everything is written into a temporary folder beside OUT
 (``.<OUT name>.css_import-*``) and moved into OUT by renames at the end; a failure (full disk, a bad
