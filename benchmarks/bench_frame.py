@@ -112,6 +112,17 @@ def build_scene(cfg: dict, num_cams: int) -> tuple:
     return model, gt, [Camera(K, cfg["width"], cfg["height"], T) for T in traj.T_map_cam]
 
 
+def truth_labels(model, gt: np.ndarray, num_classes: int, cams: list) -> list[np.ndarray]:
+    """The segmentations a benchmark feeds: the ground truth (class ``gt % num_classes`` per Gaussian, near-certain)
+    rendered at each camera."""
+    from css_ros import SemanticMap
+
+    truth = SemanticMap(model, num_classes)
+    truth.concentrations[...] = 1e-3
+    truth.concentrations[np.arange(model.num_gaussians), gt % num_classes] = 1e3
+    return [truth.render(c).labels for c in cams]
+
+
 def intrinsics(width: int, height: int, kitti: bool) -> np.ndarray:
     if kitti:  # KITTI odometry camera 2
         return np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.22], [0.0, 0.0, 1.0]])
@@ -173,12 +184,7 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
     build_s = time.perf_counter() - t0
     C = cfg["classes"]
 
-    # segmentations: the ground truth rendered at each pose (outside the timings)
-    gt_map = SemanticMap(model, C)
-    gt_map.concentrations[...] = 1e-3
-    gt_map.concentrations[np.arange(model.num_gaussians), gt % C] = 1e3
-    labels = [gt_map.render(c).labels for c in cams]
-    del gt_map
+    labels = truth_labels(model, gt, C, cams)  # outside the timings
 
     sensor = synthetic_sensor_model(C, cfg.get("sensor_model", "none"))
     soft = None if sensor is None else sensor.soft_labels()

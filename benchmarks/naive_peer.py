@@ -257,11 +257,7 @@ def run(scene: str, frames: int) -> dict:
     cfg = dict(bf.SCENES[scene])
     model, gt, cams = bf.build_scene(cfg, frames + 2)
     num_classes = cfg["classes"]
-    truth = SemanticMap(model, num_classes)
-    truth.concentrations[...] = 1e-3
-    truth.concentrations[np.arange(model.num_gaussians), gt % num_classes] = 1e3
-    labels = [truth.render(c).labels for c in cams]
-    del truth
+    labels = bf.truth_labels(model, gt, num_classes, cams)
     smap = SemanticMap(model, num_classes)
     peer = NaivePeer(model, num_classes)
     for i in range(2):  # compile / load the caches

@@ -46,11 +46,7 @@ def profile(scene: str, frames: int) -> dict[str, float]:
     cfg = dict(bf.SCENES[scene])
     model, gt, cams = bf.build_scene(cfg, frames + 2)
     c = cfg["classes"]
-    truth = SemanticMap(model, c)
-    truth.concentrations[...] = 1e-3
-    truth.concentrations[np.arange(model.num_gaussians), gt % c] = 1e3
-    labels = [truth.render(cam).labels for cam in cams]
-    del truth
+    labels = bf.truth_labels(model, gt, c, cams)
     smap = SemanticMap(model, c)
     backend = smap._backend
     settings = smap.render_settings()
