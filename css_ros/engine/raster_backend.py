@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 import numpy as np
 
 from .final_form import FrameImages, RenderSettings, finalize_host, image_uncertainty
+from .label_input import NUM_COUNTS
 
 if TYPE_CHECKING:
     from .buffers import RenderBuffers
@@ -27,13 +28,13 @@ class UpdateCounts:
     next view's one copy (:meth:`get` then costs nothing) or are fetched by :meth:`get` (one synchronisation)."""
 
     def __init__(self, counts: "np.ndarray | None" = None, surprise: "np.ndarray | None" = None) -> None:
-        self._counts = None if counts is None else tuple(int(v) for v in np.asarray(counts)[:6])
+        self._counts = None if counts is None else tuple(int(v) for v in np.asarray(counts)[:NUM_COUNTS])
         self._surprise = surprise
 
     def get(self) -> tuple[int, int, int, int, int, int]:
         """(used, ignored, out_of_range, no_depth, transient, occluded)."""
-        assert self._counts is not None
-        return self._counts + (0,) * (6 - len(self._counts))  # type: ignore[return-value]
+        assert self._counts is not None and len(self._counts) == NUM_COUNTS
+        return self._counts  # type: ignore[return-value]
 
     def surprise(self) -> "np.ndarray | None":
         """The (H, W) float32 surprise image (1 - E[theta_y] under the map before the update, NaN without a label),

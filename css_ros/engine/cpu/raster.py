@@ -673,8 +673,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     rules = inputs.rules
     want_surprise = inputs.want_surprise and concentrations is not None
     surprise = np.full((height, width), np.nan, dtype=np.float32) if want_surprise else _NO_PLANE
-    e_pre = (_expectations(concentrations, proj.ids) if want_surprise and concentrations is not None
-             else _NO_PLANE)
+    e_pre = _expectations(concentrations, proj.ids) if want_surprise else _NO_PLANE
     transient = rules.transient if rules.transient.shape[0] == inputs.num_classes else _NO_TRANSIENT
     gate = (_NO_PLANE if inputs.depth is None else inputs.depth, inputs.depth is not None, float(rules.tol_abs),
             float(rules.tol_rel), float(rules.depth_scale), transient, want_surprise, e_pre, surprise)
