@@ -165,8 +165,9 @@ def _tile_expectations(e_pre, tile_list, label, ecache, eloaded):  # pragma: no 
     once per tile and class: a tile has few classes, a pixel's walk many contributions)."""
     row = ecache[label]
     if not eloaded[label]:
+        col = e_pre[label]
         for k in range(tile_list.shape[0]):
-            row[k] = e_pre[tile_list[k], label]
+            row[k] = col[tile_list[k]]
         eloaded[label] = True
     return row
 
@@ -185,18 +186,23 @@ def _rendered_depth(kidx, kval, c, ldepth):  # pragma: no cover
 
 
 @njit(inline="always", fastmath=FAST)
-def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, acc_base, ch):  # pragma: no cover
-    """Add a tile's accumulator rows (the present ones) into the chunk's class-major rows ``acc`` (C, M): a class row
-    as it is; with a sensor model, each (label, depth bin) row r through its table, base[r] into acc_base[ch] and
-    resid[r, c] into class c."""
+def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, acc_base, ch, rows):  # pragma: no cover
+    """Add a tile's accumulator rows (the present ones) into the chunk's Gaussian-major increments ``acc`` (M, C):
+    a class row as it is; with a sensor model, each (label, depth bin) row r through its table, base[r] into
+    acc_base[ch] and resid[r, c] into class c. ``rows`` is scratch for the present rows' ids."""
     n = tile_list.shape[0]
-    num_classes = acc.shape[0]
+    num_classes = acc.shape[1]
     if not use_model:
+        npres = 0
         for c in range(num_classes):
             if present[c]:
-                out = acc[c]
-                for k in range(n):
-                    out[tile_list[k]] += lacc[c, k]
+                rows[npres] = c
+                npres += 1
+        for k in range(n):
+            out = acc[tile_list[k]]
+            for i in range(npres):
+                c = rows[i]
+                out[c] += lacc[c, k]
         return
     any_base = False
     for r in range(present.shape[0]):
@@ -212,9 +218,8 @@ def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, ac
             for c in range(num_classes):
                 pc = resid[r, c]
                 if pc != 0.0:
-                    out = acc[c]
                     for k in range(n):
-                        out[tile_list[k]] += lacc[r, k] * pc
+                        acc[tile_list[k], c] += lacc[r, k] * pc
     if any_base:
         out = acc_base[ch]
         for k in range(n):
@@ -234,20 +239,21 @@ def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, ac
 def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
                    tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
                    store, st_k, st_v, pix_off, pix_cnt, pix_t, gate):  # pragma: no cover
-    """acc[chunk, c, j] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, class-major: a tile's
-    flush of one class writes neighbouring entries); counts[chunk] = (used, ignored, out of range, no depth,
-    transient, occluded) of the chunk's pixels. Each pixel's vote is :func:`~css_ros.engine.label_input.pixel_vote`
-    of ``labels[v, u]`` (any integer dtype) and ``confidence[v, u]`` (float32 / float64; 1 without
-    ``has_confidence``), taken as it comes: no class or weight planes. Only rows of a tile with a voting pixel are
-    composited, only those pixels walked. With a sensor model and with a store: see the comment above.
+    """acc[chunk, j, c] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, Gaussian-major: the
+    add that follows reads each Gaussian's row of every chunk as one contiguous run); counts[chunk] = (used,
+    ignored, out of range, no depth, transient, occluded) of the chunk's pixels. Each pixel's vote is
+    :func:`~css_ros.engine.label_input.pixel_vote` of ``labels[v, u]`` (any integer dtype) and
+    ``confidence[v, u]`` (float32 / float64; 1 without ``has_confidence``), taken as it comes: no class or weight
+    planes. Only rows of a tile with a voting pixel are composited, only those pixels walked. With a sensor model
+    and with a store: see the comment above.
 
     ``gate`` = (depth (H, W) float32 metres, has_depth, tol_abs, tol_rel, depth_scale, transient (C,) bool,
-    want_surprise, e_pre (M, C) float32 E before the update, surprise (H, W) float32 out): the rules of
+    want_surprise, e_pre (C, M) float32 E before the update, surprise (H, W) float32 out): the rules of
     :mod:`css_ros.engine.change_rules` (transient classes, measured depth, surprise)."""
     depth, has_depth, tol_abs, tol_rel, depth_scale, transient, want_surprise, e_pre, surprise = gate
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
-    num_classes = acc.shape[1]
+    num_classes = acc.shape[2]
     num_bins = edges.shape[0] - 1 if use_model else 1
     num_rows = num_classes * num_bins
     cap = st_k.shape[1]
@@ -266,7 +272,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
         lbase = np.empty(256)
         ldepth = np.empty(256)
         present = np.empty(num_rows, dtype=np.bool_)
-        ecache = np.empty((num_classes if want_surprise else 0, 256), dtype=np.float32)
+        present_rows = np.empty(num_rows, dtype=np.int64)
+        ecache = np.empty((num_classes if want_surprise else 1, 256), dtype=np.float32)
         eloaded = np.zeros(num_classes, dtype=np.bool_)
         used = 0
         ignored = 0
@@ -321,24 +328,20 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                     c = cnt[p]
                     kp = kidx[p]
                     vp = kval[p]
-                    if store and pos + c <= cap and n <= _STORE_MAX_LIST:
+                    keep = store and pos + c <= cap and n <= _STORE_MAX_LIST
+                    if keep:
                         q = v * width + u0 + p
-                        for i in range(c):
-                            st_k[ch, pos + i] = np.uint16(kp[i])
-                            st_v[ch, pos + i] = np.float32(vp[i])
                         pix_off[q] = pos
                         pix_cnt[q] = c
                         pix_t[q] = trans[p]
-                        pos += c
+                    ecol = ecache[0]
                     if want_surprise:
                         ecol = _tile_expectations(e_pre, tile_list, vote[p], ecache, eloaded)
-                        surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], ecol, inv_c)
-                    if kind[p] != USED:
-                        continue  # a transient class: no evidence
+                    scatter = kind[p] == USED  # a transient class adds no evidence
                     row = vote[p]
                     w = weight[p]
                     front = -np.inf
-                    if need_depth:
+                    if scatter and need_depth:
                         rendered, ksum = _rendered_depth(kp, vp, c, ldepth)
                         if has_depth:
                             occ, front = _depth_gate(np.float64(depth[v, u0 + p]), rendered * depth_scale, tol_abs,
@@ -346,29 +349,55 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                             if occ:
                                 occluded += 1
                                 used -= 1
-                                continue
-                        if use_model:
+                                scatter = False
+                        if scatter and use_model:
                             b = 0
                             if ksum > 0.0:
                                 b = _depth_bin(rendered, edges)
                             else:
                                 no_depth += 1
                             row = row * num_bins + b
-                    if not present[row]:
+                    if scatter and not present[row]:
                         present[row] = True
                         for k in range(n):
                             lacc[row, k] = 0.0
-                    if front > -np.inf:  # contributions in front of the measured surface add nothing
-                        lim = front / depth_scale
+                    if scatter and keep and front == -np.inf:
+                        # the common case in one pass over the contributions: store, surprise, votes
+                        lrow = lacc[row]
+                        sk = st_k[ch, pos:pos + c]
+                        sv = st_v[ch, pos:pos + c]
+                        e = trans[p] * inv_c
                         for i in range(c):
                             k = kp[i]
-                            if ldepth[k] >= lim:
-                                lacc[row, k] += vp[i] * w
+                            x = vp[i]
+                            sk[i] = np.uint16(k)
+                            sv[i] = np.float32(x)
+                            if want_surprise:
+                                e += x * ecol[k]
+                            lrow[k] += x * w
+                        if want_surprise:
+                            surprise[v, u0 + p] = np.float32(1.0 - e)
                     else:
-                        for i in range(c):
-                            lacc[row, kp[i]] += vp[i] * w
+                        if keep:
+                            for i in range(c):
+                                st_k[ch, pos + i] = np.uint16(kp[i])
+                                st_v[ch, pos + i] = np.float32(vp[i])
+                        if want_surprise:
+                            surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], ecol, inv_c)
+                        if scatter and front > -np.inf:  # contributions in front of the measured surface add nothing
+                            lim = front / depth_scale
+                            for i in range(c):
+                                k = kp[i]
+                                if ldepth[k] >= lim:
+                                    lacc[row, k] += vp[i] * w
+                        elif scatter:
+                            for i in range(c):
+                                lacc[row, kp[i]] += vp[i] * w
+                    if keep:
+                        pos += c
             if loaded:
-                _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch)
+                _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch,
+                            present_rows)
         counts[ch, USED] = used
         counts[ch, IGNORED] = ignored
         counts[ch, OUT_OF_RANGE] = out_of_range
@@ -566,8 +595,9 @@ class ContributionStore:
 
     Bounded: per work chunk ``STORE_SLOTS_PER_PIXEL`` x (pixels / chunks) entries; pixels that do not fit, that the
     update did not composite (no vote) or whose tile list is longer than 65535 are walked by the render. The
-    ``np.empty`` buffers (untouched pages cost no memory) are given back by :meth:`release` once the render has
-    replayed them, so that between frames they hold no memory.
+    ``np.empty`` buffers (untouched pages cost no memory) are kept from frame to frame, so a frame's store holds
+    the pages its contributions touched (6 bytes each: ~37 MB at 640x480 with 20 contributions a pixel); taking
+    fresh ones each frame cost their page faults, about 10 % of a biker frame. :meth:`release` gives them back.
     """
 
     def __init__(self) -> None:
@@ -625,7 +655,7 @@ class UpdateWorkspace:
         self._pending = False
 
     def take(self, nchunks: int, num_classes: int, m: int, with_base: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Zero (nchunks, num_classes, m) and (nchunks, m) (or (0, 0)) float64 accumulators."""
+        """Zero (nchunks, m, num_classes) and (nchunks, m) (or (0, 0)) float64 accumulators."""
         if self._pending:
             self._acc[:] = 0.0
             self._base[:] = 0.0
@@ -636,7 +666,7 @@ class UpdateWorkspace:
             self._base = np.zeros(nchunks * m)
         self._pending = True
         base = self._base[:nchunks * m].reshape(nchunks, m) if with_base else _NO_BASE
-        return self._acc[:size].reshape(nchunks, num_classes, m), base
+        return self._acc[:size].reshape(nchunks, m, num_classes), base
 
     def done(self) -> None:
         """The accumulators handed out are zero again (:func:`add_increments` ran)."""
@@ -659,7 +689,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
         concentrations: (N, C) float64 alpha before the update; needed only for the surprise
             (``inputs.want_surprise``).
     Returns:
-        ((chunks, C, M) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
+        ((chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
         increments of every class of those rows ((0, 0) without ``soft``) (apply both with :func:`add_increments`),
         (NUM_COUNTS,) int64 pixel counts: used, ignored, out of range, no depth (0 without ``soft``), transient,
         occluded; the (H, W) float32 surprise image, or None when not asked for).
@@ -686,10 +716,11 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _expectations(concentrations, ids):  # pragma: no cover
-    """(M, C) float32 E[theta] = alpha / S of the projected Gaussians' rows ``ids`` (for the surprise)."""
+    """(C, M) float32 E[theta] = alpha / S of the projected Gaussians' rows ``ids`` (for the surprise), class-major:
+    a tile gathers one class of its list, whose entries lie in a few runs of neighbouring rows."""
     m = ids.shape[0]
     num_classes = concentrations.shape[1]
-    out = np.empty((m, num_classes), dtype=np.float32)
+    out = np.empty((num_classes, m), dtype=np.float32)
     for j in prange(m):
         row = ids[j]
         total = 0.0
@@ -697,14 +728,14 @@ def _expectations(concentrations, ids):  # pragma: no cover
             total += concentrations[row, c]
         inv = 1.0 / total
         for c in range(num_classes):
-            out[j, c] = np.float32(concentrations[row, c] * inv)
+            out[c, j] = np.float32(concentrations[row, c] * inv)
     return out
 
 
 @njit(inline="always")
 def _add_row(concentrations, row, j, acc, acc_base, decay, prior):  # pragma: no cover
     """Row ``row`` of the concentrations += the chunks' increments of projected Gaussian j (:func:`add_increments`)."""
-    num_classes = acc.shape[1]
+    num_classes = acc.shape[2]
     common = 0.0
     if acc_base.shape[0] > 0:
         for ch in range(acc_base.shape[0]):
@@ -712,27 +743,27 @@ def _add_row(concentrations, row, j, acc, acc_base, decay, prior):  # pragma: no
             acc_base[ch, j] = 0.0
     if decay != 1.0:
         received = common != 0.0
-        for c in range(num_classes):
-            for ch in range(acc.shape[0]):
-                received |= acc[ch, c, j] != 0.0
+        for ch in range(acc.shape[0]):
+            for c in range(num_classes):
+                received |= acc[ch, j, c] != 0.0
         if received:
             for c in range(num_classes):
                 concentrations[row, c] = prior + (concentrations[row, c] - prior) * decay
     for c in range(num_classes):
         total = common
         for ch in range(acc.shape[0]):
-            total += acc[ch, c, j]
-            acc[ch, c, j] = 0.0
+            total += acc[ch, j, c]
+            acc[ch, j, c] = 0.0
         concentrations[row, c] += total
 
 
 @njit(parallel=True, cache=True)
 def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  # pragma: no cover
-    """concentrations[ids[j], c] += sum over chunks of acc[chunk, c, j] (+ acc_base[chunk, j] for every class
+    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (+ acc_base[chunk, j] for every class
     when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`).
     With ``decay`` < 1 (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some
     class is first set to prior + (alpha - prior) * decay."""
-    for j in prange(acc.shape[2]):
+    for j in prange(acc.shape[1]):
         _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
 
 
