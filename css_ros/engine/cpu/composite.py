@@ -7,10 +7,10 @@ tile, :func:`row_candidates` keeps the entries whose alpha ellipse meets the row
 of the Mahalanobis q over the segment, a clamped quadratic, is <= qmax: in trained splats about 2/3 of the entries
 whose box spans the row) with their row terms (2 b dy, c dy^2), so a pixel's q is two FMAs. :func:`composite_row`
 then walks the row's pixels front to back in chunks of 64 candidates: per pixel, q of the chunk (a vectorised loop)
-and a bit mask of the hits (q <= qmax), the hits taken from the mask by count-trailing-zeros (no per-candidate
-stores); the alphas of the whole row's hits in one vectorised loop (polynomial exp), then each pixel's compositing
-in order. A pixel stops where its transmittance would drop below T_MIN, and the chunks behind that point are never
-tested.
+and a bit mask of the hits (q <= qmax), the hits taken from the mask by count-trailing-zeros (their q computed
+again: no per-candidate stores); the alphas of the whole row's hits in one vectorised loop (polynomial exp), then
+each pixel's compositing in order. A pixel stops where its transmittance would drop below T_MIN, and the chunks
+behind that point are never tested.
 
 A pixel's result (its contributions' list positions and kappa, front to back, and its final transmittance) is
 exactly the per-pixel brute force: the candidate tests are conservative and the hit test is q <= qmax as before.
@@ -64,13 +64,13 @@ def new_scratch(tile):  # pragma: no cover
     """Per-thread walk scratch, sized for lists of _START entries and grown by :func:`load_tile`: (tile columns
     (COLS, cap), candidate row terms (CAND, cap), candidate list positions (cap,) uint32, bit masks, per-pixel
     contribution positions (tile, cap) uint32 and kappas (tile, cap), counts (tile,), final transmittances (tile,),
-    active pixels (tile,), the row's hits of one chunk step ((3, tile * CHUNK): q then alpha, opacity, and the q of one
-    pixel's chunk), their list positions (tile * CHUNK,) uint32 and per-pixel (first hit, hit count, still walking)
-    (3, tile). List positions are unsigned: numba then indexes with them without a negative-index test."""
+    active pixels (tile,), the row's hits of one chunk step ((2, tile * CHUNK): q then alpha, and opacity), their
+    list positions (tile * CHUNK,) uint32 and per-pixel (first hit, hit count, still walking) (3, tile). List
+    positions are unsigned: numba then indexes with them without a negative-index test."""
     return (np.empty((COLS, _START)), np.empty((CAND, _START)), np.empty(_START, dtype=np.uint32),
             np.empty(_START // CHUNK, dtype=np.uint64), np.empty((tile, _START), dtype=np.uint32),
             np.empty((tile, _START)), np.empty(tile, dtype=np.int64), np.empty(tile), np.ones(tile, dtype=np.bool_),
-            np.empty((3, tile * CHUNK)), np.empty(tile * CHUNK, dtype=np.uint32), np.empty((3, tile), dtype=np.int64))
+            np.empty((2, tile * CHUNK)), np.empty(tile * CHUNK, dtype=np.uint32), np.empty((3, tile), dtype=np.int64))
 
 
 @njit(inline="always")
@@ -158,7 +158,7 @@ def composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, 
     kval[p, :cnt[p]] = alpha T, front to back; trans[p] the final transmittance (kappa_b). Inactive pixels get
     cnt 0 and T 1."""
     cx, ca, cby, ccy, co, cq = cand[0], cand[1], cand[2], cand[3], cand[4], cand[5]
-    hq, ho, qall = chunk[0], chunk[1], chunk[2]
+    hq, ho = chunk[0], chunk[1]
     first, count, walking = state[0], state[1], state[2]
     npx = u1 - u0 + 1
     for p in range(npx):
@@ -181,13 +181,13 @@ def composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, 
             for k in range(top - base):
                 dx = fu - x[k]
                 q = (a[k] * dx + by[k]) * dx + cy[k]
-                qall[k] = q
                 mask |= np.uint64(q <= qm[k]) << np.uint64(k)
             while mask != 0:
                 k = _cttz(mask)
                 mask &= mask - np.uint64(1)
+                dx = fu - x[k]  # q again for the hits only: cheaper than storing the chunk's 64
                 hit[total] = rr[k]
-                hq[total] = qall[k]
+                hq[total] = (a[k] * dx + by[k]) * dx + cy[k]
                 ho[total] = o[k]
                 total += 1
             count[p] = total - first[p]
