@@ -226,6 +226,51 @@ def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, ac
             out[tile_list[k]] += lbase[k]
 
 
+@njit(inline="always", fastmath=FAST)
+def _evidence_row(kp, vp, c, label, used, need_depth, has_depth, use_model, measured, ldepth, depth_scale, tol_abs,
+                  tol_rel, edges, num_bins):  # pragma: no cover
+    """Where a pixel's vote goes: (scatter, accumulator row, front, occluded, no depth). ``used``: the pixel votes
+    (a transient class does not); the depth gate of :mod:`css_ros.engine.change_rules` may drop it (occluded = 1)
+    or give ``front``, the measured depth [m] in front of which its contributions add nothing (-inf: none); with a
+    sensor model the row is (label, depth bin of the rendered depth), no depth = 1 when the pixel has no
+    contribution."""
+    scatter = used
+    row = label
+    front = -np.inf
+    occluded = 0
+    no_depth = 0
+    if scatter and need_depth:
+        rendered, ksum = _rendered_depth(kp, vp, c, ldepth)
+        if has_depth:
+            occ, front = _depth_gate(np.float64(measured), rendered * depth_scale, tol_abs, tol_rel)
+            if occ:
+                occluded = 1
+                scatter = False
+        if scatter and use_model:
+            b = 0
+            if ksum > 0.0:
+                b = _depth_bin(rendered, edges)
+            else:
+                no_depth = 1
+            row = row * num_bins + b
+    return scatter, row, front, occluded, no_depth
+
+
+@njit(inline="always", fastmath=FAST)
+def _scatter_votes(kp, vp, c, lrow, w, front, depth_scale, ldepth):  # pragma: no cover
+    """lrow[kp[i]] += vp[i] * w over a pixel's contributions; with a finite ``front`` [m] (the depth gate), only
+    those of Gaussians not in front of it (camera depth ``ldepth`` in splat units)."""
+    if front > -np.inf:
+        lim = front / depth_scale
+        for i in range(c):
+            k = kp[i]
+            if ldepth[k] >= lim:
+                lrow[k] += vp[i] * w
+    else:
+        for i in range(c):
+            lrow[kp[i]] += vp[i] * w
+
+
 # _update_kernel with ``use_model`` (a sensor model): a pixel labelled y at expected depth d = sum kappa z / sum kappa
 # (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead, r = y * B + b,
 # with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class goes to acc_base[chunk, j]
@@ -337,26 +382,14 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                     ecol = ecache[0]
                     if want_surprise:
                         ecol = _tile_expectations(e_pre, tile_list, vote[p], ecache, eloaded)
-                    scatter = kind[p] == USED  # a transient class adds no evidence
-                    row = vote[p]
                     w = weight[p]
-                    front = -np.inf
-                    if scatter and need_depth:
-                        rendered, ksum = _rendered_depth(kp, vp, c, ldepth)
-                        if has_depth:
-                            occ, front = _depth_gate(np.float64(depth[v, u0 + p]), rendered * depth_scale, tol_abs,
-                                                     tol_rel)
-                            if occ:
-                                occluded += 1
-                                used -= 1
-                                scatter = False
-                        if scatter and use_model:
-                            b = 0
-                            if ksum > 0.0:
-                                b = _depth_bin(rendered, edges)
-                            else:
-                                no_depth += 1
-                            row = row * num_bins + b
+                    scatter, row, front, occ, nod = _evidence_row(kp, vp, c, vote[p], kind[p] == USED, need_depth,
+                                                                  has_depth, use_model, depth[v, u0 + p] if has_depth
+                                                                  else 0.0, ldepth, depth_scale, tol_abs, tol_rel,
+                                                                  edges, num_bins)
+                    occluded += occ
+                    used -= occ
+                    no_depth += nod
                     if scatter and not present[row]:
                         present[row] = True
                         for k in range(n):
@@ -384,15 +417,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                                 st_v[ch, pos + i] = np.float32(vp[i])
                         if want_surprise:
                             surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], ecol, inv_c)
-                        if scatter and front > -np.inf:  # contributions in front of the measured surface add nothing
-                            lim = front / depth_scale
-                            for i in range(c):
-                                k = kp[i]
-                                if ldepth[k] >= lim:
-                                    lacc[row, k] += vp[i] * w
-                        elif scatter:
-                            for i in range(c):
-                                lacc[row, kp[i]] += vp[i] * w
+                        if scatter:
+                            _scatter_votes(kp, vp, c, lacc[row], w, front, depth_scale, ldepth)
                     if keep:
                         pos += c
             if loaded:
