@@ -624,6 +624,7 @@ class ContributionStore:
     ``np.empty`` buffers (untouched pages cost no memory) are kept from frame to frame, so a frame's store holds
     the pages its contributions touched (6 bytes each: ~37 MB at 640x480 with 20 contributions a pixel); taking
     fresh ones each frame cost their page faults, about 10 % of a biker frame. :meth:`release` gives them back.
+    One per thread of use, like :class:`UpdateWorkspace`.
     """
 
     def __init__(self) -> None:
