@@ -796,7 +796,8 @@ def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  #
 
 @njit(inline="always", fastmath=FAST)
 def _attribute_row(concentrations, row, j, colors, packed, attrs):  # pragma: no cover
-    """attrs[j] of :func:`dirichlet_attributes` from row ``row`` of the concentrations (padding untouched)."""
+    """attrs[j] of :func:`dirichlet_attributes` from row ``row`` of the concentrations, every column written (the
+    padding zero), so the rows can be taken with ``np.empty``."""
     num_classes = concentrations.shape[1]
     lin = _linear_width(num_classes)
     total = 0.0
@@ -808,6 +809,8 @@ def _attribute_row(concentrations, row, j, colors, packed, attrs):  # pragma: no
         attrs[j, num_classes + c] = np.float32(colors[j, c]) if colors.shape[0] else np.float32(0.0)
     attrs[j, num_classes + 3] = np.float32(total)
     attrs[j, num_classes + 4] = np.float32(packed[j, 7])
+    for c in range(num_classes + 5, lin):
+        attrs[j, c] = np.float32(0.0)
     for c in range(num_classes):
         e = concentrations[row, c] * inv
         attrs[j, c] = np.float32(e)
@@ -816,7 +819,7 @@ def _attribute_row(concentrations, row, j, colors, packed, attrs):  # pragma: no
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no cover
-    """attrs[j] of :func:`dirichlet_attributes` for every projected Gaussian j (the padding columns untouched)."""
+    """attrs[j] of :func:`dirichlet_attributes` for every projected Gaussian j."""
     for j in prange(ids.shape[0]):
         _attribute_row(concentrations, ids[j], j, colors, packed, attrs)
 
@@ -836,7 +839,7 @@ def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, a
                                   packed: np.ndarray) -> np.ndarray:
     """:func:`add_increments` then :func:`dirichlet_attributes` of the updated rows, in one pass (``observe``)."""
     num_classes = concentrations.shape[1]
-    attrs = np.zeros((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
+    attrs = np.empty((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
     _add_and_attribute_kernel(concentrations, ids, acc, acc_base, float(decay), float(prior), colors, packed, attrs)
     return attrs
 
@@ -855,7 +858,7 @@ def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np
         reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
     """
     num_classes = concentrations.shape[1]
-    attrs = np.zeros((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
+    attrs = np.empty((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
     _dirichlet_kernel(concentrations, ids, colors, packed, attrs)
     return attrs
 
