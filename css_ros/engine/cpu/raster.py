@@ -395,7 +395,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         for k in range(n):
                             lacc[row, k] = 0.0
                     if scatter and keep and front == -np.inf:
-                        # the common case in one pass over the contributions: store, surprise, votes
+                        # the common case in one pass over the contributions: store, surprise, votes (the
+                        # separate loops of the branch below cost 8-10 % more of the update on the 500k room)
                         lrow = lacc[row]
                         sk = st_k[ch, pos:pos + c]
                         sv = st_v[ch, pos:pos + c]
