@@ -207,8 +207,8 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         t.append(time.perf_counter())
         bins = bin_tiles(proj, cam.width, cam.height)
         t.append(time.perf_counter())
-        with_surprise = smap._frame_labels(cam, lab, None, None, True)   # as observe (default outputs) does
-        backend.update((proj, bins, cam), with_surprise, conc, soft)
+        inputs = smap._frame_labels(cam, lab, None)   # as observe with its default outputs (no surprise)
+        backend.update((proj, bins, cam), inputs, conc, soft)
         t.append(time.perf_counter())
         attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         t.append(time.perf_counter())

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from css_ros.engine.final_form import IMAGE_OUTPUTS
 from css_ros import MapError, SemanticMap
 from css_reference import camera_depths, change_update_reference, kappa_reference
 from scenes import camera, random_scene
@@ -39,7 +40,7 @@ def test_transient_pixels_add_nothing_and_are_counted():
     rng = np.random.default_rng(0)
     model, cam, kap, bg, smap = _setup(transient_classes=[1, 3])
     labels = _labels(rng, cam)
-    view = smap.observe(cam, labels)
+    view = smap.observe(cam, labels, outputs=IMAGE_OUTPUTS)
     alpha, counts, surprise = change_update_reference(kap, bg, np.full((model.num_gaussians, C), PRIOR), labels, C,
                                                       np.zeros(model.num_gaussians), transient=(1, 3))
     np.testing.assert_allclose(smap.concentrations, alpha, rtol=1e-9, atol=1e-12)
@@ -85,9 +86,9 @@ def test_no_measurement_is_the_same_as_no_depth_image():
     depth = np.zeros(labels.shape, np.float32)
     depth[::2] = np.nan
     depth[1::4] = np.inf
-    view = smap.observe(cam, labels, depth=depth)
+    view = smap.observe(cam, labels, depth=depth, outputs=IMAGE_OUTPUTS)
     plain = SemanticMap(model, C, prior=PRIOR)
-    plain_view = plain.observe(cam, labels)
+    plain_view = plain.observe(cam, labels, outputs=IMAGE_OUTPUTS)
     np.testing.assert_array_equal(smap.concentrations, plain.concentrations)
     np.testing.assert_array_equal(view.surprise, plain_view.surprise)
     assert smap.last_update == plain.last_update and smap.last_update.occluded == 0
@@ -138,13 +139,14 @@ def test_surprise_is_one_minus_the_prior_expectation_of_the_label():
     smap.observe(cam, first)
     before = smap.render(cam, probabilities=True).probabilities
     labels = _labels(rng, cam)
-    view = smap.observe(cam, labels)
+    view = smap.observe(cam, labels, outputs=IMAGE_OUTPUTS)
     valid = labels < C
     v, u = np.nonzero(valid)
     np.testing.assert_allclose(view.surprise[valid], 1.0 - before[v, u, labels[valid]], rtol=1e-5, atol=1e-6)
     assert np.all(np.isnan(view.surprise[~valid]))
     assert view.surprise.dtype == np.float32
     assert smap.observe(cam, labels, outputs=("labels",)).surprise is None
+    assert smap.observe(cam, labels).surprise is None           # not among the default outputs: asked for by name
     assert smap.render(cam).surprise is None
 
 

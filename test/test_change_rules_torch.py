@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from css_ros.engine.final_form import IMAGE_OUTPUTS
 from css_ros import GaussianModel, SemanticMap
 from css_ros.engine.sensor_model import SensorModel
 from css_reference import kappa_reference
@@ -150,7 +151,7 @@ def test_rules_match_brute_force(case):
         alpha, counts, surprise = change_reference(
             kap, bg, z, alpha, labels, confidence=conf, depth=depth, transient=opts.get("transient", ()),
             tol_abs=tol_abs, tol_rel=tol_rel, depth_scale=scale, half_life=opts.get("half_life"), sensor=sensor)
-        view = smap.observe(cam, labels.astype(np.uint16), conf, depth=depth)
+        view = smap.observe(cam, labels.astype(np.uint16), conf, depth=depth, outputs=IMAGE_OUTPUTS)
         np.testing.assert_allclose(smap.concentrations, alpha, rtol=1e-9, atol=1e-12)
         assert stats_tuple(smap.last_update) == counts
         got = smap.last_update

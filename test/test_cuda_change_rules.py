@@ -23,6 +23,7 @@ import sys  # noqa: E402
 # the simulator's barriers wait for Python threads: a short GIL switch interval (see test_cuda_sim.py)
 sys.setswitchinterval(5e-4)
 
+from css_ros.engine.final_form import IMAGE_OUTPUTS  # noqa: E402
 from css_ros import SemanticMap  # noqa: E402
 from css_ros.engine.sensor_model import SensorModel  # noqa: E402
 from css_reference import kappa_reference, project_reference  # noqa: E402
@@ -260,9 +261,9 @@ def test_surprise_and_half_life_over_several_frames():
             np.testing.assert_allclose(gpu.concentrations, want, rtol=KAPPA_RTOL, atol=KAPPA_ATOL)
             break
         copies.clear()
-        view = gpu.observe(cam, lab, conf, depth=depth)
+        view = gpu.observe(cam, lab, conf, depth=depth, outputs=IMAGE_OUTPUTS)
         assert len(copies) == 1                          # counts and surprise came with the view
-        assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, depth=depth))
+        assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, depth=depth, outputs=IMAGE_OUTPUTS))
         assert counts_of(gpu.last_update) == counts
         np.testing.assert_allclose(gpu.concentrations, want, rtol=KAPPA_RTOL, atol=KAPPA_ATOL, err_msg=f"frame {i}")
         got = view.surprise
@@ -294,8 +295,8 @@ def test_sensor_model_with_depth_transient_surprise_and_half_life():
     for i in range(2):
         lab, conf = frame_inputs(cam, 60 + i)
         depth = measured_depth(pixels, scale, 60 + i).reshape(cam.height, cam.width)
-        view = gpu.observe(cam, lab, conf, depth=depth)
-        assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, depth=depth))
+        view = gpu.observe(cam, lab, conf, depth=depth, outputs=IMAGE_OUTPUTS)
+        assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, depth=depth, outputs=IMAGE_OUTPUTS))
         want, counts, surprise = world_reference(pixels, want, lab, conf, transient=(3,), depth=depth, scale=scale,
                                                  decay=2.0 ** -0.5, soft=(soft.edges, soft.table))
         assert counts_of(gpu.last_update) == counts
@@ -317,7 +318,8 @@ def test_rules_keep_one_synchronisation_and_the_default_its_launches():
     world = SemanticMap(model, C, backend="cuda", transient_classes=[0], evidence_half_life=3.0)
     for smap, frame, launches, uploads in ((plain, dict(outputs=("labels",)), 5, ["plan_camera", "labels"]),
                                            (plain, dict(outputs=("labels", "surprise")), 6, ["plan_camera", "labels"]),
-                                           (world, dict(depth=depth), 7, ["plan_camera", "labels", "depth"])):
+                                           (world, dict(depth=depth, outputs=IMAGE_OUTPUTS), 7,
+                                            ["plan_camera", "labels", "depth"])):
         backend, ops = smap._backend, smap._backend.ops
         smap.observe(cam, lab, None, **frame)             # binds the launches of this size
         syncs: list[str] = []
@@ -368,8 +370,8 @@ def test_a_frame_beyond_the_plan_forgets_once():
     tx = -(-cam.width // TILE_SIZE)
     plan = ViewPlan(backend.ops, cam.width, cam.height, tx, tx * -(-cam.height // TILE_SIZE), 3, 400)
     backend._plans[(cam.width, cam.height)] = plan
-    view = gpu.observe(cam, lab, conf)
-    assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf))
+    view = gpu.observe(cam, lab, conf, outputs=IMAGE_OUTPUTS)
+    assert_same(gpu, cpu, view, cpu.observe(cam, lab, conf, outputs=IMAGE_OUTPUTS))
     assert plan.buffers.pairs > 3
     want, counts, surprise = world_reference(pixels, np.full((model.num_gaussians, C), 0.5), lab, conf, decay=0.5)
     assert counts_of(gpu.last_update) == counts

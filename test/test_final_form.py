@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from css_ros import SemanticMap
-from css_ros.engine.final_form import IMAGE_OUTPUTS, check_outputs, image_uncertainty
+from css_ros.engine.final_form import DEFAULT_OUTPUTS, IMAGE_OUTPUTS, check_outputs, image_uncertainty
 from css_ros.engine.pixel_math import confidence_score, interp, to_byte
 from css_ros.engine.sensor_model import ConfidenceMap, SensorModel
 from css_ros.errors import InputError
@@ -40,7 +40,7 @@ def test_interp_and_confidence_score_are_numpys():
 
 
 def test_check_outputs():
-    assert check_outputs(None) == frozenset(IMAGE_OUTPUTS)
+    assert check_outputs(None) == frozenset(IMAGE_OUTPUTS) - {"surprise"} == frozenset(DEFAULT_OUTPUTS)
     assert check_outputs(["labels", "rgb"]) == {"labels", "rgb"}
     with pytest.raises(InputError, match="unknown output.*colour"):
         check_outputs(["colour"])

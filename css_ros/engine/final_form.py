@@ -26,17 +26,21 @@ if TYPE_CHECKING:
 #: ``surprise`` is made by an observed frame's update (``SemanticMap.observe``); a query render has none.
 IMAGE_OUTPUTS: tuple[str, ...] = ("labels", "expectation", "variance", "background", "evidence", "rgb", "depth",
                                   "confidence", "surprise")
+#: The images made when ``outputs`` is None: all but the surprise, which is asked for by name (like the
+#: probabilities): it costs the update a pass over the visible Gaussians and a gather per contribution, 5-8 % of a
+#: CPU frame (benchmarks/README.md), and only change detection reads it (css_node and css_replay ask for it).
+DEFAULT_OUTPUTS: tuple[str, ...] = tuple(n for n in IMAGE_OUTPUTS if n != "surprise")
 
 
 def check_outputs(outputs: Iterable[str] | None) -> frozenset[str]:
-    """The set of requested image names (None: all of :data:`IMAGE_OUTPUTS`).
+    """The set of requested image names (None: :data:`DEFAULT_OUTPUTS`, every image but the surprise).
 
     Raises:
         InputError: an unknown name, a name that is no str, not a collection, or a plain string (a common slip for
             a one-element list).
     """
     if outputs is None:
-        return frozenset(IMAGE_OUTPUTS)
+        return frozenset(DEFAULT_OUTPUTS)
     if isinstance(outputs, str):
         raise InputError(f"outputs must be a collection of names, not the string {outputs!r} "
                          f"(e.g. outputs=({outputs!r},))")

@@ -325,9 +325,9 @@ class SemanticMap:
                 depth: np.ndarray | None = None) -> RenderedView:
         """SPEC §7 per observed frame: rasterise once, update, then render at the same pose.
 
-        ``outputs``: the images to deliver (names of :data:`css_ros.engine.final_form.IMAGE_OUTPUTS`; None = all);
-        the others are None in the view and cost no copy from the device. ``surprise`` is made by the update (before
-        it changes the map). ``depth``: the measured depth as in :meth:`update`."""
+        ``outputs``: the images to deliver (names of :data:`css_ros.engine.final_form.IMAGE_OUTPUTS`; None = all but
+        ``surprise``); the others are None in the view and cost no copy from the device. ``surprise`` is made by the
+        update (before it changes the map), only when named. ``depth``: the measured depth as in :meth:`update`."""
         settings = self.render_settings(outputs, probabilities)
         camera = map_args.check_camera(camera, "observe")
         inputs = self._frame_labels(camera, labels, confidence, depth, "surprise" in settings.outputs)

@@ -24,6 +24,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from ..engine.camera import Camera
+from ..engine.final_form import DEFAULT_OUTPUTS
 from ..engine.semantic_map import SemanticMap
 from ..errors import CameraError, MapError
 from ..engine.photometric import psnr
@@ -227,10 +228,10 @@ class MapWorker:
                       f"{out_of_range} pixels with ids >= {self.C} (max {int(labels.max())}) treated as no label",
                       dropped=False)
         needed = getattr(self.sink, "frame_outputs", None)
-        outputs = None if needed is None else set(needed(frame.camera_index))
-        if outputs is not None and frame.image is not None:
+        outputs = set(DEFAULT_OUTPUTS) if needed is None else set(needed(frame.camera_index))
+        if frame.image is not None:
             outputs.add("rgb")  # the rendered colour's PSNR against the input image (diagnostics)
-        if outputs is not None and p.output_scale == 1.0:
+        if p.output_scale == 1.0:
             outputs.add("surprise")  # its mean is in the diagnostics (the update makes it: no render)
         with self.map_lock:
             smap = self.smap
