@@ -67,10 +67,11 @@ class RenderedView:
         confidence: (H, W) float32 calibrated probability that ``labels`` is right (the sensor model's
             :class:`~css_ros.engine.sensor_model.ConfidenceMap` of E and evidence; 0 where the label is
             ``ignore_label``), or None when the map has no calibrated confidence.
-        surprise: (H, W) float32, only from :meth:`SemanticMap.observe`: 1 - E[theta_y] of the observed label y under
+        surprise: (H, W) float32, only from :meth:`SemanticMap.observe` with ``"surprise"`` among its ``outputs``
+            (not a default output): 1 - E[theta_y] of the observed label y under
             the map before this frame's update (0 = the map was sure of it, near 1 = the map expected something else:
             a segmentation error or a changed world); NaN where the pixel has no label
-            (:mod:`css_ros.engine.change_rules`). None for query renders.
+            (:mod:`css_ros.engine.change_rules`). None otherwise (query renders, default outputs).
     """
 
     labels: np.ndarray
