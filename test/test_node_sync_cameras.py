@@ -17,6 +17,10 @@ import ros_helpers as rh
 
 CAMERAS = ("camA", "camB")
 W, H = 256, 192
+#: The worker's queue holds every frame of the 10 Hz stream (2 x 100): this test is about the transport and the gate
+#: keeping synchronised bursts; on a loaded 2-core CI host the worker maps slower than 20 frames/s and a shorter
+#: queue dropped the oldest (``frames_dropped_busy``, the documented newest-wins policy, not a lost frame).
+PENDING = 256
 
 
 class SyncClient:
@@ -122,7 +126,7 @@ def test_synchronised_cameras_keep_every_frame(tmp_path: Path, monkeypatch: pyte
     model = rh.write_wall_model(tmp_path / "wall.ply")
     node = rh.NodeProcess(dict(model_path=str(model), class_file="", num_classes=rh.NUM_CLASSES, checkpoint_path="",
                                resume=False, log_period=0.5, warn_period=0.0, cameras=list(CAMERAS),
-                               max_pending_frames=64), domain, tmp_path / "node.log")
+                               max_pending_frames=PENDING), domain, tmp_path / "node.log")
     client = SyncClient(domain)
     try:
         wait = rh.RosClient.wait_until
@@ -136,7 +140,7 @@ def test_synchronised_cameras_keep_every_frame(tmp_path: Path, monkeypatch: pyte
         before = [0, 0]
         for fps, frames, pose_rate in ((1.0, 15, 0.0), (10.0, 100, 200.0)):
             stream(client, fps, frames, pose_rate)
-            wait(lambda f=frames, b0=before: all(n - b >= f for n, b in zip(processed(), b0)), 20.0, 0.1)
+            wait(lambda f=frames, b0=before: all(n - b >= f for n, b in zip(processed(), b0)), 90.0, 0.1)
             time.sleep(1.0)  # diagnostics after the queue drained
             got = [n - b for n, b in zip(processed(), before)]
             drops = {k: v for k, v in client.diagnostics().items() if k.startswith("warn[")}
