@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from css_ros.engine.cpu.raster import (_dirichlet_kernel, add_increments, add_increments_and_attributes,
+from css_ros.engine.cpu.raster import (SHORT_COLS, _dirichlet_kernel, add_increments, add_increments_and_attributes,
                                        linear_width)
 
 
@@ -35,15 +35,28 @@ def _expected_rows(conc_rows: np.ndarray, colors: np.ndarray, packed: np.ndarray
     return out
 
 
+def _expected_short(conc_rows: np.ndarray, colors: np.ndarray, packed: np.ndarray) -> np.ndarray:
+    """(M, SHORT_COLS) float64: E and Var of the most likely class g, rgb, S, z, g."""
+    m, c = conc_rows.shape
+    full = _expected_rows(conc_rows, colors, packed)
+    g = conc_rows.argmax(axis=1)
+    r = np.arange(m)
+    return np.column_stack([full[r, g], full[r, linear_width(c) + g], full[:, c:c + 5], g])
+
+
 @pytest.mark.parametrize("num_classes", [3, 20, 28])
 def test_attribute_rows_write_every_column(num_classes):
     _, conc, ids, colors, packed = _inputs(num_classes)
     lin = linear_width(num_classes)
+    conc[ids[0], :2] = conc[ids[0]].max() + 1.0   # equal maxima: the first is the most likely class
     attrs = np.full((ids.shape[0], lin + num_classes), np.nan, dtype=np.float32)
-    _dirichlet_kernel(conc, ids, colors, packed, attrs)
-    assert np.all(np.isfinite(attrs))
+    short = np.full((ids.shape[0], SHORT_COLS), np.nan, dtype=np.float32)
+    _dirichlet_kernel(conc, ids, colors, packed, attrs, short)
+    assert np.all(np.isfinite(attrs)) and np.all(np.isfinite(short))
     np.testing.assert_allclose(attrs, _expected_rows(conc[ids], colors, packed), rtol=1e-6, atol=1e-7)
     assert np.all(attrs[:, num_classes + 5:lin] == 0.0)
+    np.testing.assert_allclose(short, _expected_short(conc[ids], colors, packed), rtol=1e-6, atol=1e-7)
+    assert short[0, 7] == 0.0
 
 
 @pytest.mark.parametrize("with_base", [False, True])
@@ -68,7 +81,8 @@ def test_increments_are_summed_over_threads_then_added(with_base, decay):
     attrs = add_increments_and_attributes(got, ids, acc, base, decay, prior, colors, packed)
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert not acc.any() and not base.any()            # left zero for the next frame
-    np.testing.assert_allclose(attrs, _expected_rows(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(attrs.full, _expected_rows(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(attrs.short, _expected_short(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
 
     # add_increments alone: the same concentrations
     acc2 = rng.random((2, m, num_classes))

@@ -10,7 +10,7 @@ import numpy as np
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .raster import (ContributionStore, UpdateWorkspace, accumulate_update, add_increments,
+from .raster import (AttributeRows, ContributionStore, UpdateWorkspace, accumulate_update, add_increments,
                      add_increments_and_attributes, bin_tiles, dirichlet_attributes, render_semantic)
 
 if TYPE_CHECKING:
@@ -32,7 +32,7 @@ class NumbaBackend(RasterBackend):
         self._scratch = ProjectionScratch()
         self._workspace = UpdateWorkspace()
         self._store = ContributionStore()
-        self._attrs: "tuple[Any, np.ndarray] | None" = None  # (frame, attribute rows) made by observe's update
+        self._attrs: "tuple[Any, AttributeRows] | None" = None  # (frame, attribute rows) made by observe's update
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:

@@ -13,7 +13,7 @@ walking again (benchmarks/README.md).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numba
 import numpy as np
@@ -433,10 +433,89 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
         counts[ch, OCCLUDED] = occluded
 
 
+#: Columns of a Gaussian's short shading row (:func:`dirichlet_attributes`): E and Var of its most likely class,
+#: r, g, b, S, z, and that class (a float32 holding an integer).
+SHORT_COLS = 8
+#: The short path's margin: the guessed class's share of a pixel's expectation mass must exceed one half by this
+#: relative amount, far above the float32 rounding of the rows' sums (C x 2^-24) and of the accumulation.
+MAJORITY_MARGIN = 1e-3
+#: Short-path misses after which the render stops trying it for the rest of a tile (a tile of mixed classes or
+#: little evidence misses pixel after pixel, each miss paying the short pass and then the full one).
+SHORT_MISSES = 4
+
+
 @njit(inline="always", fastmath=FAST)
-def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, num_classes, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
-                 out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth):  # pragma: no cover
-    """Accumulate one pixel's contributions (tile-list positions ks, kappas vs) into the outputs.
+def _shade_majority(v, u, ks, vs, cnt, tr, short, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, out_label, out_exp, out_var,
+                    out_bg, out_evidence, out_rgb, out_depth):  # pragma: no cover
+    """The short path of :func:`_shade_pixel`: when every contribution's Gaussian has the same most likely class
+    g (``short`` rows) and g holds more than half of the pixel's expectation mass (sum kappa E^g > (1 + margin)
+    (1 - T) / 2, while the classes' E of a Gaussian sum to 1 and the kappas to 1 - T), g is the pixel's argmax
+    whatever the other classes hold, so E, Var of g, colour, evidence and depth need one 32-byte row per
+    contribution instead of the full attribute row.
+
+    Returns 1 where it wrote the pixel, 2 where it found that this does not hold (nothing written), 0 where it did
+    not try (no contribution, or the front contribution's E^g is at most one half). ``acc``: (>= SHORT_COLS,)
+    float32 scratch; every column is accumulated with weight kappa, four contributions at a time as in the full
+    path (one 8-wide vector step each), the variance apart with kappa^2."""
+    if cnt == 0 or short[tile_list[ks[0]], 0] <= 0.5:
+        return 0
+    fg = short[tile_list[ks[0]], 7]
+    for c in range(SHORT_COLS):
+        acc[c] = 0.0
+    vhat = tr * tr * v_bg
+    i = 0
+    while i + 4 <= cnt:
+        r0 = short[tile_list[ks[i]]]
+        r1 = short[tile_list[ks[i + 1]]]
+        r2 = short[tile_list[ks[i + 2]]]
+        r3 = short[tile_list[ks[i + 3]]]
+        if (r0[7] != fg) | (r1[7] != fg) | (r2[7] != fg) | (r3[7] != fg):
+            return 2
+        k0 = vs[i]
+        k1 = vs[i + 1]
+        k2 = vs[i + 2]
+        k3 = vs[i + 3]
+        w0 = np.float32(k0)
+        w1 = np.float32(k1)
+        w2 = np.float32(k2)
+        w3 = np.float32(k3)
+        for c in range(SHORT_COLS):
+            acc[c] += (w0 * r0[c] + w1 * r1[c]) + (w2 * r2[c] + w3 * r3[c])
+        vhat += k0 * k0 * r0[1]
+        vhat += k1 * k1 * r1[1]
+        vhat += k2 * k2 * r2[1]
+        vhat += k3 * k3 * r3[1]
+        i += 4
+    while i < cnt:
+        r0 = short[tile_list[ks[i]]]
+        if r0[7] != fg:
+            return 2
+        k0 = vs[i]
+        w0 = np.float32(k0)
+        for c in range(SHORT_COLS):
+            acc[c] += w0 * r0[c]
+        vhat += k0 * k0 * r0[1]
+        i += 1
+    if not 2.0 * acc[0] > (1.0 - tr) * (1.0 + MAJORITY_MARGIN):  # sum kappa = 1 - T (the walk telescopes)
+        return 2
+    out_label[v, u] = np.int32(fg)
+    out_exp[v, u] = acc[0] + tr * e_bg
+    out_var[v, u] = vhat
+    out_bg[v, u] = tr
+    out_evidence[v, u] = acc[5] + tr * s_bg
+    out_rgb[v, u, 0] = acc[2] + tr * bg_rgb[0]
+    out_rgb[v, u, 1] = acc[3] + tr * bg_rgb[1]
+    out_rgb[v, u, 2] = acc[4] + tr * bg_rgb[2]
+    out_depth[v, u] = acc[6] / (1.0 - tr)
+    return 1
+
+
+@njit(inline="always", fastmath=FAST)
+def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, short, num_classes, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb,
+                 want_probs, try_short, out_label, out_exp, out_var, out_bg, out_evidence, out_rgb, out_probs,
+                 out_depth):  # pragma: no cover
+    """Accumulate one pixel's contributions (tile-list positions ks, kappas vs) into the outputs: by
+    :func:`_shade_majority` where it applies (not with ``want_probs``), else over the full attribute rows.
 
     attrs rows (``attrs[tile_list[k]]``, :func:`dirichlet_attributes`) are read in place (a tile-local copy of the
     rows cost more than it saved): one loop over the first :func:`linear_width` columns accumulates expectation,
@@ -444,6 +523,13 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, num_classes, tile_list, acc, e_bg
     NaN without any contribution). Contributions are taken four at a time, so the accumulator round trip through
     memory (the loop over the columns is too short for LLVM's wide vector body) is paid once per four.
     """
+    missed = 0
+    if try_short and not want_probs:
+        how = _shade_majority(v, u, ks, vs, cnt, tr, short, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, out_label, out_exp,
+                              out_var, out_bg, out_evidence, out_rgb, out_depth)
+        if how == 1:
+            return 0
+        missed = how // 2
     lin = _linear_width(num_classes)
     for c in range(lin):
         acc[c] = 0.0
@@ -489,6 +575,7 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, num_classes, tile_list, acc, e_bg
     if want_probs:
         for c in range(num_classes):
             out_probs[v, u, c] = acc[c] + tr * e_bg
+    return missed
 
 
 @njit(inline="always")
@@ -504,7 +591,7 @@ def _add_mass(ks, vs, cnt, tile_list, label, depth, edges, weights, mass):  # pr
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
+def _render_kernel(offsets, lists, walk, attrs, short, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb,
                    out_probs, out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
@@ -523,6 +610,7 @@ def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, b
             n = end - start
             tile_list = lists[start:end]
             loaded = False
+            misses = 0
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
@@ -544,9 +632,10 @@ def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, b
                 for u in range(u0, u1 + 1):
                     p = u - u0
                     if active[p]:
-                        _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], attrs, num_classes, tile_list, eacc,
-                                     e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp, out_var, out_bg,
-                                     out_evidence, out_rgb, out_probs, out_depth)
+                        misses += _shade_pixel(v, u, kidx[p], kval[p], cnt[p], trans[p], attrs, short, num_classes,
+                                               tile_list, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs,
+                                               misses < SHORT_MISSES, out_label, out_exp, out_var, out_bg,
+                                               out_evidence, out_rgb, out_probs, out_depth)
                         if want_mass:
                             _add_mass(kidx[p], kval[p], cnt[p], tile_list, out_label[v, u], out_depth[v, u],
                                       mass_edges, mass_w, mass[ch])
@@ -554,9 +643,10 @@ def _render_kernel(offsets, lists, walk, attrs, num_classes, e_bg, v_bg, s_bg, b
                         q = v * width + u
                         off = pix_off[q]
                         c = pix_cnt[q]
-                        _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], attrs,
-                                     num_classes, tile_list, eacc, e_bg, v_bg, s_bg, bg_rgb, want_probs, out_label, out_exp,
-                                     out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
+                        misses += _shade_pixel(v, u, st_k[ch, off:off + c], st_v[ch, off:off + c], c, pix_t[q], attrs,
+                                               short, num_classes, tile_list, eacc, e_bg, v_bg, s_bg, bg_rgb,
+                                               want_probs, misses < SHORT_MISSES, out_label, out_exp,
+                                               out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
 
 
 @njit(cache=True, fastmath=FAST)
@@ -796,14 +886,17 @@ def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  #
 
 
 @njit(inline="always", fastmath=FAST)
-def _attribute_row(concentrations, row, j, colors, packed, attrs):  # pragma: no cover
-    """attrs[j] of :func:`dirichlet_attributes` from row ``row`` of the concentrations, every column written (the
-    padding zero), so the rows can be taken with ``np.empty``."""
+def _attribute_row(concentrations, row, j, colors, packed, attrs, short):  # pragma: no cover
+    """attrs[j] and short[j] of :func:`dirichlet_attributes` from row ``row`` of the concentrations, every column
+    written (the padding zero), so the rows can be taken with ``np.empty``."""
     num_classes = concentrations.shape[1]
     lin = _linear_width(num_classes)
     total = 0.0
+    top = 0
     for c in range(num_classes):
-        total += concentrations[row, c]
+        x = concentrations[row, c]
+        total += x
+        top = c if x > concentrations[row, top] else top
     inv = 1.0 / total
     denom = 1.0 / (1.0 + total)
     for c in range(3):
@@ -816,56 +909,72 @@ def _attribute_row(concentrations, row, j, colors, packed, attrs):  # pragma: no
         e = concentrations[row, c] * inv
         attrs[j, c] = np.float32(e)
         attrs[j, lin + c] = np.float32(e * (1.0 - e) * denom)
+    short[j, 0] = attrs[j, top]
+    short[j, 1] = attrs[j, lin + top]
+    for c in range(5):
+        short[j, 2 + c] = attrs[j, num_classes + c]
+    short[j, 7] = np.float32(top)
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _dirichlet_kernel(concentrations, ids, colors, packed, attrs):  # pragma: no cover
-    """attrs[j] of :func:`dirichlet_attributes` for every projected Gaussian j."""
+def _dirichlet_kernel(concentrations, ids, colors, packed, attrs, short):  # pragma: no cover
+    """attrs[j], short[j] of :func:`dirichlet_attributes` for every projected Gaussian j."""
     for j in prange(ids.shape[0]):
-        _attribute_row(concentrations, ids[j], j, colors, packed, attrs)
+        _attribute_row(concentrations, ids[j], j, colors, packed, attrs, short)
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, decay, prior, colors, packed,
-                              attrs):  # pragma: no cover
+                              attrs, short):  # pragma: no cover
     """:func:`add_increments` and then :func:`_dirichlet_kernel` of each row while it is in cache (one gather of the
     visible Gaussians' concentration rows instead of two)."""
     for j in prange(ids.shape[0]):
         _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
-        _attribute_row(concentrations, ids[j], j, colors, packed, attrs)
+        _attribute_row(concentrations, ids[j], j, colors, packed, attrs, short)
+
+
+class AttributeRows(NamedTuple):
+    """What the shading reads of each projected Gaussian (:func:`dirichlet_attributes`)."""
+
+    full: np.ndarray   #: (M, linear_width(C) + C) float32: E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}
+    short: np.ndarray  #: (M, SHORT_COLS) float32: E, Var of the most likely class, r, g, b, S, z, that class
+
+
+def _new_rows(m: int, num_classes: int) -> AttributeRows:
+    return AttributeRows(np.empty((m, linear_width(num_classes) + num_classes), dtype=np.float32),
+                         np.empty((m, SHORT_COLS), dtype=np.float32))
 
 
 def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, acc: np.ndarray,
                                   acc_base: np.ndarray, decay: float, prior: float, colors: np.ndarray,
-                                  packed: np.ndarray) -> np.ndarray:
+                                  packed: np.ndarray) -> AttributeRows:
     """:func:`add_increments` then :func:`dirichlet_attributes` of the updated rows, in one pass (``observe``)."""
-    num_classes = concentrations.shape[1]
-    attrs = np.empty((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
-    _add_and_attribute_kernel(concentrations, ids, acc, acc_base, float(decay), float(prior), colors, packed, attrs)
-    return attrs
+    rows = _new_rows(ids.shape[0], concentrations.shape[1])
+    _add_and_attribute_kernel(concentrations, ids, acc, acc_base, float(decay), float(prior), colors, packed, *rows)
+    return rows
 
 
 def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray,
-                         packed: np.ndarray) -> np.ndarray:
-    """Per projected Gaussian j: attrs[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
-    the variances from column :func:`linear_width` on.
+                         packed: np.ndarray) -> AttributeRows:
+    """Per projected Gaussian j: full[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
+    the variances from column :func:`linear_width` on, and short[j] = (E^g, Var^g, r, g, b, S, z, g) with g its
+    most likely class (the first of equal maxima), for the shading's short path (:func:`_shade_majority`).
 
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
             camera depth z, splat units).
     Returns:
-        attrs (M, linear_width(C) + C) float32 (halves the render's memory traffic; these rows are all the shading
-        reads), with E = alpha / S, Var = E (1 - E) / (1 + S).
+        float32 rows (halves the render's memory traffic; these rows are all the shading reads), with
+        E = alpha / S, Var = E (1 - E) / (1 + S).
     """
-    num_classes = concentrations.shape[1]
-    attrs = np.empty((ids.shape[0], linear_width(num_classes) + num_classes), dtype=np.float32)
-    _dirichlet_kernel(concentrations, ids, colors, packed, attrs)
-    return attrs
+    rows = _new_rows(ids.shape[0], concentrations.shape[1])
+    _dirichlet_kernel(concentrations, ids, colors, packed, *rows)
+    return rows
 
 
 def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height: int,
-                    attrs: np.ndarray,
+                    attrs: AttributeRows,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
                     want_probs: bool, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None,
                     store: ContributionStore | None = None) -> RenderBuffers:
@@ -873,13 +982,12 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
 
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
-        attrs: (M, linear_width(C) + C) float32 rows (E[theta_n^0..C-1], r, g, b, S_n, z_n, 0.., Var[theta_n^0..C-1])
-            of the projected Gaussians (see :func:`dirichlet_attributes`).
+        attrs: the projected Gaussians' rows (:func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
         mass_weights: (edges (B + 1,) splat units, net vote weight per (label, depth bin) (C * B,)): also return
             each projected Gaussian's evidence mass in the view (``RenderBuffers.mass``, (M,) float64).
     """
-    num_classes = attribute_classes(attrs.shape[1])
+    num_classes = attribute_classes(attrs.full.shape[1])
     out_label = np.empty((height, width), dtype=np.int32)
     out_exp = np.empty((height, width))
     out_var = np.empty((height, width))
@@ -892,7 +1000,7 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     want_mass = mass_weights is not None
     mass = np.zeros((nchunks, proj.count) if want_mass else (nchunks, 0))
     edges, wts = mass_weights if mass_weights is not None else (np.zeros(2), np.ones(1))
-    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs, num_classes, e_bg, v_bg, s_bg,
+    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs.full, attrs.short, num_classes, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
                    want_probs, nchunks, store is not None, *(_NO_STORE if store is None else store.arrays()),
                    out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth,
