@@ -9,7 +9,7 @@ import pytest
 from numba import njit
 
 from css_ros import SemanticMap
-from css_ros.engine.cpu.raster import MAJORITY_MARGIN, SHORT_COLS, _shade_majority
+from css_ros.engine.cpu.raster import MAJORITY_MARGIN, SHORT_COLS, SHORT_MIN_COLUMNS, _shade_majority, linear_width
 from scenes import camera, random_scene
 
 E_BG, V_BG, S_BG = 0.25, 0.01, 0.004
@@ -86,11 +86,12 @@ def test_the_short_path_refuses_what_it_cannot_decide():
     assert _one_pixel(ks[:0], kappa[:0], 1.0, short, tiles)[0] == 0
 
 
-@pytest.mark.parametrize("num_classes", [5, 28])
+@pytest.mark.parametrize("num_classes", [28, 40])
 def test_renders_equal_the_full_path_where_the_short_one_applies(num_classes):
     """A mapped scene rendered twice: asking for the probabilities takes the full path for every pixel; without
     them the short path shades the pixels it applies to (a tenth of the covered ones at least, so the
     comparison is not vacuous). Labels are equal; the values agree to float32 rounding."""
+    assert linear_width(num_classes) >= SHORT_MIN_COLUMNS   # the short path is tried for this many classes
     rng = np.random.default_rng(4)
     model = random_scene(7, n=400, log_scale=(-3.0, -1.0))
     smap = SemanticMap(model, num_classes)

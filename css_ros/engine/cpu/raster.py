@@ -442,6 +442,10 @@ MAJORITY_MARGIN = 1e-3
 #: Short-path misses after which the render stops trying it for the rest of a tile (a tile of mixed classes or
 #: little evidence misses pixel after pixel, each miss paying the short pass and then the full one).
 SHORT_MISSES = 4
+#: The short path is tried only where the full rows' linear part is at least this wide (C >= 28 classes): measured
+#: with 28 classes (40 columns) it made the 500k room's render 20 % faster, with 20 (32 columns: two cache lines, four
+#: vector steps per contribution) biker's 13-16 % slower (benchmarks/README.md).
+SHORT_MIN_COLUMNS = 40
 
 
 @njit(inline="always", fastmath=FAST)
@@ -591,7 +595,7 @@ def _add_mass(ks, vs, cnt, tile_list, label, depth, edges, weights, mass):  # pr
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _render_kernel(offsets, lists, walk, attrs, short, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
+def _render_kernel(offsets, lists, walk, attrs, short, short_ok, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
                    tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb,
                    out_probs, out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
@@ -610,7 +614,7 @@ def _render_kernel(offsets, lists, walk, attrs, short, num_classes, e_bg, v_bg, 
             n = end - start
             tile_list = lists[start:end]
             loaded = False
-            misses = 0
+            misses = 0 if short_ok else SHORT_MISSES
             ty, tx = t // tiles_x, t % tiles_x
             u0 = tx * tile
             u1 = min(width, u0 + tile) - 1
@@ -1000,7 +1004,8 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     want_mass = mass_weights is not None
     mass = np.zeros((nchunks, proj.count) if want_mass else (nchunks, 0))
     edges, wts = mass_weights if mass_weights is not None else (np.zeros(2), np.ones(1))
-    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs.full, attrs.short, num_classes, e_bg, v_bg, s_bg,
+    short_ok = linear_width(num_classes) >= SHORT_MIN_COLUMNS
+    _render_kernel(bins.offsets, bins.lists, proj.walk, attrs.full, attrs.short, short_ok, num_classes, e_bg, v_bg, s_bg,
                    np.asarray(bg_rgb, dtype=np.float64), width, height, bins.tile_size, bins.tiles_x,
                    want_probs, nchunks, store is not None, *(_NO_STORE if store is None else store.arrays()),
                    out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_probs, out_depth,
