@@ -449,6 +449,24 @@ SHORT_MIN_COLUMNS = 40
 
 
 @njit(inline="always", fastmath=FAST)
+def _write_pixel(v, u, label, e, vhat, tr, acc, k, cnt, e_bg, s_bg, bg_rgb, out_label, out_exp, out_var, out_bg,
+                 out_evidence, out_rgb, out_depth):  # pragma: no cover
+    """One pixel's outputs from its sums over its contributions (both shading paths): the label, E = e + T e_bg, Var
+    (``vhat``, the background's share included), T, and from acc[k:k + 5] (the kappa-weighted sums of r, g, b, S, z)
+    the colour and evidence with the background's share and the depth sum kappa z / (1 - T) (NaN without any
+    contribution)."""
+    out_label[v, u] = label
+    out_exp[v, u] = e + tr * e_bg
+    out_var[v, u] = vhat
+    out_bg[v, u] = tr
+    out_evidence[v, u] = acc[k + 3] + tr * s_bg
+    out_rgb[v, u, 0] = acc[k] + tr * bg_rgb[0]
+    out_rgb[v, u, 1] = acc[k + 1] + tr * bg_rgb[1]
+    out_rgb[v, u, 2] = acc[k + 2] + tr * bg_rgb[2]
+    out_depth[v, u] = acc[k + 4] / (1.0 - tr) if cnt > 0 else np.nan
+
+
+@njit(inline="always", fastmath=FAST)
 def _shade_majority(v, u, ks, vs, cnt, tr, short, tile_list, acc, e_bg, v_bg, s_bg, bg_rgb, out_label, out_exp, out_var,
                     out_bg, out_evidence, out_rgb, out_depth):  # pragma: no cover
     """The short path of :func:`_shade_pixel`: when every contribution's Gaussian has the same most likely class
@@ -502,15 +520,8 @@ def _shade_majority(v, u, ks, vs, cnt, tr, short, tile_list, acc, e_bg, v_bg, s_
         i += 1
     if not 2.0 * acc[0] > (1.0 - tr) * (1.0 + MAJORITY_MARGIN):  # sum kappa = 1 - T (the walk telescopes)
         return 2
-    out_label[v, u] = np.int32(fg)
-    out_exp[v, u] = acc[0] + tr * e_bg
-    out_var[v, u] = vhat
-    out_bg[v, u] = tr
-    out_evidence[v, u] = acc[5] + tr * s_bg
-    out_rgb[v, u, 0] = acc[2] + tr * bg_rgb[0]
-    out_rgb[v, u, 1] = acc[3] + tr * bg_rgb[1]
-    out_rgb[v, u, 2] = acc[4] + tr * bg_rgb[2]
-    out_depth[v, u] = acc[6] / (1.0 - tr)
+    _write_pixel(v, u, np.int32(fg), acc[0], vhat, tr, acc, 2, cnt, e_bg, s_bg, bg_rgb, out_label, out_exp, out_var,
+                 out_bg, out_evidence, out_rgb, out_depth)
     return 1
 
 
@@ -567,15 +578,8 @@ def _shade_pixel(v, u, ks, vs, cnt, tr, attrs, short, num_classes, tile_list, ac
     for i in range(cnt):
         kappa = vs[i]
         vhat += kappa * kappa * attrs[tile_list[ks[i]], lin + best]
-    out_label[v, u] = best
-    out_exp[v, u] = acc[best] + tr * e_bg
-    out_var[v, u] = vhat
-    out_bg[v, u] = tr
-    out_evidence[v, u] = acc[num_classes + 3] + tr * s_bg
-    out_rgb[v, u, 0] = acc[num_classes] + tr * bg_rgb[0]
-    out_rgb[v, u, 1] = acc[num_classes + 1] + tr * bg_rgb[1]
-    out_rgb[v, u, 2] = acc[num_classes + 2] + tr * bg_rgb[2]
-    out_depth[v, u] = acc[num_classes + 4] / (1.0 - tr) if cnt > 0 else np.nan
+    _write_pixel(v, u, best, acc[best], vhat, tr, acc, num_classes, cnt, e_bg, s_bg, bg_rgb, out_label, out_exp,
+                 out_var, out_bg, out_evidence, out_rgb, out_depth)
     if want_probs:
         for c in range(num_classes):
             out_probs[v, u, c] = acc[c] + tr * e_bg
