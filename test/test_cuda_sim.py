@@ -705,3 +705,41 @@ def test_scoring_in_batches_of_bounded_pairs_equals_one_batch(monkeypatch):
     again = gpu.select_views(views, 3)
     np.testing.assert_array_equal(again.indices, picks.indices)
     np.testing.assert_allclose(again.gains, picks.gains, rtol=1e-12)
+
+
+def test_scoring_holds_one_batch_at_a_time(monkeypatch):
+    """A scoring batch's frame (its projection rows, sorts and tile keys: most of a scoring's GPU memory) is gone
+    before the next batch's is made, in score_views, select_views and view_masses (task_importance): the peak
+    holds one batch, not two."""
+    import gc
+    import weakref
+
+    from css_ros.engine.cuda import backend as cuda_backend
+    from css_ros.engine.cuda.view_plan import HEADROOM
+
+    model = random_scene(15, n=100)
+    views = [camera(width=8, height=6, f=6.0, position=(0.1 * i, -0.05 * i, 0.0)) for i in range(6)]
+    gpu = SemanticMap(model, C, backend="cuda")
+    gpu.score_views(views)                                      # measures the pairs per view of this size
+    backend = gpu._backend
+    monkeypatch.setattr(cuda_backend, "SCORE_BATCH_PAIRS", int(2.5 * HEADROOM * backend._pairs_per_view[(8, 6)]))
+    assert len(backend._score_chunks(list(range(6)), 8, 6)) == 3
+    made: list[weakref.ref] = []
+    alive_at_new: list[int] = []
+    prepare = backend.prepare_views
+
+    def recording(cameras, *args, **kwargs):
+        if len(cameras) > 1 or made:
+            gc.collect()
+            alive_at_new.append(sum(ref() is not None for ref in made))
+        frame = prepare(cameras, *args, **kwargs)
+        made.append(weakref.ref(frame))
+        return frame
+
+    monkeypatch.setattr(backend, "prepare_views", recording)
+    for call in (lambda: gpu.score_views(views), lambda: gpu.select_views(views, 2),
+                 lambda: gpu.task_importance(views)):
+        made.clear()
+        alive_at_new.clear()
+        call()
+        assert len(made) == 3 and alive_at_new == [0, 0, 0], alive_at_new

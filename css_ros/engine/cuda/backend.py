@@ -690,8 +690,9 @@ class CudaBackend(RasterBackend):
                        ) -> Iterator[tuple[list[int], CudaFrame, Any, Any]]:
         """Per batch of views of one size (:meth:`_score_chunks`): (indices into ``cameras``, the batch's frame, its
         (V, 2) f64 score sums on the device, the (M,) f64 evidence mass per pair on the device or None), every stage
-        one launch for the batch. Callers keep of a batch only what they need (the frame's buffers are the largest
-        part of a scoring's memory)."""
+        one launch for the batch. Callers keep of a batch only what they need and drop its frame and mass before
+        asking for the next (the frame's buffers are the largest part of a scoring's memory: with the previous batch
+        still referenced, two batches' buffers were alive at the peak)."""
         conc = self._device_concentrations_for_read(concentrations)
         settings = self._score_settings(e_bg, v_bg, s_bg)
         no_planes = np.full(NUM_PLANES, -1, dtype=np.int64)
@@ -712,6 +713,7 @@ class CudaBackend(RasterBackend):
                 else:
                     self._launch_render(frame, conc, settings, no_planes, self._empty_views, scores, True)
                 yield idx, frame, scores, mass
+                del frame, scores, mass    # the next batch's buffers are made with this one's gone
 
     def _pair_masses(self, idx: list[int], frame: CudaFrame, mass: Any) -> "PairMasses":
         """What the gains need of a batch, copied out of its frame so that the frame's buffers can go."""
@@ -770,6 +772,7 @@ class CudaBackend(RasterBackend):
             sums.append((idx, frame.width * frame.height, scores))
             if gains is not None:
                 self._add_gains(idx, frame.num_pairs, frame.views, frame.ids, mass, sq, imp, pixel_scale, gains)
+            del frame, mass
         for idx, pixels, scores in sums:
             values = self.ops.download(scores)
             for row, i in enumerate(idx):
@@ -787,10 +790,12 @@ class CudaBackend(RasterBackend):
         for idx, frame, _, mass in self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights):
             m = frame.num_pairs
             if m == 0 or mass is None:
+                del frame, mass
                 continue
             views = self.ops.download(frame.views[:m])
             ids = self.ops.download(frame.ids[:m]).astype(np.int64)
             values = self.ops.download(mass[:m])
+            del frame, mass
             for row, i in enumerate(idx):
                 sel = views == row
                 order = np.argsort(ids[sel], kind="stable")
@@ -804,8 +809,10 @@ class CudaBackend(RasterBackend):
         size, V gains back, and one launch moving the chosen view's Gaussians' (S, Q) as its expected observation
         would (the numba path's result within float32 rounding of the mass)."""
         cams = list(cameras)
-        groups = [self._pair_masses(idx, frame, mass)
-                  for idx, frame, _, mass in self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights)]
+        groups: list[PairMasses] = []
+        for idx, frame, _, mass in self._scored_groups(cams, concentrations, e_bg, v_bg, s_bg, mass_weights):
+            groups.append(self._pair_masses(idx, frame, mass))
+            del frame, mass
         sq = self._moment_sums(concentrations)
         imp = self._empty_f64 if importance is None else self.ops.upload(importance, np.float64)
         chosen: list[int] = []
