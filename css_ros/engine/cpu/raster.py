@@ -186,10 +186,12 @@ def _rendered_depth(kidx, kval, c, ldepth):  # pragma: no cover
 
 
 @njit(inline="always", fastmath=FAST)
-def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, acc_base, ch, rows):  # pragma: no cover
+def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc, acc_base, ch, rows):  # pragma: no cover
     """Add a tile's accumulator rows (the present ones) into the chunk's Gaussian-major increments ``acc`` (M, C):
     a class row as it is; with a sensor model, each (label, depth bin) row r through its table, base[r] into
-    acc_base[ch] and resid[r, c] into class c. ``rows`` is scratch for the present rows' ids."""
+    acc_base[ch] and resid[r, c] into class c. Only list positions with ``touched[k]`` (a vote reached them) are added;
+    the others hold zeros (Gaussians behind saturated pixels, or whose alpha ellipse misses the tile's voting
+    pixels). ``rows`` is scratch for the present rows' ids."""
     n = tile_list.shape[0]
     num_classes = acc.shape[1]
     if not use_model:
@@ -199,6 +201,8 @@ def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, ac
                 rows[npres] = c
                 npres += 1
         for k in range(n):
+            if not touched[k]:
+                continue
             out = acc[tile_list[k]]
             for i in range(npres):
                 c = rows[i]
@@ -214,16 +218,19 @@ def _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc, ac
                     for k in range(n):
                         lbase[k] = 0.0
                 for k in range(n):
-                    lbase[k] += lacc[r, k] * b0
+                    if touched[k]:
+                        lbase[k] += lacc[r, k] * b0
             for c in range(num_classes):
                 pc = resid[r, c]
                 if pc != 0.0:
                     for k in range(n):
-                        acc[tile_list[k], c] += lacc[r, k] * pc
+                        if touched[k]:
+                            acc[tile_list[k], c] += lacc[r, k] * pc
     if any_base:
         out = acc_base[ch]
         for k in range(n):
-            out[tile_list[k]] += lbase[k]
+            if touched[k]:
+                out[tile_list[k]] += lbase[k]
 
 
 @njit(inline="always", fastmath=FAST)
@@ -315,6 +322,7 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
         # class (paper's update) or a (label, depth bin) pair whose soft label the flush applies.
         lacc = np.empty((num_rows, 256))
         lbase = np.empty(256)
+        touched = np.empty(256, dtype=np.bool_)  # np.zeros here indexed out of bounds (NUMBA_BOUNDSCHECK) in prange
         ldepth = np.empty(256)
         present = np.empty(num_rows, dtype=np.bool_)
         present_rows = np.empty(num_rows, dtype=np.int64)
@@ -356,9 +364,11 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         lacc = np.empty((num_rows, scratch[0].shape[1]))
                         lbase = np.empty(scratch[0].shape[1])
                         ldepth = np.empty(scratch[0].shape[1])
+                        touched = np.empty(scratch[0].shape[1], dtype=np.bool_)
                         ecache = np.empty((ecache.shape[0], scratch[0].shape[1]), dtype=np.float32)
                     present[:] = False
                     eloaded[:] = False
+                    touched[:n] = False
                     loaded = True
                 cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                 r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
@@ -409,6 +419,7 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                             if want_surprise:
                                 e += x * ecol[k]
                             lrow[k] += x * w
+                            touched[k] = True
                         if want_surprise:
                             surprise[v, u0 + p] = np.float32(1.0 - e)
                     else:
@@ -420,10 +431,12 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                             surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], ecol, inv_c)
                         if scatter:
                             _scatter_votes(kp, vp, c, lacc[row], w, front, depth_scale, ldepth)
+                            for i in range(c):
+                                touched[kp[i]] = True
                     if keep:
                         pos += c
             if loaded:
-                _flush_tile(tile_list, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch,
+                _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch,
                             present_rows)
         counts[ch, USED] = used
         counts[ch, IGNORED] = ignored
