@@ -264,18 +264,21 @@ def _evidence_row(kp, vp, c, label, used, need_depth, has_depth, use_model, meas
 
 
 @njit(inline="always", fastmath=FAST)
-def _scatter_votes(kp, vp, c, lrow, w, front, depth_scale, ldepth):  # pragma: no cover
-    """lrow[kp[i]] += vp[i] * w over a pixel's contributions; with a finite ``front`` [m] (the depth gate), only
-    those of Gaussians not in front of it (camera depth ``ldepth`` in splat units)."""
+def _scatter_votes(kp, vp, c, lrow, w, front, depth_scale, ldepth, touched):  # pragma: no cover
+    """lrow[kp[i]] += vp[i] * w over a pixel's contributions, marking touched[kp[i]]; with a finite ``front`` [m]
+    (the depth gate), only those of Gaussians not in front of it (camera depth ``ldepth`` in splat units)."""
     if front > -np.inf:
         lim = front / depth_scale
         for i in range(c):
             k = kp[i]
             if ldepth[k] >= lim:
                 lrow[k] += vp[i] * w
+                touched[k] = True
     else:
         for i in range(c):
-            lrow[kp[i]] += vp[i] * w
+            k = kp[i]
+            lrow[k] += vp[i] * w
+            touched[k] = True
 
 
 # _update_kernel with ``use_model`` (a sensor model): a pixel labelled y at expected depth d = sum kappa z / sum kappa
@@ -287,6 +290,17 @@ def _scatter_votes(kp, vp, c, lrow, w, front, depth_scale, ldepth):  # pragma: n
 # With ``store``, each voting pixel's contributions (tile-list position as uint16, kappa as float32) are appended to its
 # chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T) for the render of the same frame;
 # pixels not composited, or that did not fit, get pix_cnt = -1.
+@njit(inline="always")
+def _write_counts(row, used, ignored, out_of_range, no_depth, transients, occluded):  # pragma: no cover
+    """A chunk's pixel counts into its (NUM_COUNTS,) row."""
+    row[USED] = used
+    row[IGNORED] = ignored
+    row[OUT_OF_RANGE] = out_of_range
+    row[NO_DEPTH] = no_depth
+    row[TRANSIENT] = transients
+    row[OCCLUDED] = occluded
+
+
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
                    tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
@@ -430,20 +444,13 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                         if want_surprise:
                             surprise[v, u0 + p] = _pixel_surprise(kp, vp, c, trans[p], ecol, inv_c)
                         if scatter:
-                            _scatter_votes(kp, vp, c, lacc[row], w, front, depth_scale, ldepth)
-                            for i in range(c):
-                                touched[kp[i]] = True
+                            _scatter_votes(kp, vp, c, lacc[row], w, front, depth_scale, ldepth, touched)
                     if keep:
                         pos += c
             if loaded:
                 _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch,
                             present_rows)
-        counts[ch, USED] = used
-        counts[ch, IGNORED] = ignored
-        counts[ch, OUT_OF_RANGE] = out_of_range
-        counts[ch, NO_DEPTH] = no_depth
-        counts[ch, TRANSIENT] = transients
-        counts[ch, OCCLUDED] = occluded
+        _write_counts(counts[ch], used, ignored, out_of_range, no_depth, transients, occluded)
 
 
 #: Columns of a Gaussian's short shading row (:func:`dirichlet_attributes`): E and Var of its most likely class,
