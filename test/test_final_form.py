@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+from numba import njit
 
 from css_ros import SemanticMap
 from css_ros.engine.final_form import DEFAULT_OUTPUTS, IMAGE_OUTPUTS, check_outputs, image_uncertainty
@@ -26,6 +27,9 @@ def test_to_byte_is_numpys_rint_and_clip():
     want = np.clip(np.rint(xs * 255.0), 0, 255).astype(np.uint8)
     assert [to_byte(float(x)) for x in xs] == want.tolist()
     assert to_byte(float("nan")) == 0
+    compiled = njit(to_byte)  # the CPU final form's rounding (llvm.rint), the same ties
+    assert [compiled(float(x)) for x in xs] == want.tolist()
+    assert compiled(float("nan")) == 0
 
 
 def test_interp_and_confidence_score_are_numpys():

@@ -26,17 +26,15 @@ def depth_bin(depth, edges):  # type: ignore[no-untyped-def]
 
 
 def to_byte(x):  # type: ignore[no-untyped-def]
-    """numpy's ``clip(rint(x * 255), 0, 255)`` as an int (round half to even; NaN and x <= 0 give 0)."""
+    """numpy's ``clip(rint(x * 255), 0, 255)`` as an int (round half to even; NaN and x <= 0 give 0). ``round`` of a
+    float is Python's, numba's (``llvm.rint``) and numba-cuda's (``llrint``) round half to even alike, and one
+    instruction where compiled (a floor-and-compare version made the CPU's final-form pass 2.4 times slower)."""
     y = x * 255.0
     if not (y > 0.0):
         return 0
     if y >= 255.0:
         return 255
-    r = math.floor(y)
-    d = y - r  # exact: y and floor(y) share their exponent or r is 0
-    if d > 0.5 or (d == 0.5 and r % 2.0 == 1.0):
-        r += 1.0
-    return int(r)
+    return int(round(y))
 
 
 def interp(x, xp, fp):  # type: ignore[no-untyped-def]

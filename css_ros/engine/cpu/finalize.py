@@ -20,15 +20,26 @@ _interp = njit(inline="always")(interp)
 _confidence_score = njit(inline="always")(confidence_score)
 
 
+@njit(inline="always")
+def _uncertainty_terms(e, var):  # pragma: no cover
+    """A pixel's terms of U_var and U_exp: (log max(Var, VAR_FLOOR), E)."""
+    return math.log(max(var, VAR_FLOOR)), e
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _finalize_kernel(lab, exp, var, bg, ev, rgb, depth, thr, ignore, depth_scale, coef, knots_x, knots_y,
                      want_conf, out_lab, out_exp, out_var, out_bg, out_ev, out_rgb, out_depth,
-                     out_conf):  # pragma: no cover
+                     out_conf, sums):  # pragma: no cover
     """Per pixel: the thresholded label and the float32 / uint8 forms of the raw buffers, written where the output
-    array is not empty."""
+    array is not empty; per row, sums[v] of :func:`_row_sums` (in the same pass: the raw rows are read once)."""
     height, width = lab.shape
     for v in prange(height):
+        s_lv = 0.0
+        s_e = 0.0
         for u in range(width):
+            lv, te = _uncertainty_terms(exp[v, u], var[v, u])
+            s_lv += lv
+            s_e += te
             label = lab[v, u]
             if bg[v, u] > thr:
                 label = ignore
@@ -53,6 +64,8 @@ def _finalize_kernel(lab, exp, var, bg, ev, rgb, depth, thr, ignore, depth_scale
                 if label != ignore:
                     conf = _interp(_confidence_score(e, ev[v, u], coef[0], coef[1], coef[2]), knots_x, knots_y)
                 out_conf[v, u] = conf
+        sums[v, 0] = s_lv
+        sums[v, 1] = s_e
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -64,8 +77,9 @@ def _row_sums(exp, var):  # pragma: no cover
         s_lv = 0.0
         s_e = 0.0
         for u in range(width):
-            s_lv += math.log(max(var[v, u], VAR_FLOOR))
-            s_e += exp[v, u]
+            lv, te = _uncertainty_terms(exp[v, u], var[v, u])
+            s_lv += lv
+            s_e += te
         out[v, 0] = s_lv
         out[v, 1] = s_e
     return out
@@ -75,9 +89,12 @@ def uncertainty(expectation: np.ndarray, variance: np.ndarray) -> tuple[float, f
     """(U_var, U_exp) of SPEC §6 from (H, W) float64 E and Var: per-row sums in parallel, then the rows in order,
     so the result does not depend on the number of threads (a render and a score of one view give the same
     numbers)."""
-    sums = _row_sums(expectation, variance)
-    h, w = expectation.shape
-    return uncertainty_from_sums(float(sums[:, 0].sum()), float(sums[:, 1].sum()), h * w)
+    return _from_row_sums(_row_sums(expectation, variance), expectation.size)
+
+
+def _from_row_sums(sums: np.ndarray, pixels: int) -> tuple[float, float]:
+    """(U_var, U_exp) from the (H, 2) per-row sums of a view of ``pixels`` pixels, the rows added in order."""
+    return uncertainty_from_sums(float(sums[:, 0].sum()), float(sums[:, 1].sum()), pixels)
 
 
 def finalize(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
@@ -101,11 +118,12 @@ def finalize(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
     kx = np.zeros(1) if cmap is None else np.asarray(cmap.knots_x, dtype=np.float64)
     ky = np.zeros(1) if cmap is None else np.asarray(cmap.knots_y, dtype=np.float64)
     depth = buf.depth if buf.depth is not None else np.full((h, w), np.nan)
+    sums = np.empty((h, 2))
     _finalize_kernel(buf.labels, buf.expectation, buf.variance, buf.background, buf.evidence, buf.rgb,
-                                 depth, float(s.unknown_threshold), int(s.ignore_label), float(s.depth_scale), coef,
-                                 kx, ky, want_conf, out["labels"], out["expectation"], out["variance"],
-                                 out["background"], out["evidence"], out["rgb"], out["depth"], out["confidence"])
-    u_var, u_exp = uncertainty(buf.expectation, buf.variance)
+                     depth, float(s.unknown_threshold), int(s.ignore_label), float(s.depth_scale), coef,
+                     kx, ky, want_conf, out["labels"], out["expectation"], out["variance"],
+                     out["background"], out["evidence"], out["rgb"], out["depth"], out["confidence"], sums)
+    u_var, u_exp = _from_row_sums(sums, h * w)
     images = FrameImages(u_var=u_var, u_exp=u_exp,
                          probabilities=None if not s.probabilities or buf.probabilities is None
                          else buf.probabilities.astype(np.float32))
