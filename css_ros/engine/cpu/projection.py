@@ -16,6 +16,7 @@ from numba import njit, prange
 from ..sh import eval_sh, sh_polynomial
 from ..spec import COV2D_DILATION, NEAR_PLANE
 from ..splat_math import camera_row, ewa_splat, fov_limits, store_splat, view_direction
+from .prefetch import AHEAD, prefetch, prefetch_row
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -249,6 +250,9 @@ def _gather(ids, out, bbox):  # pragma: no cover
     colors = np.empty((m, 3))
     boxes = np.empty((m, 4), dtype=np.int32)
     for r in prange(m):
+        if r + AHEAD < m:  # block order: the rows lie scattered
+            prefetch_row(out, ids[r + AHEAD])
+            prefetch(bbox, (ids[r + AHEAD], 0))
         i = ids[r]
         for c in range(8):
             packed[r, c] = out[i, c]
@@ -337,7 +341,11 @@ def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
     m = rows.shape[0]
     k = sh.shape[1]
     out = np.empty((m, 3))
+    flat = sh.reshape((sh.shape[0], k * 3))
     for r in prange(m):
+        if r + AHEAD < m:  # block order: the rows lie scattered
+            prefetch_row(flat, rows[r + AHEAD])
+            prefetch(means, (rows[r + AHEAD], 0))
         i = rows[r]
         x, y, z = _view_direction(cam, means, i)
         for c in range(3):
