@@ -9,7 +9,6 @@ import numpy as np
 
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
-from .kept_buffers import RenderPlanes, RowBuffers
 from .projection import GaussianGeometry, ProjectionScratch, project
 from .raster import (AttributeRows, ContributionStore, UpdateWorkspace, accumulate_update, add_increments,
                      add_increments_and_attributes, bin_tiles, dirichlet_attributes, render_semantic)
@@ -33,8 +32,6 @@ class NumbaBackend(RasterBackend):
         self._scratch = ProjectionScratch()
         self._workspace = UpdateWorkspace()
         self._store = ContributionStore()
-        self._rows = RowBuffers()        # observe's attribute rows and raw render planes, kept between frames
-        self._planes = RenderPlanes()
         self._attrs: "tuple[Any, AttributeRows] | None" = None  # (frame, attribute rows) made by observe's update
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
@@ -59,7 +56,7 @@ class NumbaBackend(RasterBackend):
         rules = inputs.rules
         if with_attributes:
             self._attrs = (frame, add_increments_and_attributes(concentrations, proj.ids, acc, acc_base, rules.decay,
-                                                                rules.prior, proj.colors, proj.packed, self._rows))
+                                                                rules.prior, proj.colors, proj.packed))
         else:
             add_increments(concentrations, proj.ids, acc, acc_base, rules.decay, rules.prior)
         self._workspace.done()
@@ -74,18 +71,13 @@ class NumbaBackend(RasterBackend):
 
     def render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
                bg_rgb: np.ndarray, want_probs: bool) -> RenderBuffers:
-        return self._render(frame, concentrations, e_bg, v_bg, s_bg, bg_rgb, want_probs, None)
-
-    def _render(self, frame: Any, concentrations: np.ndarray, e_bg: float, v_bg: float, s_bg: float,
-                bg_rgb: np.ndarray, want_probs: bool, planes: RenderPlanes | None) -> RenderBuffers:
-        """:meth:`render`, into ``planes`` when given (buffers valid until the planes' next use)."""
         proj, bins, camera = frame
         kept, self._attrs = self._attrs, None
         attrs = kept[1] if kept is not None and kept[0] is frame else \
             dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
         store = self._store if self._store.owner is frame else None
         buffers = render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb,
-                                  want_probs, store=store, planes=planes)
+                                  want_probs, store=store)
         if store is not None:
             # replayed once; the buffers are kept for the next frame: given back and taken again, their pages
             # faulted in on every frame (~10 % of a biker frame, benchmarks/README.md)
@@ -93,10 +85,9 @@ class NumbaBackend(RasterBackend):
         return buffers
 
     def render_view(self, frame: Any, concentrations: np.ndarray, settings: "RenderSettings") -> "FrameImages":
-        """The final outputs in one compiled pass after the render (:mod:`.finalize`), which copies the kept raw
-        planes into the view's own arrays."""
-        buf = self._render(frame, concentrations, settings.e_bg, settings.v_bg, settings.s_bg,
-                           np.asarray(settings.bg_rgb, dtype=np.float64), settings.probabilities, self._planes)
+        """The final outputs in one compiled pass after the render (:mod:`.finalize`)."""
+        buf = self.render(frame, concentrations, settings.e_bg, settings.v_bg, settings.s_bg,
+                          np.asarray(settings.bg_rgb, dtype=np.float64), settings.probabilities)
         return finalize(buf, settings)
 
     def uncertainty(self, expectation: np.ndarray, variance: np.ndarray) -> tuple[float, float]:

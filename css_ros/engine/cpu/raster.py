@@ -26,7 +26,6 @@ from ..label_input import (IGNORED, NO_DEPTH, NUM_COUNTS, OCCLUDED, OUT_OF_RANGE
 from ..pixel_math import depth_bin
 from ..spec import TILE_SIZE
 from .composite import FAST, composite_row, load_tile, new_scratch, row_candidates
-from .kept_buffers import RenderPlanes, RowBuffers
 from .prefetch import AHEAD, prefetch_row
 from .projection import ProjectedGaussians
 
@@ -983,19 +982,16 @@ class AttributeRows(NamedTuple):
     short: np.ndarray  #: (M, SHORT_COLS) float32: E, Var of the most likely class, r, g, b, S, z, that class
 
 
-def _new_rows(m: int, num_classes: int, kept: RowBuffers | None = None) -> AttributeRows:
-    cols = linear_width(num_classes) + num_classes
-    if kept is not None:
-        return AttributeRows(*kept.take(m, cols, SHORT_COLS))
-    return AttributeRows(np.empty((m, cols), dtype=np.float32), np.empty((m, SHORT_COLS), dtype=np.float32))
+def _new_rows(m: int, num_classes: int) -> AttributeRows:
+    return AttributeRows(np.empty((m, linear_width(num_classes) + num_classes), dtype=np.float32),
+                         np.empty((m, SHORT_COLS), dtype=np.float32))
 
 
 def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, acc: np.ndarray,
                                   acc_base: np.ndarray, decay: float, prior: float, colors: np.ndarray,
-                                  packed: np.ndarray, kept: RowBuffers | None = None) -> AttributeRows:
-    """:func:`add_increments` then :func:`dirichlet_attributes` of the updated rows, in one pass (``observe``);
-    the rows in ``kept``'s storage when given (valid until its next use), else fresh."""
-    rows = _new_rows(ids.shape[0], concentrations.shape[1], kept)
+                                  packed: np.ndarray) -> AttributeRows:
+    """:func:`add_increments` then :func:`dirichlet_attributes` of the updated rows, in one pass (``observe``)."""
+    rows = _new_rows(ids.shape[0], concentrations.shape[1])
     _add_and_attribute_kernel(concentrations, ids, acc, acc_base, float(decay), float(prior), colors, packed, *rows)
     return rows
 
@@ -1023,24 +1019,25 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
                     attrs: AttributeRows,
                     e_bg: float, v_bg: float, s_bg: float, bg_rgb: np.ndarray,
                     want_probs: bool, mass_weights: "tuple[np.ndarray, np.ndarray] | None" = None,
-                    store: ContributionStore | None = None, planes: RenderPlanes | None = None) -> RenderBuffers:
+                    store: ContributionStore | None = None) -> RenderBuffers:
     """Composite colour, expectation, argmax-class variance and evidence (SPEC §5).
 
     Args:
         store: contributions recorded by :func:`accumulate_update` at the same pose, or None.
-        planes: kept raw planes to render into (the buffers returned are then valid until their next use), or
-            None for fresh ones.
         attrs: the projected Gaussians' rows (:func:`dirichlet_attributes`).
         e_bg, v_bg, s_bg: background expectation, variance (per class) and total.
         mass_weights: (edges (B + 1,) splat units, net vote weight per (label, depth bin) (C * B,)): also return
             each projected Gaussian's evidence mass in the view (``RenderBuffers.mass``, (M,) float64).
     """
     num_classes = attribute_classes(attrs.full.shape[1])
-    if planes is not None:
-        out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_depth = planes.take(height, width)
-    else:
-        out_label, out_exp, out_var, out_bg, out_ev, out_rgb, out_depth = RenderPlanes().take(height, width)
+    out_label = np.empty((height, width), dtype=np.int32)
+    out_exp = np.empty((height, width))
+    out_var = np.empty((height, width))
+    out_bg = np.empty((height, width))
+    out_ev = np.empty((height, width))
+    out_rgb = np.empty((height, width, 3))
     out_probs = np.empty((height, width, num_classes) if want_probs else (1, 1, num_classes))
+    out_depth = np.empty((height, width))
     nchunks = _num_chunks(bins) if store is None else store.nchunks
     want_mass = mass_weights is not None
     mass = np.zeros((nchunks, proj.count) if want_mass else (nchunks, 0))
