@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from css_ros.engine.cpu.prefetch import AHEAD, prefetch, prefetch_row
+from css_ros.engine.cpu.prefetch import prefetch, prefetch_ahead
 
 
 @njit
@@ -14,8 +14,7 @@ def _gather_rows(arr, ids):
     m = ids.shape[0]
     out = np.empty((m, arr.shape[1]), arr.dtype)
     for j in range(m):
-        if j + AHEAD < m:
-            prefetch_row(arr, ids[j + AHEAD])
+        prefetch_ahead(arr, ids, j)
         prefetch(arr, (arr.shape[0] + 1000, 0))  # never dereferenced
         for c in range(arr.shape[1]):
             out[j, c] = arr[ids[j], c]

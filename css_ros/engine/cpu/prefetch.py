@@ -46,3 +46,10 @@ def prefetch_row(arr, row):  # pragma: no cover
     for c in range(0, n, step):
         prefetch(arr, (row, c))
     prefetch(arr, (row, n - 1))
+
+
+@njit(inline="always")
+def prefetch_ahead(arr, ids, j):  # pragma: no cover
+    """In a loop over ``ids`` at position j: prefetch row ``ids[j + AHEAD]`` of ``arr`` (nothing near the end)."""
+    if j + AHEAD < ids.shape[0]:
+        prefetch_row(arr, ids[j + AHEAD])

@@ -16,7 +16,7 @@ from numba import njit, prange
 from ..sh import eval_sh, sh_polynomial
 from ..spec import COV2D_DILATION, NEAR_PLANE
 from ..splat_math import camera_row, ewa_splat, fov_limits, store_splat, view_direction
-from .prefetch import AHEAD, prefetch, prefetch_row
+from .prefetch import prefetch_ahead
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -250,9 +250,8 @@ def _gather(ids, out, bbox):  # pragma: no cover
     colors = np.empty((m, 3))
     boxes = np.empty((m, 4), dtype=np.int32)
     for r in prange(m):
-        if r + AHEAD < m:  # block order: the rows lie scattered
-            prefetch_row(out, ids[r + AHEAD])
-            prefetch(bbox, (ids[r + AHEAD], 0))
+        prefetch_ahead(out, ids, r)  # block order: the rows lie scattered
+        prefetch_ahead(bbox, ids, r)
         i = ids[r]
         for c in range(8):
             packed[r, c] = out[i, c]
@@ -343,9 +342,8 @@ def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
     out = np.empty((m, 3))
     flat = sh.reshape((sh.shape[0], k * 3))
     for r in prange(m):
-        if r + AHEAD < m:  # block order: the rows lie scattered
-            prefetch_row(flat, rows[r + AHEAD])
-            prefetch(means, (rows[r + AHEAD], 0))
+        prefetch_ahead(flat, rows, r)  # block order: the rows lie scattered
+        prefetch_ahead(means, rows, r)
         i = rows[r]
         x, y, z = _view_direction(cam, means, i)
         for c in range(3):

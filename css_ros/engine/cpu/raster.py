@@ -26,7 +26,7 @@ from ..label_input import (IGNORED, NO_DEPTH, NUM_COUNTS, OCCLUDED, OUT_OF_RANGE
 from ..pixel_math import depth_bin
 from ..spec import TILE_SIZE
 from .composite import FAST, composite_row, load_tile, new_scratch, row_candidates
-from .prefetch import AHEAD, prefetch_row
+from .prefetch import prefetch_ahead
 from .projection import ProjectedGaussians
 
 if TYPE_CHECKING:
@@ -202,8 +202,7 @@ def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase
                 rows[npres] = c
                 npres += 1
         for k in range(n):
-            if k + AHEAD < n:  # the list's rows lie scattered over the chunk's increments
-                prefetch_row(acc, tile_list[k + AHEAD])
+            prefetch_ahead(acc, tile_list, k)  # the list's rows lie scattered over the chunk's increments
             if not touched[k]:
                 continue
             out = acc[tile_list[k]]
@@ -871,8 +870,7 @@ def _expectations(concentrations, ids):  # pragma: no cover
     num_classes = concentrations.shape[1]
     out = np.empty((num_classes, m), dtype=np.float32)
     for j in prange(m):
-        if j + AHEAD < m:
-            prefetch_row(concentrations, ids[j + AHEAD])
+        prefetch_ahead(concentrations, ids, j)
         row = ids[j]
         total = 0.0
         for c in range(num_classes):
@@ -914,10 +912,8 @@ def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  #
     when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`).
     With ``decay`` < 1 (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some
     class is first set to prior + (alpha - prior) * decay."""
-    m = acc.shape[1]
-    for j in prange(m):
-        if j + AHEAD < m:
-            prefetch_row(concentrations, ids[j + AHEAD])
+    for j in prange(acc.shape[1]):
+        prefetch_ahead(concentrations, ids, j)
         _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
 
 
@@ -955,10 +951,8 @@ def _attribute_row(concentrations, row, j, colors, packed, attrs, short):  # pra
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _dirichlet_kernel(concentrations, ids, colors, packed, attrs, short):  # pragma: no cover
     """attrs[j], short[j] of :func:`dirichlet_attributes` for every projected Gaussian j."""
-    m = ids.shape[0]
-    for j in prange(m):
-        if j + AHEAD < m:  # the rows lie scattered in the model's order
-            prefetch_row(concentrations, ids[j + AHEAD])
+    for j in prange(ids.shape[0]):
+        prefetch_ahead(concentrations, ids, j)  # the rows lie scattered in the model's order
         _attribute_row(concentrations, ids[j], j, colors, packed, attrs, short)
 
 
@@ -967,10 +961,8 @@ def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, decay, prior, 
                               attrs, short):  # pragma: no cover
     """:func:`add_increments` and then :func:`_dirichlet_kernel` of each row while it is in cache (one gather of the
     visible Gaussians' concentration rows instead of two)."""
-    m = ids.shape[0]
-    for j in prange(m):
-        if j + AHEAD < m:  # the rows lie scattered in the model's order
-            prefetch_row(concentrations, ids[j + AHEAD])
+    for j in prange(ids.shape[0]):
+        prefetch_ahead(concentrations, ids, j)  # the rows lie scattered in the model's order
         _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
         _attribute_row(concentrations, ids[j], j, colors, packed, attrs, short)
 
