@@ -207,6 +207,8 @@ def test_inputs_participant_follows_namespace_and_remappings(tmp_path: Path, mon
     try:
         assert node.wait_log("inputs (", 60.0), node.log()
         assert "inputs over UDPv4" in node.log()
+        # the outputs' participant discovers this client on its own: wait until it has matched our readers too
+        assert client.wait_connected(), node.log()
         labels = rh.wall_labels()
         assert client.send_frame_until_processed(10**9, labels) is not None, node.log()[-3000:]
         graph = client.node
