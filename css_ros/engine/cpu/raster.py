@@ -26,6 +26,7 @@ from ..label_input import (IGNORED, NO_DEPTH, NUM_COUNTS, OCCLUDED, OUT_OF_RANGE
 from ..pixel_math import depth_bin
 from ..spec import TILE_SIZE
 from .composite import FAST, composite_row, load_tile, new_scratch, row_candidates
+from .borrowed import borrow, keep_alive
 from .prefetch import prefetch_ahead
 from .row_vector import add_row, add_rows4
 from .projection import ProjectedGaussians
@@ -304,10 +305,21 @@ def _write_counts(row, used, ignored, out_of_range, no_depth, transients, occlud
     row[OCCLUDED] = occluded
 
 
+@njit(inline="always")
+def _list_rows(num_rows, surprise_rows, cap):  # pragma: no cover
+    """A chunk's rows indexed by tile-list position (``cap`` entries): the tile-local accumulator (num_rows, cap) (label
+    row, list position: the per-contribution scatter stays in cache; only the rows present in the tile are zeroed and
+    flushed to the chunk's rows; a row is a class (paper's update) or a (label, depth bin) pair whose soft label the
+    flush applies), the flush's base sums, touched (np.zeros here indexed out of bounds under NUMBA_BOUNDSCHECK in
+    prange), the list's camera depths and the surprise's expectations (surprise_rows, cap) float32."""
+    return (np.empty((num_rows, cap)), np.empty(cap), np.empty(cap, dtype=np.bool_), np.empty(cap),
+            np.empty((surprise_rows, cap), dtype=np.float32))
+
+
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confidence, ignore_label, width, height,
+def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_confidence, ignore_label, width, height,
                    tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
-                   store, st_k, st_v, pix_off, pix_cnt, pix_t, gate):  # pragma: no cover
+                   store, st_k_arg, st_v_arg, pix_off, pix_cnt, pix_t, gate):  # pragma: no cover
     """acc[chunk, j, c] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, Gaussian-major: the
     add that follows reads each Gaussian's row of every chunk as one contiguous run); counts[chunk] = (used,
     ignored, out of range, no depth, transient, occluded) of the chunk's pixels. Each pixel's vote is
@@ -320,6 +332,10 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
     want_surprise, e_pre (C, M) float32 E before the update, surprise (H, W) float32 out): the rules of
     :mod:`css_ros.engine.change_rules` (transient classes, measured depth, surprise)."""
     depth, has_depth, tol_abs, tol_rel, depth_scale, transient, want_surprise, e_pre, surprise = gate
+    # arrays viewed per row or pixel, borrowed (engine/cpu/borrowed.py): arguments, alive for the whole call
+    labels = borrow(labels_arg)
+    st_k = borrow(st_k_arg)
+    st_v = borrow(st_v_arg)
     nchunks = acc.shape[0]
     num_tiles = offsets.shape[0] - 1
     num_classes = acc.shape[2]
@@ -330,20 +346,15 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
     inv_c = 1.0 / num_classes
     for ch in prange(nchunks):
         pos = 0
-        scratch = new_scratch(tile)
+        owned = new_scratch(tile)   # kept alive to the chunk's end (keep_alive) for its borrowed copy
+        scratch = borrow(owned)
         vote = np.empty(tile, dtype=np.int64)
         kind = np.empty(tile, dtype=np.int64)
         weight = np.empty(tile)
-        # Tile-local accumulator (label row, list position): the per-contribution scatter stays in
-        # cache; only the rows present in the tile are zeroed and flushed to the chunk's rows. A row is a
-        # class (paper's update) or a (label, depth bin) pair whose soft label the flush applies.
-        lacc = np.empty((num_rows, 256))
-        lbase = np.empty(256)
-        touched = np.empty(256, dtype=np.bool_)  # np.zeros here indexed out of bounds (NUMBA_BOUNDSCHECK) in prange
-        ldepth = np.empty(256)
+        lrows = _list_rows(num_rows, num_classes if want_surprise else 1, 256)
+        lacc, lbase, touched, ldepth, ecache = borrow(lrows)
         present = np.empty(num_rows, dtype=np.bool_)
         present_rows = np.empty(num_rows, dtype=np.int64)
-        ecache = np.empty((num_classes if want_surprise else 1, 256), dtype=np.float32)
         eloaded = np.zeros(num_classes, dtype=np.bool_)
         used = 0
         ignored = 0
@@ -376,13 +387,11 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                 if not (n_used > 0 or (want_surprise and n_trans > 0)):
                     continue
                 if not loaded:
-                    scratch = load_tile(walk, lists, start, end, scratch)
+                    owned = load_tile(walk, lists, start, end, owned)
+                    scratch = borrow(owned)
                     if n > lacc.shape[1]:
-                        lacc = np.empty((num_rows, scratch[0].shape[1]))
-                        lbase = np.empty(scratch[0].shape[1])
-                        ldepth = np.empty(scratch[0].shape[1])
-                        touched = np.empty(scratch[0].shape[1], dtype=np.bool_)
-                        ecache = np.empty((ecache.shape[0], scratch[0].shape[1]), dtype=np.float32)
+                        lrows = _list_rows(num_rows, ecache.shape[0], scratch[0].shape[1])
+                        lacc, lbase, touched, ldepth, ecache = borrow(lrows)
                     present[:] = False
                     eloaded[:] = False
                     touched[:n] = False
@@ -454,6 +463,8 @@ def _update_kernel(offsets, lists, walk, packed, labels, confidence, has_confide
                 _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch,
                             present_rows)
         _write_counts(counts[ch], used, ignored, out_of_range, no_depth, transients, occluded)
+        keep_alive(owned)
+        keep_alive(lrows)
 
 
 #: Columns of a Gaussian's short shading row (:func:`dirichlet_attributes`): E and Var of its most likely class,
@@ -616,8 +627,8 @@ def _add_mass(ks, vs, cnt, tile_list, label, depth, edges, weights, mass):  # pr
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _render_kernel(offsets, lists, walk, attrs, short, short_ok, num_classes, e_bg, v_bg, s_bg, bg_rgb, width, height,
-                   tile, tiles_x, want_probs, nchunks, use_store, st_k, st_v, pix_off, pix_cnt, pix_t,
+def _render_kernel(offsets, lists, walk, attrs_arg, short, short_ok, num_classes, e_bg, v_bg, s_bg, bg_rgb, width,
+                   height, tile, tiles_x, want_probs, nchunks, use_store, st_k_arg, st_v_arg, pix_off, pix_cnt, pix_t,
                    out_label, out_exp, out_var, out_bg, out_evidence, out_rgb,
                    out_probs, out_depth, want_mass, mass_edges, mass_w, mass):  # pragma: no cover
     """attrs rows: :func:`dirichlet_attributes`. With ``use_store``, the pixels the update of the
@@ -627,8 +638,13 @@ def _render_kernel(offsets, lists, walk, attrs, short, short_ok, num_classes, e_
     evidence observing it would add to Gaussian j (label_i = the rendered argmax, b_i the bin of the rendered depth
     in ``mass_edges``; without a sensor model B = 1 and mass_w = 1: the kappa mass)."""
     num_tiles = offsets.shape[0] - 1
+    # arrays viewed per pixel or contribution, borrowed (engine/cpu/borrowed.py)
+    attrs = borrow(attrs_arg)
+    st_k = borrow(st_k_arg)
+    st_v = borrow(st_v_arg)
     for ch in prange(nchunks):
-        scratch = new_scratch(tile)
+        owned = new_scratch(tile)   # kept alive to the chunk's end (keep_alive) for its borrowed copy
+        scratch = borrow(owned)
         eacc = np.empty(_linear_width(num_classes), dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
             start, end = offsets[t], offsets[t + 1]
@@ -648,7 +664,8 @@ def _render_kernel(offsets, lists, walk, attrs, short, short_ok, num_classes, e_
                     walked |= a
                 if walked:
                     if not loaded:
-                        scratch = load_tile(walk, lists, start, end, scratch)
+                        owned = load_tile(walk, lists, start, end, owned)
+                        scratch = borrow(owned)
                         loaded = True
                     cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                     r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
@@ -672,6 +689,7 @@ def _render_kernel(offsets, lists, walk, attrs, short, short_ok, num_classes, e_
                                                short, num_classes, tile_list, eacc, e_bg, v_bg, s_bg, bg_rgb,
                                                want_probs, misses < SHORT_MISSES, out_label, out_exp,
                                                out_var, out_bg, out_evidence, out_rgb, out_probs, out_depth)
+        keep_alive(owned)
 
 
 @njit(cache=True, fastmath=FAST)
