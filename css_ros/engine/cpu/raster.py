@@ -308,6 +308,12 @@ def _write_counts(row, used, ignored, out_of_range, no_depth, transients, occlud
 
 
 @njit(inline="always")
+def _record_row(t, row, tile):  # pragma: no cover
+    """Index of the first pixel record of row ``row`` (0 <= row < tile) of tile t: the records are tile-major."""
+    return t * tile * tile + row * tile
+
+
+@njit(inline="always")
 def _list_rows(num_rows, surprise_rows, cap):  # pragma: no cover
     """A chunk's rows indexed by tile-list position (``cap`` entries): the tile-local accumulator (num_rows, cap) (label
     row, list position: the per-contribution scatter stays in cache; only the rows present in the tile are zeroed and
@@ -383,7 +389,7 @@ def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_con
                 ignored += n_ignored
                 out_of_range += n_out
                 transients += n_trans
-                qt = t * tile * tile + (v - ty * tile) * tile  # the row's first pixel record (tile-major)
+                qt = _record_row(t, v - ty * tile, tile)
                 if store:
                     pix_cnt[qt:qt + u1 - u0 + 1] = -1
                 if not (n_used > 0 or (want_surprise and n_trans > 0)):
@@ -660,7 +666,7 @@ def _render_kernel(offsets, lists, walk, attrs_arg, short, short_ok, num_classes
             for v in range(ty * tile, min(height, ty * tile + tile)):
                 active = scratch[8]
                 walked = False
-                qt = t * tile * tile + (v - ty * tile) * tile
+                qt = _record_row(t, v - ty * tile, tile)
                 for p in range(u1 + 1 - u0):
                     a = not use_store or pix_cnt[qt + p] < 0
                     active[p] = a
@@ -872,7 +878,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     transient = rules.transient if rules.transient.shape[0] == inputs.num_classes else _NO_TRANSIENT
     gate = (_NO_PLANE if inputs.depth is None else inputs.depth, inputs.depth is not None, float(rules.tol_abs),
             float(rules.tol_rel), float(rules.depth_scale), transient, want_surprise, e_pre, surprise)
-    records = (bins.offsets.shape[0] - 1) * bins.tile_size ** 2   # tile-major pixel records
+    records = (bins.offsets.shape[0] - 1) * bins.tile_size ** 2   # _record_row's range
     _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
                    inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
                    acc, soft is not None, edges, base, resid, acc_base, counts, store is not None,
