@@ -141,3 +141,39 @@ def test_group_culling_keeps_exactly_the_visible_gaussians(seed):
     order = np.argsort(proj.ids)
     ref_order = np.argsort(ref.ids)
     np.testing.assert_allclose(proj.means2d[order], ref.means2d.numpy()[ref_order], rtol=1e-9, atol=1e-9)
+
+
+def test_longest_list_sizes_the_walk_scratch():
+    """The walk scratch is sized once per frame by the longest tile list (never grown in the tile loop)."""
+    from numba import njit
+
+    from css_ros.engine.cpu.composite import longest_list
+    longest = njit(lambda offsets: longest_list(offsets))
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 900, rng.integers(1, 50)))]).astype(np.int64)
+        assert longest(offsets) == max(1, int(np.diff(offsets).max()))
+    assert longest(np.zeros(1, dtype=np.int64)) == 1          # no tiles
+    assert longest(np.zeros(5, dtype=np.int64)) == 1          # only empty lists
+
+
+def test_long_and_uneven_tile_lists_match_brute_force():
+    """Lists of several hundred entries beside short ones (the scratch of every kernel holds the longest): kappa,
+    and the update + render of observe, against the brute-force reference."""
+    from css_ros import SemanticMap
+    from css_reference import update_reference
+    model = random_scene(7, n=1500, log_scale=(-2.0, -0.6))
+    cam = camera(width=80, height=40, f=20.0)      # a wide view: the scene fills the middle tiles only
+    proj = project(GaussianGeometry.from_model(model), cam)
+    lengths = np.diff(bin_tiles(proj, cam.width, cam.height).offsets)
+    assert lengths.max() > 600 and lengths.min() < lengths.max() / 4
+    kap, bg = dense_kappa(model, cam)
+    ref_kap, ref_bg = reference(model, cam)
+    np.testing.assert_allclose(kap, ref_kap, atol=1e-10)
+    np.testing.assert_allclose(bg, ref_bg, atol=1e-10)
+    labels = np.random.default_rng(8).integers(0, 5, (cam.height, cam.width))
+    smap = SemanticMap(model, 5, prior=1e-3, background=1e-3)
+    view = smap.observe(cam, labels)
+    alpha = update_reference(ref_kap, np.full((model.num_gaussians, 5), 1e-3), labels, 5)
+    np.testing.assert_allclose(smap.concentrations, alpha, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(view.background, ref_bg.reshape(cam.height, cam.width), atol=1e-6)

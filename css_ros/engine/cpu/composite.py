@@ -30,7 +30,6 @@ FAST = {"contract", "reassoc", "arcp"}
 COLS = 8             # tile columns: u v a b c opacity qmax, the slope -b / a (ProjectedGaussians.walk)
 CAND = 6             # row terms of a candidate: u, a, 2 b dy, c dy^2, opacity, qmax
 CHUNK = 64           # candidates tested per step of a pixel's walk (one bit mask)
-_START = 256         # initial capacity of the per-tile scratch (grown to the longest list met)
 
 
 @intrinsic
@@ -60,40 +59,39 @@ def exp_nonpositive(x):  # pragma: no cover
 
 
 @njit(inline="always")
-def new_scratch(tile):  # pragma: no cover
-    """Per-thread walk scratch, sized for lists of _START entries and grown by :func:`load_tile`: (tile columns
+def longest_list(offsets):  # pragma: no cover
+    """The longest tile list of a binning (``offsets`` (tiles + 1,)), at least 1: the capacity of the walk scratch."""
+    longest = 1
+    for t in range(offsets.shape[0] - 1):
+        longest = max(longest, offsets[t + 1] - offsets[t])
+    return longest
+
+
+@njit(inline="always")
+def new_scratch(tile, cap):  # pragma: no cover
+    """Per-thread walk scratch for tile lists of up to ``cap`` entries (:func:`longest_list`): (tile columns
     (COLS, cap), candidate row terms (CAND, cap), candidate list positions (cap,) uint32, bit masks, per-pixel
     contribution positions (tile, cap) uint32 and kappas (tile, cap), counts (tile,), final transmittances (tile,),
     active pixels (tile,), the row's hits of one chunk step ((2, tile * CHUNK): q then alpha, and opacity), their
     list positions (tile * CHUNK,) uint32 and per-pixel (first hit, hit count, still walking) (3, tile). List
-    positions are unsigned: numba then indexes with them without a negative-index test."""
-    return (np.empty((COLS, _START)), np.empty((CAND, _START)), np.empty(_START, dtype=np.uint32),
-            np.empty(_START // CHUNK, dtype=np.uint64), np.empty((tile, _START), dtype=np.uint32),
-            np.empty((tile, _START)), np.empty(tile, dtype=np.int64), np.empty(tile), np.ones(tile, dtype=np.bool_),
+    positions are unsigned: numba then indexes with them without a negative-index test.
+
+    Sized once for the whole frame, never grown: a kernel that reassigned its scratch inside the tile loop paid
+    numba's reference counting of every array at each tile (atomic increments, 14 % of the update's samples)."""
+    return (np.empty((COLS, cap)), np.empty((CAND, cap)), np.empty(cap, dtype=np.uint32),
+            np.empty((cap + CHUNK - 1) // CHUNK, dtype=np.uint64), np.empty((tile, cap), dtype=np.uint32),
+            np.empty((tile, cap)), np.empty(tile, dtype=np.int64), np.empty(tile), np.ones(tile, dtype=np.bool_),
             np.empty((2, tile * CHUNK)), np.empty(tile * CHUNK, dtype=np.uint32), np.empty((3, tile), dtype=np.int64))
 
 
 @njit(inline="always")
-def load_tile(walk, lists, start, end, scratch):  # pragma: no cover
-    """Copy the rows ``walk[lists[start:end]]`` (:attr:`ProjectedGaussians.walk`) into the tile columns (one
-    contiguous array per quantity, so the candidate tests vectorise), growing every list-sized scratch array first
-    if needed. Returns the scratch."""
-    cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
-    n = end - start
-    if n > cols.shape[1]:
-        cap = max(n, 2 * cols.shape[1])
-        cols = np.empty((COLS, cap))
-        cand = np.empty((CAND, cap))
-        ridx = np.empty(cap, dtype=np.uint32)
-        words = np.empty((cap + CHUNK - 1) // CHUNK, dtype=np.uint64)
-        kidx = np.empty((kidx.shape[0], cap), dtype=np.uint32)
-        kval = np.empty((kval.shape[0], cap))
-    tile_list = lists[start:end]
-    for k in range(n):
-        j = tile_list[k]
+def load_tile(walk, lists, start, end, cols):  # pragma: no cover
+    """Copy the rows ``walk[lists[start:end]]`` (:attr:`ProjectedGaussians.walk`) into the tile columns ``cols``
+    (COLS, >= end - start): one contiguous array per quantity, so the candidate tests vectorise."""
+    for k in range(end - start):
+        j = lists[start + k]
         for c in range(COLS):
             cols[c, k] = walk[j, c]
-    return cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state
 
 
 @njit(inline="always", fastmath=FAST)

@@ -25,7 +25,7 @@ from ..label_input import (IGNORED, NO_DEPTH, NUM_COUNTS, OCCLUDED, OUT_OF_RANGE
                            pixel_vote, transient_status)
 from ..pixel_math import depth_bin
 from ..spec import TILE_SIZE
-from .composite import FAST, composite_row, load_tile, new_scratch, row_candidates
+from .composite import FAST, composite_row, load_tile, longest_list, new_scratch, row_candidates
 from .borrowed import borrow, keep_alive
 from .prefetch import prefetch_ahead
 from .row_vector import add_row, add_rows4
@@ -352,14 +352,15 @@ def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_con
     cap = st_k.shape[1]
     need_depth = use_model or has_depth
     inv_c = 1.0 / num_classes
+    longest = longest_list(offsets)
     for ch in prange(nchunks):
         pos = 0
-        owned = new_scratch(tile)   # kept alive to the chunk's end (keep_alive) for its borrowed copy
+        owned = new_scratch(tile, longest)   # kept alive to the chunk's end (keep_alive) for its borrowed copy
         scratch = borrow(owned)
         vote = np.empty(tile, dtype=np.int64)
         kind = np.empty(tile, dtype=np.int64)
         weight = np.empty(tile)
-        lrows = _list_rows(num_rows, num_classes if want_surprise else 1, 256)
+        lrows = _list_rows(num_rows, num_classes if want_surprise else 1, longest)
         lacc, lbase, touched, ldepth, ecache = borrow(lrows)
         present = np.empty(num_rows, dtype=np.bool_)
         present_rows = np.empty(num_rows, dtype=np.int64)
@@ -395,11 +396,7 @@ def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_con
                 if not (n_used > 0 or (want_surprise and n_trans > 0)):
                     continue
                 if not loaded:
-                    owned = load_tile(walk, lists, start, end, owned)
-                    scratch = borrow(owned)
-                    if n > lacc.shape[1]:
-                        lrows = _list_rows(num_rows, ecache.shape[0], scratch[0].shape[1])
-                        lacc, lbase, touched, ldepth, ecache = borrow(lrows)
+                    load_tile(walk, lists, start, end, scratch[0])
                     present[:] = False
                     eloaded[:] = False
                     touched[:n] = False
@@ -650,8 +647,9 @@ def _render_kernel(offsets, lists, walk, attrs_arg, short, short_ok, num_classes
     attrs = borrow(attrs_arg)
     st_k = borrow(st_k_arg)
     st_v = borrow(st_v_arg)
+    longest = longest_list(offsets)
     for ch in prange(nchunks):
-        owned = new_scratch(tile)   # kept alive to the chunk's end (keep_alive) for its borrowed copy
+        owned = new_scratch(tile, longest)   # kept alive to the chunk's end (keep_alive) for its borrowed copy
         scratch = borrow(owned)
         eacc = np.empty(_linear_width(num_classes), dtype=np.float32)
         for t in range(ch, num_tiles, nchunks):
@@ -673,8 +671,7 @@ def _render_kernel(offsets, lists, walk, attrs_arg, short, short_ok, num_classes
                     walked |= a
                 if walked:
                     if not loaded:
-                        owned = load_tile(walk, lists, start, end, owned)
-                        scratch = borrow(owned)
+                        load_tile(walk, lists, start, end, scratch[0])
                         loaded = True
                     cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
                     r = row_candidates(cols, n, v, u0, u1, cand, ridx, words)
@@ -706,11 +703,11 @@ def _kappa_kernel(offsets, lists, walk, width, height, tile, tiles_x,
                   count_only, pix, gid, kap, bg):  # pragma: no cover
     num_tiles = offsets.shape[0] - 1
     total = 0
-    scratch = new_scratch(tile)
+    scratch = new_scratch(tile, longest_list(offsets))
     for t in range(num_tiles):
         start, end = offsets[t], offsets[t + 1]
         n = end - start
-        scratch = load_tile(walk, lists, start, end, scratch)
+        load_tile(walk, lists, start, end, scratch[0])
         cols, cand, ridx, words, kidx, kval, cnt, trans, active, chunk, hit, state = scratch
         ty, tx = t // tiles_x, t % tiles_x
         u0 = tx * tile
