@@ -194,6 +194,7 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
     first_s = time.perf_counter() - t0
 
     cycle, stages = [], {k: [] for k in ("project", "bin", "update", "moments", "render", "uncertainty")}
+    walking: list[float] = []
     backend = smap._backend
     for i in range(1, frames + warmup + 1):
         cam, lab = cams[i], labels[i]
@@ -217,10 +218,15 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         t.append(time.perf_counter())
         image_uncertainty(buf.expectation, buf.variance)
         t.append(time.perf_counter())
+        # the same render walking every pixel itself (as a query view does): the walk the update did for both
+        w0 = time.perf_counter()
+        render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0, np.zeros(3), False)
+        w1 = time.perf_counter()
         if i > warmup:
             cycle.append(t_cycle)
             for k, (a, b) in zip(stages, zip(t[:-1], t[1:])):
                 stages[k].append(b - a)
+            walking.append(w1 - w0)
     query = []
     for cam in cams[warmup + 1:]:
         t0 = time.perf_counter()
@@ -230,7 +236,8 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
                   visible=int(len(project(backend.geometry, cams[-1]).ids)),
                   cycle_ms=1e3 * statistics.median(cycle), fps=1.0 / statistics.median(cycle),
                   query_ms=1e3 * statistics.median(query), query_fps=1.0 / statistics.median(query),
-                  stages_ms={k: 1e3 * statistics.median(v) for k, v in stages.items()})
+                  stages_ms={k: 1e3 * statistics.median(v) for k, v in stages.items()},
+                  render_walking_ms=1e3 * statistics.median(walking))
     if candidates:
         cand = [c.scaled(cand_w / c.width) for c in cams[1:candidates + 1]]
         smap.score_views(cand[:2])
@@ -264,11 +271,13 @@ def print_table(results: list[dict]) -> None:
               f"{r['fps']:>9.2f} {r['query_fps']:>9.2f} {r['peak_rss_mib']:>8.0f} "
               f"{r.get('candidate_views_per_s', float('nan')):>8.1f} {r.get('torch_ratio', float('nan')):>7.1f}")
     print()
-    print("per-stage median ms of the observe cycle (update includes adding into the map; moments = E, Var per"
-          " visible Gaussian; render replays the update's contributions):")
+    print("per-stage median ms of the observe cycle (update = the frame's one compositing walk + the votes + adding"
+          " into the map; moments = E, Var per visible Gaussian; render replays the update's contributions; walking ="
+          " the same render compositing every pixel itself, as a query view does):")
     for r in results:
         s = r["stages_ms"]
         print(f"{r['name']:>6}: " + "  ".join(f"{k}={v:.1f}" for k, v in s.items())
+              + (f" (walking {r['render_walking_ms']:.1f})" if "render_walking_ms" in r else "")
               + f"   | first frame (compile/cache load) {r['first_frame_s']:.2f} s, scene build {r['build_s']:.1f} s")
 
 
