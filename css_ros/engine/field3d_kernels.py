@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 from numba import njit, prange
+from .kernel_cache import bind_sources
 
 __all__ = ["cell_coord", "count_cells", "fill_cells", "query_kernel"]
 
@@ -90,3 +91,6 @@ def query_kernel(points, means, inv_cov, opac, alpha, totals, origin, cell_size,
             out_e[i, k] = out_e[i, k] * inv + kb * e_b
             out_v[i, k] = out_v[i, k] * inv * inv + kb * kb * v_b
         out_kb[i] = kb
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from .kernel_cache import bind_sources
 
 
 @njit(cache=True, nogil=True)
@@ -26,3 +27,6 @@ def colorize_into(labels: np.ndarray, palette: np.ndarray, ignore_label: int, ou
             out[i, 0] = palette[k, 0]
             out[i, 1] = palette[k, 1]
             out[i, 2] = palette[k, 2]
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

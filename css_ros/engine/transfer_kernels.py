@@ -11,6 +11,7 @@ import math
 from numba import njit, prange
 
 from .field3d_kernels import cell_coord
+from .kernel_cache import bind_sources
 
 __all__ = ["nearest_old", "overlap_denominators", "gather_mass"]
 
@@ -136,3 +137,6 @@ def gather_mass(new_means, new_cov, new_det, new_opac, old_means, old_cov, old_i
                         o = _overlap(g, j, new_means, new_cov, new_det, new_opac, old_means, old_cov, cut2)
                         mass += o / denominator[g] * old_mass[g]
         out_mass[j] = mass
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

@@ -63,6 +63,7 @@ from numba import njit
 from ..engine.map_file import MAX_RECEIVED_SOURCES, SourceEvidence
 from ..engine.spec import MAX_FRAMES
 from ..errors import InputError
+from ..engine.kernel_cache import bind_sources
 
 if TYPE_CHECKING:
     from ..engine.semantic_map import SemanticMap
@@ -830,3 +831,6 @@ def _grown_rows(alpha, received, published, prior, frac, scratch):  # pragma: no
                 m += 1
                 break
     return scratch[:m].copy()
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

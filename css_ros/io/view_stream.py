@@ -19,6 +19,7 @@ import numba
 import numpy as np
 
 from .clouds import pack_cloud, pack_rgb
+from ..engine.kernel_cache import bind_sources
 
 MODEL_FIELDS = ("index", "x", "y", "z", "c00", "c01", "c02", "c11", "c12", "c22", "rgb", "opacity")
 SEMANTIC_FIELDS = ("index", "label", "expectation", "evidence")
@@ -105,3 +106,6 @@ def changed_gaussians(concentrations: np.ndarray, prior: float, min_evidence: fl
     """Indices of the Gaussians whose :func:`semantic_keys` differ from ``keys`` (N,) int64; ``keys`` is
     updated in place to the current ones. One parallel pass over the (N, C) float64 concentrations."""
     return np.flatnonzero(_update_keys(concentrations, float(prior), float(min_evidence), int(ignore_label), keys))
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

@@ -11,6 +11,7 @@ from numba import njit, prange
 from ..final_form import FrameImages, RenderSettings, uncertainty_from_sums
 from ..pixel_math import confidence_score, interp, to_byte
 from ..spec import VAR_FLOOR
+from ..kernel_cache import bind_sources
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -131,3 +132,6 @@ def finalize(buf: "RenderBuffers", settings: RenderSettings) -> FrameImages:
         if arr.shape[0] or (h == 0 and s.wants(name)):
             setattr(images, name, arr)
     return images
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

@@ -17,6 +17,7 @@ from ..sh import eval_sh, sh_polynomial
 from ..spec import COV2D_DILATION, NEAR_PLANE
 from ..splat_math import camera_row, ewa_splat, fov_limits, store_splat, view_direction
 from .prefetch import prefetch_ahead
+from ..kernel_cache import bind_sources
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -349,3 +350,6 @@ def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
         for c in range(3):
             out[r, c] = max(_sh_polynomial(sh[i, :, c], k, x, y, z) + 0.5, 0.0)
     return out
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes

@@ -30,6 +30,7 @@ from .borrowed import borrow, keep_alive
 from .prefetch import prefetch_ahead
 from .row_vector import add_row, add_rows4
 from .projection import ProjectedGaussians
+from ..kernel_cache import bind_sources
 
 if TYPE_CHECKING:
     from ..sensor_model import SoftLabels
@@ -1064,3 +1065,6 @@ def render_semantic(proj: ProjectedGaussians, bins: TileBins, width: int, height
     return RenderBuffers(out_label, out_exp, out_var, out_bg, out_ev, out_rgb,
                          out_probs if want_probs else None, out_depth,
                          mass.sum(axis=0) if want_mass else None)
+
+
+bind_sources(globals())  # cached kernels recompile when any module they are built from changes
