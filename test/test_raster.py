@@ -177,3 +177,51 @@ def test_long_and_uneven_tile_lists_match_brute_force():
     alpha = update_reference(ref_kap, np.full((model.num_gaussians, 5), 1e-3), labels, 5)
     np.testing.assert_allclose(smap.concentrations, alpha, rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(view.background, ref_bg.reshape(cam.height, cam.width), atol=1e-6)
+
+
+@pytest.mark.parametrize("nchunks", [1, 2, 3, 5])
+@pytest.mark.parametrize("tiles_x, tiles_y", [(1, 1), (7, 3), (80, 60), (4, 1), (3, 2)])
+def test_work_chunks_hold_every_tile_once_in_whole_rows(nchunks, tiles_x, tiles_y):
+    """The update and the render deal whole tile rows to their chunks round-robin (no image cache line shared by
+    two threads); every tile belongs to exactly one chunk, in row order within it."""
+    from numba import njit
+
+    from css_ros.engine.cpu.raster import _chunk_tile, _chunk_tile_count
+    count = njit(lambda ch, n, tx, t: _chunk_tile_count(ch, n, tx, t))
+    tile = njit(lambda k, ch, n, tx: _chunk_tile(k, ch, n, tx))
+    seen = []
+    for ch in range(nchunks):
+        mine = [tile(k, ch, nchunks, tiles_x) for k in range(count(ch, nchunks, tiles_x, tiles_x * tiles_y))]
+        assert mine == sorted(mine)
+        assert all(t // tiles_x % nchunks == ch for t in mine)              # rows ch, ch + nchunks, ...
+        assert len(mine) == tiles_x * len(range(ch, tiles_y, nchunks))     # whole rows
+        seen += mine
+    assert sorted(seen) == list(range(tiles_x * tiles_y))
+
+
+def test_pixels_beyond_the_contribution_store_are_walked_by_the_render():
+    """A haze of faint Gaussians gives each pixel more contributions than the store holds on average
+    (STORE_SLOTS_PER_PIXEL): the pixels that did not fit are composited again by the render of the same frame, and
+    observe's map and view equal the brute-force reference either way."""
+    from css_ros import GaussianModel, SemanticMap
+    from css_ros.engine.cpu.raster import STORE_SLOTS_PER_PIXEL
+    from css_reference import render_reference, update_reference
+    from scenes import random_quats
+    rng = np.random.default_rng(21)
+    n = 400
+    means = rng.uniform([-1.5, -1.2, 2.0], [1.5, 1.2, 5.0], (n, 3))
+    model = GaussianModel.from_activated(means, np.exp(rng.uniform(-0.7, -0.2, (n, 3))), random_quats(rng, n),
+                                         rng.uniform(0.01, 0.03, n), rng.uniform(0, 1, (n, 3)))
+    cam = camera(width=40, height=32, f=30.0)
+    kap, bg = reference(model, cam)
+    assert (kap > 0).sum(axis=1).mean() > 1.5 * STORE_SLOTS_PER_PIXEL
+    labels = rng.integers(0, 4, (cam.height, cam.width))
+    smap = SemanticMap(model, 4, prior=1e-3, background=1e-3)
+    view = smap.observe(cam, labels)
+    counts = smap._backend._store.cnt
+    assert (counts >= 0).any() and (counts == -1).any()     # both: replayed pixels and walked ones
+    alpha = update_reference(kap, np.full((n, 4), 1e-3), labels, 4)
+    np.testing.assert_allclose(smap.concentrations, alpha, rtol=1e-5, atol=1e-9)
+    _, _, _, e_hat, v_hat, _, _ = render_reference(kap, bg, alpha, 1e-3)
+    np.testing.assert_allclose(view.expectation, e_hat.reshape(cam.height, cam.width), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(view.variance, v_hat.reshape(cam.height, cam.width), rtol=1e-5, atol=1e-12)
