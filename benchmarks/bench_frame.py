@@ -204,7 +204,7 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         # the same stages, timed one by one (a second pass at the same pose, on a copy of the map)
         conc = smap.concentrations.copy()
         t = [time.perf_counter()]
-        proj = project(backend.geometry, cam)
+        proj = project(backend.geometry, cam, backend._scratch)   # its kept buffers, as observe does
         t.append(time.perf_counter())
         bins = bin_tiles(proj, cam.width, cam.height)
         t.append(time.perf_counter())
