@@ -313,7 +313,7 @@ def _chunk_tile_count(ch, nchunks, tiles_x, num_tiles):  # pragma: no cover
     """How many tiles work chunk ``ch`` of ``nchunks`` has: the whole tile rows ch, ch + nchunks, ... A tile's
     horizontal neighbours are then its own chunk's, so no cache line of an image row is written by two threads
     (tiles dealt one by one put an 8-pixel tile row of int32 labels on a line shared with the other thread: the
-    render scaled 1.57x from one thread to two on the 500k room, 1.83x with whole rows; observe 0.95 of its time)."""
+    render scaled 1.57x from one thread to two on the 500k room, 1.83x with whole rows; observe 0.96 of its time)."""
     rows = num_tiles // tiles_x
     return max(0, (rows - ch + nchunks - 1) // nchunks) * tiles_x
 
