@@ -212,12 +212,22 @@ def test_inputs_participant_follows_namespace_and_remappings(tmp_path: Path, mon
         labels = rh.wall_labels()
         assert client.send_frame_until_processed(10**9, labels) is not None, node.log()[-3000:]
         graph = client.node
-        subs = {t: graph.get_subscriptions_info_by_topic(t) for t in ("/net/labels", "/robot/front/rgb",
-                                                                      "/odom_pose", "/robot/camera_info")}
+        topics = ("/net/labels", "/robot/front/rgb", "/odom_pose", "/robot/camera_info")
+
+        def named(infos: list[Any]) -> list[tuple[str, str]]:
+            return [(i.node_namespace, i.node_name) for i in infos]
+
+        # an endpoint can be in the graph before its participant's node names (ROS's discovery info, another
+        # topic): "_NODE_NAME_UNKNOWN_" until then, so wait (bounded) for the names before asserting them
+        client.wait_until(lambda: all(named(graph.get_subscriptions_info_by_topic(t)) == [("/robot", "css_node_inputs")]
+                                      for t in topics), 30.0)
+        subs = {t: graph.get_subscriptions_info_by_topic(t) for t in topics}
         for topic, infos in subs.items():
-            assert [(i.node_namespace, i.node_name) for i in infos] == [("/robot", "css_node_inputs")], topic
+            assert named(infos) == [("/robot", "css_node_inputs")], topic
+        client.wait_until(lambda: named(graph.get_publishers_info_by_topic("/robot/css_node/semantic"))
+                          == [("/robot", "css_node")], 30.0)
         outs = graph.get_publishers_info_by_topic("/robot/css_node/semantic")
-        assert [(i.node_namespace, i.node_name) for i in outs] == [("/robot", "css_node")]
+        assert named(outs) == [("/robot", "css_node")]
         # a GID's first 12 bytes are its participant's GUID prefix: inputs and outputs on two participants
         assert bytes(subs["/net/labels"][0].endpoint_gid[:12]) != bytes(outs[0].endpoint_gid[:12])
     finally:
