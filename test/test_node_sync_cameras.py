@@ -228,6 +228,12 @@ def test_inputs_participant_follows_namespace_and_remappings(tmp_path: Path, mon
                           == [("/robot", "css_node")], 30.0)
         outs = graph.get_publishers_info_by_topic("/robot/css_node/semantic")
         assert named(outs) == [("/robot", "css_node")]
+        # the inputs' readers report their matched publishers by resolved name (css_demo waits for them)
+        def inputs_matched() -> bool:
+            diag = client.diagnostics()
+            return all(int(diag.get(f"publishers[{t}]", 0)) >= 1 for t in topics)
+        assert client.wait_until(inputs_matched, 30.0), client.diagnostics()
+        assert "publishers[/robot/segmentation]" not in client.diagnostics()     # the remapped name, not the default
         # a GID's first 12 bytes are its participant's GUID prefix: inputs and outputs on two participants
         assert bytes(subs["/net/labels"][0].endpoint_gid[:12]) != bytes(outs[0].endpoint_gid[:12])
     finally:

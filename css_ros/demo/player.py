@@ -256,17 +256,29 @@ class DemoPlayer:
         """Played topics that nobody subscribes to (full names, with --prefix)."""
         return [pub.topic_name for pub in self.pubs.values() if pub.get_subscription_count() == 0]
 
+    def inputs_reach_node(self) -> bool | None:
+        """True when css_node's readers have matched our writers of every played topic (its diagnostics
+        ``publishers[<topic>]``; discovery ends at each side on its own, and a sensor-data reader drops what a writer
+        it has not matched yet sends, so the first frame would be lost); None while no diagnostics were heard."""
+        with self.lock:
+            diag = self.node_diagnostics
+        if diag is None:
+            return None
+        return all(int(diag.get(f"publishers[{pub.topic_name}]", 0)) > 0 for pub in self.pubs.values())
+
     def wait_for_node(self, timeout: float) -> bool:
-        """Wait until css_node subscribes to every played topic (our writers matched its readers: reliable, so what we
-        publish then reaches it) and its outputs reach us (see :meth:`outputs_reach_us`; an answer published before
-        its writer matched our reader would be lost). A node that publishes no diagnostics within
-        DIAGNOSTICS_GRACE_S of the inputs matching is trusted after that wait."""
+        """Wait until css_node subscribes to every played topic, matched at both ends (our writers matched its readers,
+        and its readers ours: :meth:`inputs_reach_node`), and its outputs reach us (see :meth:`outputs_reach_us`; an
+        answer published before its writer matched our reader would be lost). A node that publishes no diagnostics
+        within DIAGNOSTICS_GRACE_S of the inputs matching is trusted after that wait."""
         end = time.monotonic() + timeout
         inputs_at = None
         while time.monotonic() < end:
             if self.pubs and all(pub.get_subscription_count() > 0 for pub in self.pubs.values()):
                 inputs_at = inputs_at or time.monotonic()
                 reach = self.outputs_reach_us()
+                if reach:
+                    reach = self.inputs_reach_node()
                 if reach or (reach is None and time.monotonic() - inputs_at > DIAGNOSTICS_GRACE_S):
                     return True
             time.sleep(0.1)

@@ -47,8 +47,10 @@ class Intake:
         warn: the node's rate-limited warnings (``<label>: lost before the node``, message kept count).
     """
 
-    def __init__(self, node: Any, count: Callable[..., None], warn: WarnLimiter) -> None:
+    def __init__(self, node: Any, count: Callable[..., None], warn: WarnLimiter,
+                 on_matched: Callable[[], None] | None = None) -> None:
         self.node, self.count, self.warn = node, count, warn
+        self.on_matched = on_matched
         self._streams: list[_Stream] = []
 
     def subscribe(self, msg_type: Any, topic: str, handler: Handler, qos: QoSProfile, label: str,
@@ -59,6 +61,8 @@ class Intake:
 
         def matched(info: Any) -> None:
             s.publishers = int(info.current_count)
+            if self.on_matched is not None:
+                self.on_matched()
 
         s.sub = self.node.create_subscription(msg_type, topic, lambda msg, info: self._on_message(s, msg, info),
                                               qos, event_callbacks=SubscriptionEventCallbacks(matched=matched),
@@ -88,6 +92,14 @@ class Intake:
             if taken is None:
                 return
             self._take(s, *taken)
+
+    def publisher_counts(self) -> dict[str, int]:
+        """Publishers this node's readers have matched, per subscribed topic (the resolved name, e.g.
+        ``/robot/segmentation``; a topic subscribed twice, as /tf_static is, keeps its largest count)."""
+        out: dict[str, int] = {}
+        for s in self._streams:
+            out[s.topic] = max(out.get(s.topic, 0), s.publishers)
+        return out
 
     def drain(self) -> None:
         """Take every message waiting in the drained subscriptions now (before frames are released as waited)."""

@@ -162,7 +162,10 @@ class CssNode(Node):
         self.inputs_context: Any = None
         if inputs_transport is not None:
             self.inputs, self.inputs_context = open_inputs_node(NODE_NAME, self.get_namespace(), inputs_transport)
-        self.intake = Intake(self.inputs, self.stats.count, self.warn)
+        # the inputs' readers matching a publisher publish the diagnostics too (``publishers[<topic>]``), on this
+        # node's executor: the inputs node's executor is another thread
+        self._matched_guard = self.create_guard_condition(self._outputs_matched)
+        self.intake = Intake(self.inputs, self.stats.count, self.warn, on_matched=self._inputs_matched)
         self.request_intake = Intake(self, self.stats.count, self.warn)
 
         def sub(msg_type: Any, topic: str, handler: Any, qos: QoSProfile, drained: bool = False) -> None:
@@ -235,16 +238,27 @@ class CssNode(Node):
             QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST))
 
     def _outputs_matched(self) -> None:
-        """A subscriber matched (or left) an output or /diagnostics: publish the diagnostics now, so that a client can
-        tell from ``subscribers[<output>]`` that this node's outputs reach it before it sends a frame."""
+        """A subscriber matched (or left) an output or /diagnostics, or a publisher an input: publish the diagnostics
+        now, so that a client can tell from ``subscribers[<output>]`` that this node's outputs reach it, and from
+        ``publishers[<input topic>]`` that its inputs reach the node, before it sends a frame."""
         reporter = getattr(self, "reporter", None)
         if reporter is not None:
             reporter.publish()
 
+    def _inputs_matched(self) -> None:
+        """A publisher matched (or left) an input, on the inputs node's thread: the diagnostics are published by this
+        node's executor (:meth:`_outputs_matched`)."""
+        try:
+            self._matched_guard.trigger()
+        except Exception:  # noqa: BLE001 - the node is being destroyed: nothing left to report
+            pass
+
     def _diagnostics_info(self) -> dict[str, str]:
-        """Diagnostics entries beyond the counters: the update in use, ``subscribers[<output>]`` and the last fused
-        frame's ``last_pixels_transient``, ``last_pixels_occluded`` and ``last_surprise_mean``."""
+        """Diagnostics entries beyond the counters: the update in use, ``subscribers[<output>]``,
+        ``publishers[<input topic>]`` (resolved name) and the last fused frame's ``last_pixels_transient``,
+        ``last_pixels_occluded`` and ``last_surprise_mean``."""
         counts = {f"subscribers[{name}]": str(n) for name, n in self.outputs.subscriber_counts().items()}
+        counts.update({f"publishers[{topic}]": str(n) for topic, n in self.intake.publisher_counts().items()})
         last = self.worker.last_frame
         frame = {"last_pixels_transient": str(last.transient), "last_pixels_occluded": str(last.occluded),
                  "last_surprise_mean": f"{last.surprise_mean:.6g}"}
