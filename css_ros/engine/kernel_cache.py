@@ -112,9 +112,9 @@ def bind_sources(namespace: Mapping[str, Any]) -> int:
     :func:`sources_fingerprint` of the module). Dispatchers without an on-disk cache are left alone. Returns how
     many dispatchers are bound (those bound before included).
 
-    The stamp lives in numba's ``IndexDataCacheFile`` (``dispatcher._cache._cache_file._source_stamp``, numba
-    0.56-0.68); if a numba version lacks it, the dispatcher's cache is turned off instead (correct, compiled in every
-    process), never left stale.
+    The stamp lives in numba's ``IndexDataCacheFile`` (``dispatcher._cache._cache_file._source_stamp``, as in numba
+    0.68: test_kernel_cache.py checks it with the installed numba); if a numba version lacks it, the dispatcher's
+    cache is turned off instead (correct, compiled in every process), never left stale.
     """
     fingerprint = sources_fingerprint(namespace["__name__"])
     bound = 0
