@@ -308,8 +308,7 @@ def _write_counts(row, used, ignored, out_of_range, no_depth, transients, occlud
     row[OCCLUDED] = occluded
 
 
-@njit(inline="always")
-def _chunk_tile_count(ch, nchunks, tiles_x, num_tiles):  # pragma: no cover
+def chunk_tile_count(ch: int, nchunks: int, tiles_x: int, num_tiles: int) -> int:
     """How many tiles work chunk ``ch`` of ``nchunks`` has: the whole tile rows ch, ch + nchunks, ... A tile's
     horizontal neighbours are then its own chunk's, so no cache line of an image row is written by two threads
     (tiles dealt one by one put an 8-pixel tile row of int32 labels on a line shared with the other thread: the
@@ -318,9 +317,12 @@ def _chunk_tile_count(ch, nchunks, tiles_x, num_tiles):  # pragma: no cover
     return max(0, (rows - ch + nchunks - 1) // nchunks) * tiles_x
 
 
+_chunk_tile_count = njit(inline="always")(chunk_tile_count)
+
+
 @njit(inline="always")
 def _chunk_tile(k, ch, nchunks, tiles_x):  # pragma: no cover
-    """The k-th tile of work chunk ``ch`` (:func:`_chunk_tile_count`)."""
+    """The k-th tile of work chunk ``ch`` (:func:`chunk_tile_count`)."""
     return (ch + nchunks * (k // tiles_x)) * tiles_x + k % tiles_x
 
 
@@ -896,7 +898,8 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     gate = (_NO_PLANE if inputs.depth is None else inputs.depth, inputs.depth is not None, float(rules.tol_abs),
             float(rules.tol_rel), float(rules.depth_scale), transient, want_surprise, e_pre, surprise)
     records = (bins.offsets.shape[0] - 1) * bins.tile_size ** 2   # _record_row's range
-    chunk_records = -(-bins.tiles_y // nchunks) * bins.tiles_x * bins.tile_size ** 2   # the largest chunk's
+    # the largest chunk's records (chunk 0 has as many tile rows as any)
+    chunk_records = chunk_tile_count(0, nchunks, bins.tiles_x, bins.tiles_x * bins.tiles_y) * bins.tile_size ** 2
     _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
                    inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
                    acc, soft is not None, edges, base, resid, acc_base, counts, store is not None,
