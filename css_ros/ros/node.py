@@ -126,7 +126,7 @@ class CssNode(Node):
         self.queue = WorkQueue(p.max_pending_frames)
         sensor_model = self.smap.sensor_model
         self.outputs = OutputPublisher(self, p, self.classes, confidence_available=sensor_model is not None
-                                       and sensor_model.confidence is not None, on_matched=self._outputs_matched,
+                                       and sensor_model.confidence is not None, on_matched=self._endpoint_matched,
                                        count=self.stats.count, warn=self.warn)
         self.worker = MapWorker(self.smap, p, self.queue, self.outputs, self.warn, self.stats,
                                 self.checkpoint_path, log.info, log.error)
@@ -164,7 +164,7 @@ class CssNode(Node):
             self.inputs, self.inputs_context = open_inputs_node(NODE_NAME, self.get_namespace(), inputs_transport)
         # the inputs' readers matching a publisher publish the diagnostics too (``publishers[<topic>]``), on this
         # node's executor: the inputs node's executor is another thread
-        self._matched_guard = self.create_guard_condition(self._outputs_matched)
+        self._matched_guard = self.create_guard_condition(self._endpoint_matched)
         self.intake = Intake(self.inputs, self.stats.count, self.warn, on_matched=self._inputs_matched)
         self.request_intake = Intake(self, self.stats.count, self.warn)
 
@@ -207,7 +207,7 @@ class CssNode(Node):
         self.create_service(Trigger, "~/reset_map", self._on_reset_map, qos_profile=qos_srv)
         self.create_service(Trigger, "~/load_map", self._on_load_map, qos_profile=qos_srv)
         diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10, event_callbacks=PublisherEventCallbacks(
-            matched=lambda _status: self._outputs_matched())) if p.publish_diagnostics else None
+            matched=lambda _status: self._endpoint_matched())) if p.publish_diagnostics else None
         self.reporter = StatusReporter(self.stats, self.warn, self.queue.sizes,
                                        lambda: (*self.worker.last_u, self.worker.last_psnr), log.info, diag_pub,
                                        self.get_fully_qualified_name(), str(self.model_path),
@@ -237,7 +237,7 @@ class CssNode(Node):
         sub(tf_message, TF_STATIC_TOPIC, on_static,
             QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST))
 
-    def _outputs_matched(self) -> None:
+    def _endpoint_matched(self) -> None:
         """A subscriber matched (or left) an output or /diagnostics, or a publisher an input: publish the diagnostics
         now, so that a client can tell from ``subscribers[<output>]`` that this node's outputs reach it, and from
         ``publishers[<input topic>]`` that its inputs reach the node, before it sends a frame."""
@@ -247,7 +247,7 @@ class CssNode(Node):
 
     def _inputs_matched(self) -> None:
         """A publisher matched (or left) an input, on the inputs node's thread: the diagnostics are published by this
-        node's executor (:meth:`_outputs_matched`)."""
+        node's executor (:meth:`_endpoint_matched`)."""
         try:
             self._matched_guard.trigger()
         except Exception:  # noqa: BLE001 - the node is being destroyed: nothing left to report
