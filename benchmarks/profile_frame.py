@@ -41,6 +41,7 @@ def profile(scene: str, frames: int) -> dict[str, float]:
     import bench_frame as bf
     from css_ros import SemanticMap
     from css_ros.engine.cpu import raster
+    from css_ros.engine.cpu.increments import UpdateWorkspace, add_increments
     from css_ros.engine.cpu.finalize import finalize
     from css_ros.engine.cpu.projection import ProjectionScratch, project
 
@@ -52,7 +53,7 @@ def profile(scene: str, frames: int) -> dict[str, float]:
     backend = smap._backend
     settings = smap.render_settings()
     e_bg, v_bg, s_bg = smap._background_moments()
-    ws, store = raster.UpdateWorkspace(), raster.ContributionStore()
+    ws, store = UpdateWorkspace(), raster.ContributionStore()
     conc = np.empty_like(smap.concentrations)  # one buffer: a fresh copy per frame would page-fault
     scratch = ProjectionScratch()  # kept between frames, as observe keeps its own (fresh ones page-fault)
     times: dict[str, list[float]] = {k: [] for k in ROWS}
@@ -73,17 +74,17 @@ def profile(scene: str, frames: int) -> dict[str, float]:
         plain = smap._frame_labels(cam, lab, None)
         surprising = smap._frame_labels(cam, lab, None, None, True)
         for inputs, kept in ((plain, store), (plain, None), (surprising, store)):
-            acc, base, _, _ = raster.accumulate_update(proj, bins, inputs, None, ws, kept, conc)
+            inc, _, _ = raster.accumulate_update(proj, bins, inputs, None, ws, kept, conc)
             clock.append(time.process_time())
-            raster.add_increments(conc, proj.ids, acc, base)  # untimed: leaves the workspace zero
+            add_increments(conc, proj.ids, inc)  # untimed: leaves the workspace zero
             ws.done()
             clock.append(time.process_time())
         add_s = clock[-1] - clock[-2]   # the last add_increments, timed as "add"
         attrs = raster.dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
         clock.append(time.process_time())
-        acc, base, _, _ = raster.accumulate_update(proj, bins, plain, None, ws, store, conc)
+        inc, _, _ = raster.accumulate_update(proj, bins, plain, None, ws, store, conc)
         t0 = time.process_time()
-        raster.add_increments_and_attributes(conc, proj.ids, acc, base, 1.0, 1.0, proj.colors, proj.packed)
+        raster.add_increments_and_attributes(conc, proj.ids, inc, 1.0, 1.0, proj.colors, proj.packed)
         ws.done()
         fused_s = time.process_time() - t0
         t0 = time.process_time()

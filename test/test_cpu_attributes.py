@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from css_ros.engine.cpu.raster import (SHORT_COLS, _dirichlet_kernel, add_increments, add_increments_and_attributes,
-                                       linear_width)
+from css_ros.engine.cpu.increments import Increments, add_increments, all_marked
+from css_ros.engine.cpu.raster import SHORT_COLS, _dirichlet_kernel, add_increments_and_attributes, linear_width
 
 
 def _inputs(num_classes: int, seed: int = 0):
@@ -78,9 +78,11 @@ def test_increments_are_summed_over_threads_then_added(with_base, decay):
     want[ids] = rows + inc
 
     got = conc.copy()
-    attrs = add_increments_and_attributes(got, ids, acc, base, decay, prior, colors, packed)
+    marks = all_marked(2, m)
+    marks[:, :5] = 0                       # (unmarked entries are zero)
+    attrs = add_increments_and_attributes(got, ids, Increments(acc, base, marks), decay, prior, colors, packed)
     np.testing.assert_allclose(got, want, rtol=1e-12)
-    assert not acc.any() and not base.any()            # left zero for the next frame
+    assert not acc.any() and not base.any() and not marks.any()     # left zero for the next frame
     np.testing.assert_allclose(attrs.full, _expected_rows(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(attrs.short, _expected_short(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
 
@@ -89,6 +91,40 @@ def test_increments_are_summed_over_threads_then_added(with_base, decay):
     plain = conc.copy()
     want2 = conc.copy()
     want2[ids] += acc2.sum(axis=0)
-    add_increments(plain, ids, acc2, np.zeros((0, 0)))
+    add_increments(plain, ids, Increments(acc2, np.zeros((0, 0)), all_marked(2, m)))
     np.testing.assert_allclose(plain, want2, rtol=1e-12)
     assert not acc2.any()
+
+
+def test_kept_rows_are_reused_grown_with_headroom_and_remade_for_another_class_count():
+    from css_ros.engine.cpu.kept import HEADROOM, Kept
+    from css_ros.engine.cpu.raster import new_rows
+    kept = Kept(new_rows)
+    full, short = kept.take(100, 5)
+    assert full.shape == (100, linear_width(5) + 5) and short.shape == (100, SHORT_COLS)
+    again, _ = kept.take(int(100 * (1 + HEADROOM)), 5)          # within the headroom: the same memory
+    assert np.shares_memory(full, again) and again.shape[0] == 125
+    grown, _ = kept.take(200, 5)
+    assert not np.shares_memory(full, grown) and grown.flags.c_contiguous
+    other, _ = kept.take(50, 9)                                  # another class count: new rows
+    assert other.shape == (50, linear_width(9) + 9)
+
+
+def test_views_rendered_one_after_another_into_kept_rows_equal_fresh_renders():
+    """observe, then query views at other poses (the backend's kept attribute rows rewritten each time): every
+    view equals the one a fresh map with the same concentrations renders."""
+    from css_ros import SemanticMap
+    from scenes import camera, random_scene
+    model = random_scene(11, n=600)
+    labels = np.random.default_rng(1).integers(0, 4, (48, 64))
+    smap = SemanticMap(model, 4)
+    smap.observe(camera(width=64, height=48, f=40.0), labels)
+    for f in (30.0, 55.0, 40.0):       # fewer, more, then as many visible Gaussians as the first view
+        cam = camera(width=64, height=48, f=f)
+        got = smap.render(cam)
+        fresh = SemanticMap(model, 4)
+        fresh.concentrations[:] = smap.concentrations
+        want = fresh.render(cam)
+        np.testing.assert_array_equal(got.labels, want.labels)
+        np.testing.assert_array_equal(got.expectation, want.expectation)
+        np.testing.assert_array_equal(got.variance, want.variance)

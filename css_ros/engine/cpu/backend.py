@@ -10,8 +10,10 @@ import numpy as np
 from ..raster_backend import RasterBackend, UpdateCounts
 from .finalize import finalize, uncertainty
 from .projection import GaussianGeometry, ProjectionScratch, project
-from .raster import (AttributeRows, ContributionStore, UpdateWorkspace, accumulate_update, add_increments,
-                     add_increments_and_attributes, bin_tiles, dirichlet_attributes, render_semantic)
+from .increments import UpdateWorkspace, add_increments
+from .kept import Kept
+from .raster import (AttributeRows, ContributionStore, accumulate_update, add_increments_and_attributes, bin_tiles,
+                     dirichlet_attributes, kept_lists, new_rows, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -32,12 +34,16 @@ class NumbaBackend(RasterBackend):
         self._scratch = ProjectionScratch()
         self._workspace = UpdateWorkspace()
         self._store = ContributionStore()
+        # kept between frames (engine/cpu/kept.py): the tile lists and attribute rows of observe and render (not of
+        # the score workers); a frame is valid until the next prepare
+        self._lists = kept_lists()
+        self._rows = Kept(new_rows)
         self._attrs: "tuple[Any, AttributeRows] | None" = None  # (frame, attribute rows) made by observe's update
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 
     def prepare(self, camera: "Camera") -> Any:
         proj = project(self.geometry, camera, self._scratch)
-        return proj, bin_tiles(proj, camera.width, camera.height), camera
+        return proj, bin_tiles(proj, camera.width, camera.height, kept=self._lists), camera
 
     def update(self, frame: Any, inputs: "FrameLabels", concentrations: np.ndarray,
                soft: "SoftLabels | None" = None) -> UpdateCounts:
@@ -50,15 +56,15 @@ class NumbaBackend(RasterBackend):
         proj, bins, _ = frame
         self._store.owner = None
         self._attrs = None
-        acc, acc_base, counts, surprise = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store,
-                                                            concentrations)
+        inc, counts, surprise = accumulate_update(proj, bins, inputs, soft, self._workspace, self._store,
+                                                  concentrations)
         self._store.owner = frame
         rules = inputs.rules
         if with_attributes:
-            self._attrs = (frame, add_increments_and_attributes(concentrations, proj.ids, acc, acc_base, rules.decay,
-                                                                rules.prior, proj.colors, proj.packed))
+            self._attrs = (frame, add_increments_and_attributes(concentrations, proj.ids, inc, rules.decay, rules.prior,
+                                                                proj.colors, proj.packed, self._rows))
         else:
-            add_increments(concentrations, proj.ids, acc, acc_base, rules.decay, rules.prior)
+            add_increments(concentrations, proj.ids, inc, rules.decay, rules.prior)
         self._workspace.done()
         return UpdateCounts(counts, surprise)
 
@@ -74,7 +80,7 @@ class NumbaBackend(RasterBackend):
         proj, bins, camera = frame
         kept, self._attrs = self._attrs, None
         attrs = kept[1] if kept is not None and kept[0] is frame else \
-            dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed)
+            dirichlet_attributes(concentrations, proj.ids, proj.colors, proj.packed, self._rows)
         store = self._store if self._store.owner is frame else None
         buffers = render_semantic(proj, bins, camera.width, camera.height, attrs, e_bg, v_bg, s_bg, bg_rgb,
                                   want_probs, store=store)

@@ -33,7 +33,7 @@ CHUNK = 64           # candidates tested per step of a pixel's walk (one bit mas
 
 
 @intrinsic
-def _cttz(typingctx, x):  # pragma: no cover - compiled
+def cttz(typingctx, x):  # pragma: no cover - compiled
     """Count of trailing zero bits of a non-zero uint64 (one instruction)."""
     sig = types.uint64(types.uint64)
 
@@ -129,7 +129,7 @@ def row_candidates(cols, n, v, u0, u1, cand, ridx, words):  # pragma: no cover
         x, y, a, b, c, o, qm = gx[base:top], gy[base:top], ga[base:top], gb[base:top], gc[base:top], \
             go[base:top], gq[base:top]
         while mask != 0:
-            k = _cttz(mask)  # unsigned: no negative-index test on the loads below
+            k = cttz(mask)  # unsigned: no negative-index test on the loads below
             mask &= mask - np.uint64(1)
             dy = fv - y[k]
             ridx[r] = np.uint32(base) + np.uint32(k)
@@ -181,7 +181,7 @@ def composite_row(cand, ridx, r, u0, u1, active, cnt, kidx, kval, trans, chunk, 
                 q = (a[k] * dx + by[k]) * dx + cy[k]
                 mask |= np.uint64(q <= qm[k]) << np.uint64(k)
             while mask != 0:
-                k = _cttz(mask)
+                k = cttz(mask)
                 mask &= mask - np.uint64(1)
                 dx = fu - x[k]  # q again for the hits only: cheaper than storing the chunk's 64
                 hit[total] = rr[k]

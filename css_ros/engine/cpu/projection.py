@@ -16,6 +16,7 @@ from numba import njit, prange
 from ..sh import eval_sh, sh_polynomial
 from ..spec import COV2D_DILATION, NEAR_PLANE
 from ..splat_math import camera_row, ewa_splat, fov_limits, store_splat, view_direction
+from .kept import Kept
 from .prefetch import prefetch_ahead
 from ..kernel_cache import bind_sources
 
@@ -205,14 +206,16 @@ def _project_kernel(means, cov3d, opac, max_std, base_rgb, group_offsets, group_
 
 
 class ProjectionScratch:
-    """Per-Gaussian output buffers of the projection kernel, reused across frames (fresh
-    allocations of N x 8 doubles would page-fault every frame). One per thread of use."""
+    """Per-Gaussian output buffers of the projection kernel, and the projected rows' arrays (:mod:`.kept`), reused
+    across frames (fresh allocations of N x 8 doubles would page-fault every frame). One per thread of use: a
+    :class:`ProjectedGaussians` made with a scratch is valid until the next :func:`project` with it."""
 
     def __init__(self) -> None:
         self.n = -1
         self.out = np.empty((0, 11))
         self.bbox = np.empty((0, 4), dtype=np.int32)
         self.valid = np.empty(0, dtype=np.bool_)
+        self.rows = Kept(_new_rows)
 
     def get(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if n != self.n:
@@ -221,6 +224,11 @@ class ProjectionScratch:
             self.valid = np.empty(n, dtype=np.bool_)
             self.n = n
         return self.out, self.bbox, self.valid
+
+
+def _new_rows(m: int) -> tuple[np.ndarray, ...]:
+    """Uninitialised (packed, walk, colors, bbox, view colours) arrays of m projected rows."""
+    return np.empty((m, 8)), np.empty((m, 8)), np.empty((m, 3)), np.empty((m, 4), dtype=np.int32), np.empty((m, 3))
 
 
 @njit(cache=True, nogil=True)
@@ -244,12 +252,9 @@ def _block_order(ids, bbox, block_x, num_blocks):  # pragma: no cover
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _gather(ids, out, bbox):  # pragma: no cover
+def _gather(ids, out, bbox, packed, walk, colors, boxes):  # pragma: no cover
+    """The kernel's rows ``ids`` into the projected rows' arrays (:class:`ProjectedGaussians`)."""
     m = ids.shape[0]
-    packed = np.empty((m, 8))
-    walk = np.empty((m, 8))
-    colors = np.empty((m, 3))
-    boxes = np.empty((m, 4), dtype=np.int32)
     for r in prange(m):
         prefetch_ahead(out, ids, r)  # block order: the rows lie scattered
         prefetch_ahead(bbox, ids, r)
@@ -263,7 +268,6 @@ def _gather(ids, out, bbox):  # pragma: no cover
             colors[r, c] = out[i, 8 + c]
         for c in range(4):
             boxes[r, c] = bbox[i, c]
-    return packed, walk, colors, boxes
 
 
 @njit(cache=True, nogil=True)
@@ -307,7 +311,8 @@ def project(geometry: GaussianGeometry, camera: "Camera", scratch: ProjectionScr
     depth-sort the Gaussians for ``camera``; evaluate their view-dependent colours.
 
     Args:
-        scratch: per-Gaussian buffers reused across calls (one per thread).
+        scratch: per-Gaussian buffers reused across calls (one per thread); the result lives in it, valid until
+            the next call with the same scratch (None: fresh arrays).
         view_colors: False skips the SH degree >= 1 evaluation (colours are then the degree-0
             term), for views whose colour is not rendered.
     """
@@ -320,17 +325,19 @@ def project(geometry: GaussianGeometry, camera: "Camera", scratch: ProjectionScr
     block_x = (int(camera.width) + BLOCK - 1) // BLOCK
     block_y = (int(camera.height) + BLOCK - 1) // BLOCK
     rows = _block_order(np.flatnonzero(out_valid), out_bbox, block_x, block_x * block_y)
-    packed, walk, colors, bbox = _gather(rows, out, out_bbox)
+    packed, walk, colors, bbox, sh_colors = _new_rows(len(rows)) if scratch is None else scratch.rows.take(len(rows))
+    _gather(rows, out, out_bbox, packed, walk, colors, bbox)
     depth_order = _argsort_positive(np.ascontiguousarray(packed[:, 7])) if len(rows) else np.empty(0, np.int32)
     if view_colors and geometry.sh.shape[1] > 1:  # view-dependent colour; degree 0 came with the kernel's rows
-        colors = _view_colors_kernel(geometry.sh, geometry.means, rows, cam)
+        colors = sh_colors
+        _view_colors_kernel(geometry.sh, geometry.means, rows, cam, colors)
     return ProjectedGaussians(ids=geometry.perm[rows], depth_order=depth_order, packed=packed, bbox=bbox, colors=colors,
                               walk=walk)
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
-    """(M, 3) float64 colour max(0, SH(d) + 0.5) of the geometry ``rows``, d = unit direction camera ->
+def _view_colors_kernel(sh, means, rows, cam, out):  # pragma: no cover
+    """out = (M, 3) float64 colour max(0, SH(d) + 0.5) of the geometry ``rows``, d = unit direction camera ->
     Gaussian (:func:`css_ros.engine.sh.sh_polynomial`, fused with the gather and the clamp: numpy's
     version allocates a temporary per term, ~25 ms for 50k degree-3 Gaussians).
 
@@ -340,7 +347,6 @@ def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
     """
     m = rows.shape[0]
     k = sh.shape[1]
-    out = np.empty((m, 3))
     flat = sh.reshape((sh.shape[0], k * 3))
     for r in prange(m):
         prefetch_ahead(flat, rows, r)  # block order: the rows lie scattered
@@ -349,7 +355,6 @@ def _view_colors_kernel(sh, means, rows, cam):  # pragma: no cover
         x, y, z = _view_direction(cam, means, i)
         for c in range(3):
             out[r, c] = max(_sh_polynomial(sh[i, :, c], k, x, y, z) + 0.5, 0.0)
-    return out
 
 
 bind_sources(globals())  # cached kernels recompile when any module they are built from changes

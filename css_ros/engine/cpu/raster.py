@@ -27,6 +27,8 @@ from ..pixel_math import depth_bin
 from ..spec import TILE_SIZE
 from .composite import FAST, composite_row, load_tile, longest_list, new_scratch, row_candidates
 from .borrowed import borrow, keep_alive
+from .kept import Kept
+from .increments import Increments, UpdateWorkspace, add_increment_row, class_mark, classes_per_mark
 from .prefetch import prefetch_ahead
 from .row_vector import add_row, add_rows4
 from .projection import ProjectedGaussians
@@ -53,11 +55,12 @@ class TileBins:
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no cover
-    """Parallel counting sort of (tile, depth) pairs: the depth order is cut into ``parts``
-    consecutive ranges; each counts and then fills its own slice of every tile's list, part 0's
-    (nearest) entries first, so every list stays front to back. Each Gaussian's tile range is
-    computed once, in depth order, so both passes read it sequentially."""
+def _bin_count(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no cover
+    """First half of a parallel counting sort of (tile, depth) pairs: the depth order is cut into ``parts``
+    consecutive ranges, each counting its entries of every tile. Returns (offsets (T + 1,), each Gaussian's tile
+    range in depth order (m, 4), where each part's entries of each tile start (parts, T)): part 0's (nearest) entries
+    first, so every list stays front to back. Each Gaussian's tile range is computed once, in depth order, so both
+    halves read it sequentially."""
     m = bbox.shape[0]
     num_tiles = tiles_x * tiles_y
     span = np.empty((m, 4), dtype=np.int32)
@@ -79,7 +82,14 @@ def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no
             fill[p, t] = pos
             pos += counts[p, t]
         offsets[t + 1] = pos
-    lists = np.empty(offsets[-1], dtype=np.int32)
+    return offsets, span, fill
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _bin_fill(depth_order, span, tiles_x, fill, lists):  # pragma: no cover
+    """Second half (:func:`_bin_count`): each part writes its own slice of every tile's list."""
+    m = span.shape[0]
+    parts = fill.shape[0]
     for p in prange(parts):
         for r in range(p * m // parts, (p + 1) * m // parts):
             j = depth_order[r]
@@ -88,16 +98,32 @@ def _bin_kernel(bbox, depth_order, tiles_x, tiles_y, tile, parts):  # pragma: no
                     t = ty * tiles_x + tx
                     lists[fill[p, t]] = j
                     fill[p, t] += 1
-    return offsets, lists
 
 
-def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int = TILE_SIZE) -> TileBins:
-    """Counting-sort the depth-sorted Gaussians into the tiles their alpha >= 1/255 box overlaps."""
+def _new_lists(n: int) -> tuple[np.ndarray]:
+    """An uninitialised (n,) int32 tile-list array (also the maker of a :class:`~.kept.Kept` of them)."""
+    return (np.empty(n, dtype=np.int32),)
+
+
+def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int = TILE_SIZE,
+              kept: Kept | None = None) -> TileBins:
+    """Counting-sort the depth-sorted Gaussians into the tiles their alpha >= 1/255 box overlaps.
+
+    ``kept``: the lists' array kept between frames (a :class:`~.kept.Kept` made by :func:`kept_lists`; the bins are
+    valid until its next use), or None for a fresh one."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    offsets, lists = _bin_kernel(proj.bbox, proj.depth_order, tiles_x, tiles_y, tile_size,
-                                 max(1, numba.get_num_threads()))
+    offsets, span, fill = _bin_count(proj.bbox, proj.depth_order, tiles_x, tiles_y, tile_size,
+                                     max(1, numba.get_num_threads()))
+    total = int(offsets[-1])
+    (lists,) = _new_lists(total) if kept is None else kept.take(total)
+    _bin_fill(proj.depth_order, span, tiles_x, fill, lists)
     return TileBins(offsets, lists, tiles_x, tiles_y, tile_size)
+
+
+def kept_lists() -> Kept:
+    """A kept tile-list array for :func:`bin_tiles` (one per thread of use)."""
+    return Kept(_new_lists)
 
 
 def linear_width(num_classes: int) -> int:
@@ -190,29 +216,45 @@ def _rendered_depth(kidx, kval, c, ldepth):  # pragma: no cover
 
 
 @njit(inline="always", fastmath=FAST)
-def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc, acc_base, ch, rows):  # pragma: no cover
+def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc, acc_base, marks, ch,
+                rows):  # pragma: no cover
     """Add a tile's accumulator rows (the present ones) into the chunk's Gaussian-major increments ``acc`` (M, C):
     a class row as it is; with a sensor model, each (label, depth bin) row r through its table, base[r] into
     acc_base[ch] and resid[r, c] into class c. Only list positions with ``touched[k]`` (a vote reached them) are added;
     the others hold zeros (Gaussians behind saturated pixels, or whose alpha ellipse misses the tile's voting
-    pixels). ``rows`` is scratch for the present rows' ids."""
+    pixels); their marks (:mod:`.increments`) get the tile's classes. ``rows`` is scratch for the present rows'
+    ids."""
     n = tile_list.shape[0]
     num_classes = acc.shape[1]
+    per_mark = classes_per_mark(num_classes)
     if not use_model:
         npres = 0
+        mark = np.uint64(0)
         for c in range(num_classes):
             if present[c]:
                 rows[npres] = c
                 npres += 1
+                mark |= class_mark(c, per_mark)
         for k in range(n):
             prefetch_ahead(acc, tile_list, k)  # the list's rows lie scattered over the chunk's increments
             if not touched[k]:
                 continue
-            out = acc[tile_list[k]]
+            j = tile_list[k]
+            marks[j] |= mark
+            out = acc[j]
             for i in range(npres):
                 c = rows[i]
                 out[c] += lacc[c, k]
         return
+    mark = np.uint64(0)
+    for r in range(present.shape[0]):
+        if present[r]:
+            for c in range(num_classes):
+                if resid[r, c] != 0.0:
+                    mark |= class_mark(c, per_mark)
+    for k in range(n):
+        if touched[k]:
+            marks[tile_list[k]] |= mark
     any_base = False
     for r in range(present.shape[0]):
         if present[r]:
@@ -345,7 +387,7 @@ def _list_rows(num_rows, surprise_rows, cap):  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_confidence, ignore_label, width, height,
-                   tile, tiles_x, acc, use_model, edges, base, resid, acc_base, counts,
+                   tile, tiles_x, acc, marks, use_model, edges, base, resid, acc_base, counts,
                    store, st_k_arg, st_v_arg, pix_off, pix_cnt, pix_t, gate):  # pragma: no cover
     """acc[chunk, j, c] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, Gaussian-major: the
     add that follows reads each Gaussian's row of every chunk as one contiguous run); counts[chunk] = (used,
@@ -485,8 +527,8 @@ def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_con
                     if keep:
                         pos += c
             if loaded:
-                _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base, ch,
-                            present_rows)
+                _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base,
+                            marks[ch], ch, present_rows)
         _write_counts(counts[ch], used, ignored, out_of_range, no_depth, transients, occluded)
         keep_alive(owned)
         keep_alive(lrows)
@@ -827,66 +869,36 @@ _STORE_MAX_LIST = 65535       # tile-list positions are stored as uint16
 _NO_STORE = (np.empty((1, 0), np.uint16), np.empty((1, 0), np.float32), np.empty(0, np.int64),
              np.empty(0, np.int32), np.empty(0))
 _NO_MODEL = (np.zeros(2), np.zeros(1), np.zeros((1, 1)))
-_NO_BASE = np.zeros((0, 0))
 _NO_CONFIDENCE = np.zeros((1, 1), dtype=np.float32)
 _NO_PLANE = np.zeros((1, 1), dtype=np.float32)
 _NO_TRANSIENT = np.zeros(0, dtype=np.bool_)
 
 
-class UpdateWorkspace:
-    """The update's per-thread accumulators, kept from frame to frame: fresh arrays of tens of MB page-fault on
-    every frame (~6 ms for the 45 MB of two threads at 141k visible Gaussians and 20 classes). They are zero between
-    updates: :func:`add_increments` zeroes what it reads; one handed out and not given back by :meth:`done` (an
-    exception between the two) is zeroed before its next use. One per thread of use."""
-
-    def __init__(self) -> None:
-        self._acc = np.zeros(0)
-        self._base = np.zeros(0)
-        self._pending = False
-
-    def take(self, nchunks: int, num_classes: int, m: int, with_base: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Zero (nchunks, m, num_classes) and (nchunks, m) (or (0, 0)) float64 accumulators."""
-        if self._pending:
-            self._acc[:] = 0.0
-            self._base[:] = 0.0
-        size = nchunks * num_classes * m
-        if self._acc.size < size:
-            self._acc = np.zeros(size)
-        if with_base and self._base.size < nchunks * m:
-            self._base = np.zeros(nchunks * m)
-        self._pending = True
-        base = self._base[:nchunks * m].reshape(nchunks, m) if with_base else _NO_BASE
-        return self._acc[:size].reshape(nchunks, m, num_classes), base
-
-    def done(self) -> None:
-        """The accumulators handed out are zero again (:func:`add_increments` ran)."""
-        self._pending = False
-
-
 def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLabels,
                       soft: SoftLabels | None = None, workspace: UpdateWorkspace | None = None,
                       store: ContributionStore | None = None, concentrations: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+                      ) -> tuple[Increments, np.ndarray, np.ndarray | None]:
     """Per visible Gaussian, sum_i kappa_in * y_i^c, as per-thread partial sums, with the frame's pixel counts.
 
     Args:
         inputs: the frame's labels and optional confidence as they came in (:class:`FrameLabels`); each pixel's
             vote is :func:`~css_ros.engine.label_input.pixel_vote`, applied inside the compiled pass.
         soft: the sensor model's tables (depth bins in splat units), or None for the paper's one-hot votes.
-        workspace: accumulators kept between frames (call its ``done`` after :func:`add_increments`), or None for
-            fresh ones.
+        workspace: accumulators kept between frames (call its ``done`` after
+            :func:`~css_ros.engine.cpu.increments.add_increments`), or None for fresh ones.
         store: if given, records the contributions for a following :func:`render_semantic`.
         concentrations: (N, C) float64 alpha before the update; needed only for the surprise
             (``inputs.want_surprise``).
     Returns:
-        ((chunks, M, C) float64 partial increments for the ``proj.ids`` rows of the concentrations, (chunks, M)
-        increments of every class of those rows ((0, 0) without ``soft``) (apply both with :func:`add_increments`),
-        (NUM_COUNTS,) int64 pixel counts: used, ignored, out of range, no depth (0 without ``soft``), transient,
-        occluded; the (H, W) float32 surprise image, or None when not asked for).
+        (the partial increments for the ``proj.ids`` rows of the concentrations (:class:`Increments`: the (chunks,
+        M, C) classes', the (chunks, M) of every class ((0, 0) without ``soft``), the marks of the entries written),
+        applied by :func:`~css_ros.engine.cpu.increments.add_increments`; (NUM_COUNTS,) int64 pixel counts:
+        used, ignored, out of range, no depth (0 without ``soft``), transient, occluded; the (H, W) float32
+        surprise image, or None when not asked for).
     """
     height, width = inputs.labels.shape
     nchunks = _num_chunks(bins)
-    acc, acc_base = (workspace or UpdateWorkspace()).take(nchunks, inputs.num_classes, proj.count, soft is not None)
+    inc = (workspace or UpdateWorkspace()).take(nchunks, inputs.num_classes, proj.count, soft is not None)
     counts = np.zeros((nchunks, NUM_COUNTS), dtype=np.int64)
     edges, base, resid = _NO_MODEL if soft is None else (soft.edges, soft.base, soft.resid)
     conf = _NO_CONFIDENCE if inputs.confidence is None else inputs.confidence
@@ -902,9 +914,9 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     chunk_records = chunk_tile_count(0, nchunks, bins.tiles_x, bins.tiles_x * bins.tiles_y) * bins.tile_size ** 2
     _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
                    inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
-                   acc, soft is not None, edges, base, resid, acc_base, counts, store is not None,
+                   inc.acc, inc.marks, soft is not None, edges, base, resid, inc.base, counts, store is not None,
                    *(_NO_STORE if store is None else store.reserve(records, nchunks, chunk_records).arrays()), gate)
-    return acc, acc_base, counts.sum(axis=0), surprise if want_surprise else None
+    return inc, counts.sum(axis=0), surprise if want_surprise else None
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
@@ -924,42 +936,6 @@ def _expectations(concentrations, ids):  # pragma: no cover
         for c in range(num_classes):
             out[c, j] = np.float32(concentrations[row, c] * inv)
     return out
-
-
-@njit(inline="always")
-def _add_row(concentrations, row, j, acc, acc_base, decay, prior):  # pragma: no cover
-    """Row ``row`` of the concentrations += the chunks' increments of projected Gaussian j (:func:`add_increments`)."""
-    num_classes = acc.shape[2]
-    common = 0.0
-    if acc_base.shape[0] > 0:
-        for ch in range(acc_base.shape[0]):
-            common += acc_base[ch, j]
-            acc_base[ch, j] = 0.0
-    if decay != 1.0:
-        received = common != 0.0
-        for ch in range(acc.shape[0]):
-            for c in range(num_classes):
-                received |= acc[ch, j, c] != 0.0
-        if received:
-            for c in range(num_classes):
-                concentrations[row, c] = prior + (concentrations[row, c] - prior) * decay
-    for c in range(num_classes):
-        total = common
-        for ch in range(acc.shape[0]):
-            total += acc[ch, j, c]
-            acc[ch, j, c] = 0.0
-        concentrations[row, c] += total
-
-
-@njit(parallel=True, cache=True)
-def add_increments(concentrations, ids, acc, acc_base, decay=1.0, prior=1.0):  # pragma: no cover
-    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (+ acc_base[chunk, j] for every class
-    when acc_base is not empty) (ids are unique); acc and acc_base are left zero (:class:`UpdateWorkspace`).
-    With ``decay`` < 1 (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some
-    class is first set to prior + (alpha - prior) * decay."""
-    for j in prange(acc.shape[1]):
-        prefetch_ahead(concentrations, ids, j)
-        _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
 
 
 @njit(inline="always", fastmath=FAST)
@@ -1002,13 +978,13 @@ def _dirichlet_kernel(concentrations, ids, colors, packed, attrs, short):  # pra
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, decay, prior, colors, packed,
+def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, marks, decay, prior, colors, packed,
                               attrs, short):  # pragma: no cover
-    """:func:`add_increments` and then :func:`_dirichlet_kernel` of each row while it is in cache (one gather of the
-    visible Gaussians' concentration rows instead of two)."""
+    """:func:`~css_ros.engine.cpu.increments.add_increments` and then :func:`_dirichlet_kernel` of each row while it
+    is in cache (one gather of the visible Gaussians' concentration rows instead of two)."""
     for j in prange(ids.shape[0]):
         prefetch_ahead(concentrations, ids, j)  # the rows lie scattered in the model's order
-        _add_row(concentrations, ids[j], j, acc, acc_base, decay, prior)
+        add_increment_row(concentrations, ids[j], j, acc, acc_base, marks, decay, prior)
         _attribute_row(concentrations, ids[j], j, colors, packed, attrs, short)
 
 
@@ -1019,22 +995,26 @@ class AttributeRows(NamedTuple):
     short: np.ndarray  #: (M, SHORT_COLS) float32: E, Var of the most likely class, r, g, b, S, z, that class
 
 
-def _new_rows(m: int, num_classes: int) -> AttributeRows:
+def new_rows(m: int, num_classes: int) -> AttributeRows:
+    """Uninitialised attribute rows of m projected Gaussians (also the maker of a :class:`~.kept.Kept` of them)."""
     return AttributeRows(np.empty((m, linear_width(num_classes) + num_classes), dtype=np.float32),
                          np.empty((m, SHORT_COLS), dtype=np.float32))
 
 
-def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, acc: np.ndarray,
-                                  acc_base: np.ndarray, decay: float, prior: float, colors: np.ndarray,
-                                  packed: np.ndarray) -> AttributeRows:
-    """:func:`add_increments` then :func:`dirichlet_attributes` of the updated rows, in one pass (``observe``)."""
-    rows = _new_rows(ids.shape[0], concentrations.shape[1])
-    _add_and_attribute_kernel(concentrations, ids, acc, acc_base, float(decay), float(prior), colors, packed, *rows)
+def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, inc: Increments, decay: float,
+                                  prior: float, colors: np.ndarray, packed: np.ndarray,
+                                  kept: Kept | None = None) -> AttributeRows:
+    """:func:`~css_ros.engine.cpu.increments.add_increments` then :func:`dirichlet_attributes` of the updated rows, in
+    one pass (``observe``); into ``kept``'s rows when given."""
+    rows = new_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
+        AttributeRows(*kept.take(ids.shape[0], concentrations.shape[1]))
+    _add_and_attribute_kernel(concentrations, ids, inc.acc, inc.base, inc.marks, float(decay), float(prior), colors,
+                              packed, *rows)
     return rows
 
 
 def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np.ndarray,
-                         packed: np.ndarray) -> AttributeRows:
+                         packed: np.ndarray, kept: Kept | None = None) -> AttributeRows:
     """Per projected Gaussian j: full[j] = (E_0..E_{C-1}, r, g, b, S, z, 0.., Var_0..Var_{C-1}) (SPEC §4 moments),
     the variances from column :func:`linear_width` on, and short[j] = (E^g, Var^g, r, g, b, S, z, g) with g its
     most likely class (the first of equal maxima), for the shading's short path (:func:`_shade_majority`).
@@ -1042,12 +1022,14 @@ def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np
     Args:
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
-            camera depth z, splat units).
+            camera depth z, splat units); kept: rows kept between frames (a :class:`~.kept.Kept` of
+            :func:`new_rows`), or None for fresh ones.
     Returns:
         float32 rows (halves the render's memory traffic; these rows are all the shading reads), with
         E = alpha / S, Var = E (1 - E) / (1 + S).
     """
-    rows = _new_rows(ids.shape[0], concentrations.shape[1])
+    rows = new_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
+        AttributeRows(*kept.take(ids.shape[0], concentrations.shape[1]))
     _dirichlet_kernel(concentrations, ids, colors, packed, *rows)
     return rows
 
