@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from css_ros.engine.cpu.increments import Increments, add_increments, all_marked
+from css_ros.engine.cpu.increments import Increments, add_increments
 from css_ros.engine.cpu.raster import SHORT_COLS, _dirichlet_kernel, add_increments_and_attributes, linear_width
 
 
@@ -78,11 +78,10 @@ def test_increments_are_summed_over_threads_then_added(with_base, decay):
     want[ids] = rows + inc
 
     got = conc.copy()
-    marks = all_marked(2, m)
-    marks[:, :5] = 0                       # (unmarked entries are zero)
-    attrs = add_increments_and_attributes(got, ids, Increments(acc, base, marks), decay, prior, colors, packed)
+    inc = Increments.dense(acc, base)
+    attrs = add_increments_and_attributes(got, ids, inc, decay, prior, colors, packed)
     np.testing.assert_allclose(got, want, rtol=1e-12)
-    assert not acc.any() and not base.any() and not marks.any()     # left zero for the next frame
+    assert not acc.any() and not base.any() and not inc.marks.any()     # left zero for the next frame
     np.testing.assert_allclose(attrs.full, _expected_rows(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(attrs.short, _expected_short(want[ids], colors, packed), rtol=1e-6, atol=1e-7)
 
@@ -91,7 +90,7 @@ def test_increments_are_summed_over_threads_then_added(with_base, decay):
     plain = conc.copy()
     want2 = conc.copy()
     want2[ids] += acc2.sum(axis=0)
-    add_increments(plain, ids, Increments(acc2, np.zeros((0, 0)), all_marked(2, m)))
+    add_increments(plain, ids, Increments.dense(acc2, np.zeros((0, 0))))
     np.testing.assert_allclose(plain, want2, rtol=1e-12)
     assert not acc2.any()
 

@@ -1,12 +1,15 @@
 """The update's per-thread increments of the concentrations, and their addition into the map.
 
-Each work chunk of the update kernel adds its votes into a Gaussian-major (M, C) float64 array of its own, for the M
-projected Gaussians. A frame's votes reach few of those entries: about 1.1 classes of a row on the 500k room (28
-classes), 1.5 on biker (20), and a row can be reached by one chunk only. Reading and zeroing every chunk's whole
-array (2 x 22 MB on the room, 2 x 160 MB on the 1.22 M Gaussian biker8 at 1280x720) cost more than the votes' own
-part of the update; so the flush marks, per chunk and Gaussian, the classes it wrote (one bit of a uint64 per block
-of ``classes_per_mark(C)`` classes: one class per bit up to 64 classes), and the add reads and zeroes only marked
-entries. The marks are conservative (a marked entry may hold zero); an unmarked entry is always zero.
+Each work chunk of the update kernel adds its votes for the M projected Gaussians into increments of its own. A
+frame's votes reach few classes of a Gaussian: of the (chunk, Gaussian) pairs a vote reaches, 87 % get one class and
+0.3 % three or more on the 500k room (28 classes), 62 % and 11 % on biker (20). So each pair has two slots, (class,
+value), filled in the order the classes come; a third class of the pair goes to a dense Gaussian-major (M, C) float64
+array, where the flush also sets a mark bit of its class (one bit of a uint8 per block of ``classes_per_mark(C)``
+classes: one class per bit up to 8 classes). The slots of a chunk (20 bytes a Gaussian: 2 MB at the room's 98k
+visible Gaussians) stay in the core's cache, where a dense row of 28 classes is 224 bytes, and the add reads the
+slots and only the marked entries of the dense array. Before the slots, reading and zeroing the dense arrays whole
+(2 x 22 MB on the room, 2 x 160 MB on the 1.22 M Gaussian biker8 at 1280x720) cost more than the votes themselves.
+The marks are conservative (a marked entry may hold zero); an unmarked dense entry is always zero.
 """
 from __future__ import annotations
 
@@ -19,22 +22,37 @@ from .composite import cttz
 from .prefetch import prefetch_ahead
 from ..kernel_cache import bind_sources
 
-#: Bits of a mark word: blocks of classes a chunk's row can flag.
+#: Bits of a mark (its dtype, uint8): blocks of classes a chunk's dense row can flag.
 MARK_BITS = 8
+#: (class, value) slots per chunk and Gaussian before a class goes to the dense row.
+SLOTS = 2
+#: The class of an empty slot.
+EMPTY = -1
 
 
 class Increments(NamedTuple):
     """A frame's per-chunk increments (:func:`~css_ros.engine.cpu.raster.accumulate_update`), for the ``ids`` rows
-    of the concentrations; all zero again after :func:`add_increments`."""
+    of the concentrations; all zero (slots empty) again after :func:`add_increments`. A chunk's increment of
+    Gaussian j and class c is the value of j's slot holding c, if any, plus acc[chunk, j, c]."""
 
-    acc: np.ndarray    #: (chunks, M, C) float64: sum of kappa * weight of the chunk's votes per Gaussian and class
-    base: np.ndarray   #: (chunks, M) float64 added to every class (a sensor model's common part), or (0, 0)
-    marks: np.ndarray  #: (chunks, M) uint64: bit b set where classes [b*k, (b+1)*k) may be non-zero, k = classes_per_mark
+    acc: np.ndarray       #: (chunks, M, C) float64: the classes that found no free slot
+    base: np.ndarray      #: (chunks, M) float64 added to every class (a sensor model's common part), or (0, 0)
+    marks: np.ndarray     #: (chunks, M) uint8: bit b set where acc's classes [b*k, (b+1)*k) may be non-zero
+    slot_class: np.ndarray  #: (chunks, M, SLOTS) int16: a slot's class, EMPTY when free
+    slot_value: np.ndarray  #: (chunks, M, SLOTS) float64: a slot's increment
+
+    @classmethod
+    def dense(cls, acc: np.ndarray, base: np.ndarray) -> "Increments":
+        """Increments held whole in ``acc`` (every entry marked, slots empty): made outside the update kernel
+        (tests, other producers)."""
+        nchunks, m = acc.shape[:2]
+        return cls(acc, base, np.full((nchunks, m), np.iinfo(np.uint8).max, dtype=np.uint8),
+                   np.full((nchunks, m, SLOTS), EMPTY, dtype=np.int16), np.zeros((nchunks, m, SLOTS)))
 
 
 @njit(inline="always")
 def classes_per_mark(num_classes):  # pragma: no cover
-    """Classes one bit of a mark word stands for: 1 up to 64 classes, then blocks of ceil(C / 64)."""
+    """Classes one bit of a mark stands for: 1 up to 8 classes, then blocks of ceil(C / 8)."""
     return max(1, (num_classes + MARK_BITS - 1) // MARK_BITS)
 
 
@@ -44,30 +62,46 @@ def class_mark(c, per_mark):  # pragma: no cover
     return np.uint64(1) << np.uint64(c // per_mark)
 
 
-def all_marked(nchunks: int, m: int) -> np.ndarray:
-    """Marks that flag every entry: increments made outside the update kernel (tests, other producers) are added
-    whole."""
-    return np.full((nchunks, m), np.iinfo(np.uint8).max, dtype=np.uint8)
+@njit(inline="always")
+def add_to(slot_class, slot_value, acc, marks, j, c, value, per_mark):  # pragma: no cover
+    """One chunk's increment of Gaussian j, class c += value: into j's slot of class c, or a free one, else into
+    the dense row (marked). ``slot_class``, ``slot_value``, ``acc``, ``marks``: the chunk's (M, ...) arrays."""
+    sc = slot_class[j]
+    for s in range(SLOTS):
+        held = sc[s]
+        if held == c:
+            slot_value[j, s] += value
+            return
+        if held == EMPTY:
+            sc[s] = c
+            slot_value[j, s] = value
+            return
+    acc[j, c] += value
+    marks[j] |= class_mark(c, per_mark)
 
 
 class UpdateWorkspace:
-    """The update's per-thread accumulators, kept from frame to frame: fresh arrays of tens of MB page-fault on
-    every frame (~6 ms for the 45 MB of two threads at 141k visible Gaussians and 20 classes). They are zero between
-    updates: :func:`add_increments` zeroes what it reads; one handed out and not given back by :meth:`done` (an
-    exception between the two) is zeroed before its next use. One per thread of use."""
+    """The update's per-thread increments, kept from frame to frame: fresh arrays of tens of MB page-fault on every
+    frame (~6 ms for the 45 MB of two threads at 141k visible Gaussians and 20 classes). They are zero (slots empty)
+    between updates: :func:`add_increments` clears what it reads; one handed out and not given back by :meth:`done`
+    (an exception between the two) is cleared whole before its next use. One per thread of use."""
 
     def __init__(self) -> None:
         self._acc = np.zeros(0)
         self._base = np.zeros(0)
         self._marks = np.zeros(0, dtype=np.uint8)
+        self._slot_class = np.full(0, EMPTY, dtype=np.int16)
+        self._slot_value = np.zeros(0)
         self._pending = False
 
     def take(self, nchunks: int, num_classes: int, m: int, with_base: bool) -> Increments:
-        """Zero (nchunks, m, num_classes) and (nchunks, m) (or (0, 0)) float64 accumulators, and zero marks."""
+        """Zero increments for ``nchunks`` chunks, ``m`` Gaussians and ``num_classes`` classes (base (0, 0) unless
+        ``with_base``)."""
         if self._pending:
             self._acc[:] = 0.0
             self._base[:] = 0.0
             self._marks[:] = 0
+            self._slot_class[:] = EMPTY
         size = nchunks * num_classes * m
         if self._acc.size < size:
             self._acc = np.zeros(size)
@@ -75,13 +109,18 @@ class UpdateWorkspace:
             self._base = np.zeros(nchunks * m)
         if self._marks.size < nchunks * m:
             self._marks = np.zeros(nchunks * m, dtype=np.uint8)
+            self._slot_class = np.full(nchunks * m * SLOTS, EMPTY, dtype=np.int16)
+            self._slot_value = np.zeros(nchunks * m * SLOTS)
         self._pending = True
         base = self._base[:nchunks * m].reshape(nchunks, m) if with_base else _NO_BASE
+        pairs = nchunks * m * SLOTS
         return Increments(self._acc[:size].reshape(nchunks, m, num_classes), base,
-                          self._marks[:nchunks * m].reshape(nchunks, m))
+                          self._marks[:nchunks * m].reshape(nchunks, m),
+                          self._slot_class[:pairs].reshape(nchunks, m, SLOTS),
+                          self._slot_value[:pairs].reshape(nchunks, m, SLOTS))
 
     def done(self) -> None:
-        """The accumulators handed out are zero again (:func:`add_increments` ran)."""
+        """The increments handed out are zero again (:func:`add_increments` ran)."""
         self._pending = False
 
 
@@ -89,10 +128,12 @@ _NO_BASE = np.zeros((0, 0))
 
 
 @njit(inline="always")
-def add_increment_row(concentrations, row, j, acc, acc_base, marks, decay, prior):  # pragma: no cover
+def add_increment_row(concentrations, row, j, acc, acc_base, marks, slot_class, slot_value, decay,
+                      prior):  # pragma: no cover
     """Row ``row`` of the concentrations += the chunks' increments of projected Gaussian j (:func:`add_increments`):
-    only the marked entries are read (and zeroed), and only their classes of the row written, unless a common part
-    or the decay touches every class."""
+    the slots, then the marked dense entries, each read once and cleared; only their classes of the row are written,
+    unless a common part or the decay touches every class. The order of the additions is fixed (chunk by chunk,
+    slots before the dense row), so a frame's result does not depend on the threads' timing."""
     num_classes = acc.shape[2]
     nch = acc.shape[0]
     per_mark = classes_per_mark(num_classes)
@@ -106,6 +147,9 @@ def add_increment_row(concentrations, row, j, acc, acc_base, marks, decay, prior
         union |= np.uint64(marks[ch, j])
     if decay != 1.0:
         received = common != 0.0
+        for ch in range(nch):
+            for s in range(SLOTS):
+                received |= slot_class[ch, j, s] != EMPTY and slot_value[ch, j, s] != 0.0
         for c in range(num_classes):
             if union & class_mark(c, per_mark):
                 for ch in range(nch):
@@ -116,12 +160,18 @@ def add_increment_row(concentrations, row, j, acc, acc_base, marks, decay, prior
     if common != 0.0:
         for c in range(num_classes):
             concentrations[row, c] += common
-    while union != 0:   # the marked blocks of classes (a bit mask is mostly empty: branch per set bit only)
+    for ch in range(nch):
+        for s in range(SLOTS):
+            c = slot_class[ch, j, s]
+            if c == EMPTY:
+                break   # slots fill in order
+            concentrations[row, c] += slot_value[ch, j, s]
+            slot_class[ch, j, s] = EMPTY
+    while union != 0:   # the marked blocks of classes (a branch per set bit only)
         b = cttz(union)
         bit = np.uint64(1) << b
         union &= ~bit
-        b = np.int64(b)
-        c0 = b * per_mark
+        c0 = np.int64(b) * per_mark
         for c in range(c0, min(num_classes, c0 + per_mark)):
             total = 0.0
             for ch in range(nch):
@@ -134,19 +184,20 @@ def add_increment_row(concentrations, row, j, acc, acc_base, marks, decay, prior
 
 
 @njit(parallel=True, cache=True)
-def _add_kernel(concentrations, ids, acc, acc_base, marks, decay, prior):  # pragma: no cover
+def _add_kernel(concentrations, ids, acc, acc_base, marks, slot_class, slot_value, decay, prior):  # pragma: no cover
     for j in prange(acc.shape[1]):
         prefetch_ahead(concentrations, ids, j)
-        add_increment_row(concentrations, ids[j], j, acc, acc_base, marks, decay, prior)
+        add_increment_row(concentrations, ids[j], j, acc, acc_base, marks, slot_class, slot_value, decay, prior)
 
 
 def add_increments(concentrations: np.ndarray, ids: np.ndarray, inc: Increments, decay: float = 1.0,
                    prior: float = 1.0) -> None:
-    """concentrations[ids[j], c] += sum over chunks of acc[chunk, j, c] (+ base[chunk, j] for every class when base
-    is not empty) (ids are unique); the increments are left zero (:class:`UpdateWorkspace`). With ``decay`` < 1
-    (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some class is first set
-    to prior + (alpha - prior) * decay."""
-    _add_kernel(concentrations, ids, inc.acc, inc.base, inc.marks, float(decay), float(prior))
+    """concentrations[ids[j], c] += the increments of Gaussian j and class c of every chunk (+ base[chunk, j] for
+    every class when base is not empty) (ids are unique); the increments are left zero (:class:`UpdateWorkspace`).
+    With ``decay`` < 1 (forgetting, :mod:`css_ros.engine.change_rules`), a row whose increment is non-zero in some
+    class is first set to prior + (alpha - prior) * decay."""
+    _add_kernel(concentrations, ids, inc.acc, inc.base, inc.marks, inc.slot_class, inc.slot_value, float(decay),
+                float(prior))
 
 
 bind_sources(globals())  # cached kernels recompile when any module they are built from changes

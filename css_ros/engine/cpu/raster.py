@@ -28,7 +28,7 @@ from ..spec import TILE_SIZE
 from .composite import FAST, composite_row, load_tile, longest_list, new_scratch, row_candidates
 from .borrowed import borrow, keep_alive
 from .kept import Kept
-from .increments import Increments, UpdateWorkspace, add_increment_row, class_mark, classes_per_mark
+from .increments import SLOTS, Increments, UpdateWorkspace, add_increment_row, add_to, class_mark, classes_per_mark
 from .prefetch import prefetch_ahead
 from .row_vector import add_row, add_rows4
 from .projection import ProjectedGaussians
@@ -216,45 +216,47 @@ def _rendered_depth(kidx, kval, c, ldepth):  # pragma: no cover
 
 
 @njit(inline="always", fastmath=FAST)
-def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc, acc_base, marks, ch,
-                rows):  # pragma: no cover
-    """Add a tile's accumulator rows (the present ones) into the chunk's Gaussian-major increments ``acc`` (M, C):
-    a class row as it is; with a sensor model, each (label, depth bin) row r through its table, base[r] into
-    acc_base[ch] and resid[r, c] into class c. Only list positions with ``touched[k]`` (a vote reached them) are added;
-    the others hold zeros (Gaussians behind saturated pixels, or whose alpha ellipse misses the tile's voting
-    pixels); their marks (:mod:`.increments`) get the tile's classes. ``rows`` is scratch for the present rows'
-    ids."""
+def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, inc, ch, rows):  # pragma: no cover
+    """Add a tile's accumulator rows (the present ones) into chunk ``ch``'s increments (:class:`Increments`, through
+    :func:`~css_ros.engine.cpu.increments.add_to`): a class row as it is; with a sensor model, each (label, depth bin)
+    row r through its table, base[r] into inc.base[ch] and resid[r, c] into class c. Only list positions with
+    ``touched[k]`` (a vote reached them) are added; the others hold zeros (Gaussians behind saturated pixels, or
+    whose alpha ellipse misses the tile's voting pixels). ``rows`` is scratch for the present rows' ids."""
     n = tile_list.shape[0]
+    acc, marks, slot_class, slot_value = inc.acc[ch], inc.marks[ch], inc.slot_class[ch], inc.slot_value[ch]
     num_classes = acc.shape[1]
     per_mark = classes_per_mark(num_classes)
     if not use_model:
         npres = 0
-        mark = np.uint64(0)
         for c in range(num_classes):
             if present[c]:
                 rows[npres] = c
                 npres += 1
-                mark |= class_mark(c, per_mark)
         for k in range(n):
-            prefetch_ahead(acc, tile_list, k)  # the list's rows lie scattered over the chunk's increments
             if not touched[k]:
                 continue
             j = tile_list[k]
-            marks[j] |= mark
-            out = acc[j]
             for i in range(npres):
                 c = rows[i]
-                out[c] += lacc[c, k]
+                add_to(slot_class, slot_value, acc, marks, j, c, lacc[c, k], per_mark)
         return
+    # a tile with a row that spreads over more classes than a Gaussian has slots (confusion rows) writes the dense
+    # rows directly: through the slots it would fill them and overflow anyway (1.4x the update with dense rows)
+    widest = 0
     mark = np.uint64(0)
     for r in range(present.shape[0]):
         if present[r]:
+            spread = 0
             for c in range(num_classes):
                 if resid[r, c] != 0.0:
+                    spread += 1
                     mark |= class_mark(c, per_mark)
-    for k in range(n):
-        if touched[k]:
-            marks[tile_list[k]] |= mark
+            widest = max(widest, spread)
+    dense = widest > SLOTS
+    if dense:
+        for k in range(n):
+            if touched[k]:
+                marks[tile_list[k]] |= mark
     any_base = False
     for r in range(present.shape[0]):
         if present[r]:
@@ -272,9 +274,12 @@ def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase
                 if pc != 0.0:
                     for k in range(n):
                         if touched[k]:
-                            acc[tile_list[k], c] += lacc[r, k] * pc
+                            if dense:
+                                acc[tile_list[k], c] += lacc[r, k] * pc
+                            else:
+                                add_to(slot_class, slot_value, acc, marks, tile_list[k], c, lacc[r, k] * pc, per_mark)
     if any_base:
-        out = acc_base[ch]
+        out = inc.base[ch]
         for k in range(n):
             if touched[k]:
                 out[tile_list[k]] += lbase[k]
@@ -330,10 +335,10 @@ def _scatter_votes(kp, vp, c, lrow, w, front, depth_scale, ldepth, touched):  # 
 
 # _update_kernel with ``use_model`` (a sensor model): a pixel labelled y at expected depth d = sum kappa z / sum kappa
 # (depth bin b of ``edges``, splat units) adds kappa_ij * weight_i * table[r, c] to every class c instead, r = y * B + b,
-# with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class goes to acc_base[chunk, j]
-# (added to every class by add_increments), the sparse rest to acc. So a symmetric vote (p on the label, the same small
-# share on every other class) costs what a one-hot vote costs. Voting pixels without any contribution are counted as
-# "no depth" (they add nothing). Without it the arithmetic is exactly the paper's update.
+# with the table split as table[r, c] = base[r] + resid[r, c]: the part common to every class goes to base[chunk, j]
+# of the increments (added to every class by add_increments), the sparse rest to the classes. So a symmetric vote (p
+# on the label, the same small share on every other class) costs what a one-hot vote costs. Voting pixels without any
+# contribution are counted as "no depth" (they add nothing). Without it the arithmetic is exactly the paper's update.
 # With ``store``, each voting pixel's contributions (tile-list position as uint16, kappa as float32) are appended to its
 # chunk's row of st_k / st_v (pix_off, pix_cnt, pix_t: offset, count, final T) for the render of the same frame;
 # the pixel records are tile-major (tile t's row r starts at t * tile^2 + r * tile: a tile's records are one run,
@@ -387,10 +392,10 @@ def _list_rows(num_rows, surprise_rows, cap):  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
 def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_confidence, ignore_label, width, height,
-                   tile, tiles_x, acc, marks, use_model, edges, base, resid, acc_base, counts,
+                   tile, tiles_x, inc, use_model, edges, base, resid, counts,
                    store, st_k_arg, st_v_arg, pix_off, pix_cnt, pix_t, gate):  # pragma: no cover
-    """acc[chunk, j, c] += sum over the pixels voting c of kappa_ij * weight_i (chunk-private, Gaussian-major: the
-    add that follows reads each Gaussian's row of every chunk as one contiguous run); counts[chunk] = (used,
+    """The chunk's increments of Gaussian j and class c (``inc``: :class:`Increments`, chunk-private) += sum over
+    the pixels voting c of kappa_ij * weight_i; counts[chunk] = (used,
     ignored, out of range, no depth, transient, occluded) of the chunk's pixels. Each pixel's vote is
     :func:`~css_ros.engine.label_input.pixel_vote` of ``labels[v, u]`` (any integer dtype) and
     ``confidence[v, u]`` (float32 / float64; 1 without ``has_confidence``), taken as it comes: no class or weight
@@ -405,9 +410,9 @@ def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_con
     labels = borrow(labels_arg)
     st_k = borrow(st_k_arg)
     st_v = borrow(st_v_arg)
-    nchunks = acc.shape[0]
+    nchunks = inc.acc.shape[0]
     num_tiles = offsets.shape[0] - 1
-    num_classes = acc.shape[2]
+    num_classes = inc.acc.shape[2]
     num_bins = edges.shape[0] - 1 if use_model else 1
     num_rows = num_classes * num_bins
     cap = st_k.shape[1]
@@ -527,8 +532,7 @@ def _update_kernel(offsets, lists, walk, packed, labels_arg, confidence, has_con
                     if keep:
                         pos += c
             if loaded:
-                _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, acc[ch], acc_base,
-                            marks[ch], ch, present_rows)
+                _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase, inc, ch, present_rows)
         _write_counts(counts[ch], used, ignored, out_of_range, no_depth, transients, occluded)
         keep_alive(owned)
         keep_alive(lrows)
@@ -914,7 +918,7 @@ def accumulate_update(proj: ProjectedGaussians, bins: TileBins, inputs: FrameLab
     chunk_records = chunk_tile_count(0, nchunks, bins.tiles_x, bins.tiles_x * bins.tiles_y) * bins.tile_size ** 2
     _update_kernel(bins.offsets, bins.lists, proj.walk, proj.packed, inputs.labels, conf,
                    inputs.confidence is not None, inputs.ignore_label, width, height, bins.tile_size, bins.tiles_x,
-                   inc.acc, inc.marks, soft is not None, edges, base, resid, inc.base, counts, store is not None,
+                   inc, soft is not None, edges, base, resid, counts, store is not None,
                    *(_NO_STORE if store is None else store.reserve(records, nchunks, chunk_records).arrays()), gate)
     return inc, counts.sum(axis=0), surprise if want_surprise else None
 
@@ -978,13 +982,13 @@ def _dirichlet_kernel(concentrations, ids, colors, packed, attrs, short):  # pra
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=FAST)
-def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, marks, decay, prior, colors, packed,
-                              attrs, short):  # pragma: no cover
+def _add_and_attribute_kernel(concentrations, ids, acc, acc_base, marks, slot_class, slot_value, decay, prior, colors,
+                              packed, attrs, short):  # pragma: no cover
     """:func:`~css_ros.engine.cpu.increments.add_increments` and then :func:`_dirichlet_kernel` of each row while it
     is in cache (one gather of the visible Gaussians' concentration rows instead of two)."""
     for j in prange(ids.shape[0]):
         prefetch_ahead(concentrations, ids, j)  # the rows lie scattered in the model's order
-        add_increment_row(concentrations, ids[j], j, acc, acc_base, marks, decay, prior)
+        add_increment_row(concentrations, ids[j], j, acc, acc_base, marks, slot_class, slot_value, decay, prior)
         _attribute_row(concentrations, ids[j], j, colors, packed, attrs, short)
 
 
@@ -1008,8 +1012,8 @@ def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, i
     one pass (``observe``); into ``kept``'s rows when given."""
     rows = new_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
         AttributeRows(*kept.take(ids.shape[0], concentrations.shape[1]))
-    _add_and_attribute_kernel(concentrations, ids, inc.acc, inc.base, inc.marks, float(decay), float(prior), colors,
-                              packed, *rows)
+    _add_and_attribute_kernel(concentrations, ids, inc.acc, inc.base, inc.marks, inc.slot_class, inc.slot_value,
+                              float(decay), float(prior), colors, packed, *rows)
     return rows
 
 
