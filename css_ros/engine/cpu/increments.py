@@ -167,19 +167,24 @@ def add_increment_row(concentrations, row, j, acc, acc_base, marks, slot_class, 
                 break   # slots fill in order
             concentrations[row, c] += slot_value[ch, j, s]
             slot_class[ch, j, s] = EMPTY
-    while union != 0:   # the marked blocks of classes (a branch per set bit only)
-        b = cttz(union)
-        bit = np.uint64(1) << b
-        union &= ~bit
-        c0 = np.int64(b) * per_mark
-        for c in range(c0, min(num_classes, c0 + per_mark)):
-            total = 0.0
-            for ch in range(nch):
-                if marks[ch, j] & bit:   # not read otherwise: an unmarked chunk's entry is another cache line
-                    total += acc[ch, j, c]
-                    acc[ch, j, c] = 0.0
-            concentrations[row, c] += total
+    if union == 0:
+        return
+    every = (np.uint64(1) << np.uint64((num_classes - 1) // per_mark + 1)) - np.uint64(1)
     for ch in range(nch):
+        mark = np.uint64(marks[ch, j])
+        if mark == 0:
+            continue   # not read: an unmarked chunk's row is other cache lines
+        if mark == every:   # a whole row (a confusion model's votes): one pass
+            for c in range(num_classes):
+                concentrations[row, c] += acc[ch, j, c]
+                acc[ch, j, c] = 0.0
+        while mark != every and mark != 0:   # the marked blocks of classes (a branch per set bit only)
+            b = cttz(mark)
+            mark &= mark - np.uint64(1)
+            c0 = np.int64(b) * per_mark
+            for c in range(c0, min(num_classes, c0 + per_mark)):
+                concentrations[row, c] += acc[ch, j, c]
+                acc[ch, j, c] = 0.0
         marks[ch, j] = 0
 
 

@@ -271,13 +271,16 @@ def _flush_tile(tile_list, touched, lacc, present, use_model, base, resid, lbase
                         lbase[k] += lacc[r, k] * b0
             for c in range(num_classes):
                 pc = resid[r, c]
-                if pc != 0.0:
+                if pc == 0.0:
+                    continue
+                if dense:
                     for k in range(n):
                         if touched[k]:
-                            if dense:
-                                acc[tile_list[k], c] += lacc[r, k] * pc
-                            else:
-                                add_to(slot_class, slot_value, acc, marks, tile_list[k], c, lacc[r, k] * pc, per_mark)
+                            acc[tile_list[k], c] += lacc[r, k] * pc
+                else:
+                    for k in range(n):
+                        if touched[k]:
+                            add_to(slot_class, slot_value, acc, marks, tile_list[k], c, lacc[r, k] * pc, per_mark)
     if any_base:
         out = inc.base[ch]
         for k in range(n):
