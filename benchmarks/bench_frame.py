@@ -206,12 +206,12 @@ def run_scene(cfg: dict, frames: int, warmup: int, candidates: int, cand_w: int,
         t = [time.perf_counter()]
         proj = project(backend.geometry, cam, backend._scratch)   # its kept buffers, as observe does
         t.append(time.perf_counter())
-        bins = bin_tiles(proj, cam.width, cam.height)
+        bins = bin_tiles(proj, cam.width, cam.height, kept=backend._lists)
         t.append(time.perf_counter())
         inputs = smap._frame_labels(cam, lab, None)   # as observe with its default outputs (no surprise)
         backend.update((proj, bins, cam), inputs, conc, soft)
         t.append(time.perf_counter())
-        attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed)
+        attrs = dirichlet_attributes(conc, proj.ids, proj.colors, proj.packed, backend._rows)
         t.append(time.perf_counter())
         buf = render_semantic(proj, bins, cam.width, cam.height, attrs, 1 / C, 0.0, 1.0, np.zeros(3), False,
                               store=backend._store)
