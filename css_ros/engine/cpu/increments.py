@@ -5,7 +5,7 @@ frame's votes reach few classes of a Gaussian: of the (chunk, Gaussian) pairs a 
 0.3 % three or more on the 500k room (28 classes), 62 % and 11 % on biker (20). So each pair has two slots, (class,
 value), filled in the order the classes come; a third class of the pair goes to a dense Gaussian-major (M, C) float64
 array, where the flush also sets a mark bit of its class (one bit of a uint8 per block of ``classes_per_mark(C)``
-classes: one class per bit up to 8 classes). The slots of a chunk (20 bytes a Gaussian: 2 MB at the room's 98k
+classes: one class per bit up to 8 classes). The slots of a chunk (24 bytes a Gaussian: 2.3 MB at the room's 98k
 visible Gaussians) stay in the core's cache, where a dense row of 28 classes is 224 bytes, and the add reads the
 slots and only the marked entries of the dense array. Before the slots, reading and zeroing the dense arrays whole
 (2 x 22 MB on the room, 2 x 160 MB on the 1.22 M Gaussian biker8 at 1280x720) cost more than the votes themselves.
@@ -38,7 +38,7 @@ class Increments(NamedTuple):
     acc: np.ndarray       #: (chunks, M, C) float64: the classes that found no free slot
     base: np.ndarray      #: (chunks, M) float64 added to every class (a sensor model's common part), or (0, 0)
     marks: np.ndarray     #: (chunks, M) uint8: bit b set where acc's classes [b*k, (b+1)*k) may be non-zero
-    slot_class: np.ndarray  #: (chunks, M, SLOTS) int16: a slot's class, EMPTY when free
+    slot_class: np.ndarray  #: (chunks, M, SLOTS) int32: a slot's class, EMPTY when free
     slot_value: np.ndarray  #: (chunks, M, SLOTS) float64: a slot's increment
 
     @classmethod
@@ -47,7 +47,7 @@ class Increments(NamedTuple):
         (tests, other producers)."""
         nchunks, m = acc.shape[:2]
         return cls(acc, base, np.full((nchunks, m), np.iinfo(np.uint8).max, dtype=np.uint8),
-                   np.full((nchunks, m, SLOTS), EMPTY, dtype=np.int16), np.zeros((nchunks, m, SLOTS)))
+                   np.full((nchunks, m, SLOTS), EMPTY, dtype=np.int32), np.zeros((nchunks, m, SLOTS)))
 
 
 @njit(inline="always")
@@ -90,7 +90,7 @@ class UpdateWorkspace:
         self._acc = np.zeros(0)
         self._base = np.zeros(0)
         self._marks = np.zeros(0, dtype=np.uint8)
-        self._slot_class = np.full(0, EMPTY, dtype=np.int16)
+        self._slot_class = np.full(0, EMPTY, dtype=np.int32)
         self._slot_value = np.zeros(0)
         self._pending = False
 
@@ -109,7 +109,7 @@ class UpdateWorkspace:
             self._base = np.zeros(nchunks * m)
         if self._marks.size < nchunks * m:
             self._marks = np.zeros(nchunks * m, dtype=np.uint8)
-            self._slot_class = np.full(nchunks * m * SLOTS, EMPTY, dtype=np.int16)
+            self._slot_class = np.full(nchunks * m * SLOTS, EMPTY, dtype=np.int32)
             self._slot_value = np.zeros(nchunks * m * SLOTS)
         self._pending = True
         base = self._base[:nchunks * m].reshape(nchunks, m) if with_base else _NO_BASE
