@@ -97,8 +97,8 @@ def test_increments_are_summed_over_threads_then_added(with_base, decay):
 
 def test_kept_rows_are_reused_grown_with_headroom_and_remade_for_another_class_count():
     from css_ros.engine.cpu.kept import HEADROOM, Kept
-    from css_ros.engine.cpu.raster import new_rows
-    kept = Kept(new_rows)
+    from css_ros.engine.cpu.raster import new_attribute_rows
+    kept = Kept(new_attribute_rows)
     full, short = kept.take(100, 5)
     assert full.shape == (100, linear_width(5) + 5) and short.shape == (100, SHORT_COLS)
     again, _ = kept.take(int(100 * (1 + HEADROOM)), 5)          # within the headroom: the same memory

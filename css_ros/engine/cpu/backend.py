@@ -13,7 +13,7 @@ from .projection import GaussianGeometry, ProjectionScratch, project
 from .increments import UpdateWorkspace, add_increments
 from .kept import Kept
 from .raster import (AttributeRows, ContributionStore, accumulate_update, add_increments_and_attributes, bin_tiles,
-                     dirichlet_attributes, kept_lists, new_rows, render_semantic)
+                     dirichlet_attributes, new_attribute_rows, new_lists, render_semantic)
 
 if TYPE_CHECKING:
     from ..buffers import RenderBuffers
@@ -36,8 +36,8 @@ class NumbaBackend(RasterBackend):
         self._store = ContributionStore()
         # kept between frames (engine/cpu/kept.py): the tile lists and attribute rows of observe and render (not of
         # the score workers); a frame is valid until the next prepare
-        self._lists = kept_lists()
-        self._rows = Kept(new_rows)
+        self._lists = Kept(new_lists)
+        self._rows = Kept(new_attribute_rows)
         self._attrs: "tuple[Any, AttributeRows] | None" = None  # (frame, attribute rows) made by observe's update
         self._score_scratch: queue.SimpleQueue = queue.SimpleQueue()  # ProjectionScratch per score worker
 

@@ -7,8 +7,8 @@ value), filled in the order the classes come; a third class of the pair goes to 
 array, where the flush also sets a mark bit of its class (one bit of a uint8 per block of ``classes_per_mark(C)``
 classes: one class per bit up to 8 classes). The slots of a chunk (24 bytes a Gaussian: 2.3 MB at the room's 98k
 visible Gaussians) stay in the core's cache, where a dense row of 28 classes is 224 bytes, and the add reads the
-slots and only the marked entries of the dense array. Before the slots, reading and zeroing the dense arrays whole
-(2 x 22 MB on the room, 2 x 160 MB on the 1.22 M Gaussian biker8 at 1280x720) cost more than the votes themselves.
+slots and only the marked entries of the dense array, where it read and zeroed the dense arrays whole (2 x 22 MB on
+the room, 2 x 160 MB on the 1.22 M Gaussian biker8 at 1280x720: 4.3 and 54 ms; benchmarks/README.md).
 The marks are conservative (a marked entry may hold zero); an unmarked dense entry is always zero.
 """
 from __future__ import annotations

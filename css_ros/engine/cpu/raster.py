@@ -100,7 +100,7 @@ def _bin_fill(depth_order, span, tiles_x, fill, lists):  # pragma: no cover
                     fill[p, t] += 1
 
 
-def _new_lists(n: int) -> tuple[np.ndarray]:
+def new_lists(n: int) -> tuple[np.ndarray]:
     """An uninitialised (n,) int32 tile-list array (also the maker of a :class:`~.kept.Kept` of them)."""
     return (np.empty(n, dtype=np.int32),)
 
@@ -109,21 +109,16 @@ def bin_tiles(proj: ProjectedGaussians, width: int, height: int, tile_size: int 
               kept: Kept | None = None) -> TileBins:
     """Counting-sort the depth-sorted Gaussians into the tiles their alpha >= 1/255 box overlaps.
 
-    ``kept``: the lists' array kept between frames (a :class:`~.kept.Kept` made by :func:`kept_lists`; the bins are
-    valid until its next use), or None for a fresh one."""
+    ``kept``: the lists' array kept between frames (a :class:`~.kept.Kept` of :func:`new_lists`; the bins are valid
+    until its next use), or None for a fresh one."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     offsets, span, fill = _bin_count(proj.bbox, proj.depth_order, tiles_x, tiles_y, tile_size,
                                      max(1, numba.get_num_threads()))
     total = int(offsets[-1])
-    (lists,) = _new_lists(total) if kept is None else kept.take(total)
+    (lists,) = new_lists(total) if kept is None else kept.take(total)
     _bin_fill(proj.depth_order, span, tiles_x, fill, lists)
     return TileBins(offsets, lists, tiles_x, tiles_y, tile_size)
-
-
-def kept_lists() -> Kept:
-    """A kept tile-list array for :func:`bin_tiles` (one per thread of use)."""
-    return Kept(_new_lists)
 
 
 def linear_width(num_classes: int) -> int:
@@ -1002,7 +997,7 @@ class AttributeRows(NamedTuple):
     short: np.ndarray  #: (M, SHORT_COLS) float32: E, Var of the most likely class, r, g, b, S, z, that class
 
 
-def new_rows(m: int, num_classes: int) -> AttributeRows:
+def new_attribute_rows(m: int, num_classes: int) -> AttributeRows:
     """Uninitialised attribute rows of m projected Gaussians (also the maker of a :class:`~.kept.Kept` of them)."""
     return AttributeRows(np.empty((m, linear_width(num_classes) + num_classes), dtype=np.float32),
                          np.empty((m, SHORT_COLS), dtype=np.float32))
@@ -1013,7 +1008,7 @@ def add_increments_and_attributes(concentrations: np.ndarray, ids: np.ndarray, i
                                   kept: Kept | None = None) -> AttributeRows:
     """:func:`~css_ros.engine.cpu.increments.add_increments` then :func:`dirichlet_attributes` of the updated rows, in
     one pass (``observe``); into ``kept``'s rows when given."""
-    rows = new_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
+    rows = new_attribute_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
         AttributeRows(*kept.take(ids.shape[0], concentrations.shape[1]))
     _add_and_attribute_kernel(concentrations, ids, inc.acc, inc.base, inc.marks, inc.slot_class, inc.slot_value,
                               float(decay), float(prior), colors, packed, *rows)
@@ -1030,12 +1025,12 @@ def dirichlet_attributes(concentrations: np.ndarray, ids: np.ndarray, colors: np
         concentrations: (N, C) float64 alpha; ids: (M,) model rows; colors: (M, 3) view colours, or
             (0, 3) for zero colour (views that are only scored); packed: (M, 8) projected rows (column 7:
             camera depth z, splat units); kept: rows kept between frames (a :class:`~.kept.Kept` of
-            :func:`new_rows`), or None for fresh ones.
+            :func:`new_attribute_rows`), or None for fresh ones.
     Returns:
         float32 rows (halves the render's memory traffic; these rows are all the shading reads), with
         E = alpha / S, Var = E (1 - E) / (1 + S).
     """
-    rows = new_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
+    rows = new_attribute_rows(ids.shape[0], concentrations.shape[1]) if kept is None else \
         AttributeRows(*kept.take(ids.shape[0], concentrations.shape[1]))
     _dirichlet_kernel(concentrations, ids, colors, packed, *rows)
     return rows
